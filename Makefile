@@ -1,0 +1,74 @@
+# endo3d workspace. A newcomer needs two commands: `make demo` and `make test`.
+# Both create .venv when it is missing and install only what is missing.
+SHELL := /bin/bash
+.DEFAULT_GOAL := demo
+
+PYTHON ?= python3
+VENV := .venv
+VBIN := $(VENV)/bin
+STAMP := $(VENV)/.endo3d-installed
+PACKAGES := $(sort $(patsubst %/setup.py,%,$(wildcard src/*/setup.py)))
+
+# DDS stays on this machine: Fast DDS's default discovery multicasts on every
+# interface, and only loopback may carry traffic here. Every target below
+# inherits these; each target also gets a DDS domain of its own, so a demo and
+# a test run on the same machine never see each other's topics.
+export ROS_AUTOMATIC_DISCOVERY_RANGE := LOCALHOST
+export RMW_IMPLEMENTATION := rmw_fastrtps_cpp
+export PYTHONDONTWRITEBYTECODE := 1
+DEMO_DOMAIN_ID ?= 41
+TEST_DOMAIN_ID ?= 42
+BENCH_DOMAIN_ID ?= 43
+DOCTOR_DOMAIN_ID ?= 44
+
+.PHONY: venv demo test lint bench doctor constraints clean
+
+$(VBIN)/python:
+	$(PYTHON) -m venv $(VENV)
+
+# Re-runs only when the pins or a package's setup files change; a second
+# `make` finds the stamp up to date and does no network work at all.
+$(STAMP): $(VBIN)/python requirements.txt constraints.txt $(wildcard src/*/setup.py src/*/setup.cfg)
+	$(VBIN)/python -m pip install --disable-pip-version-check -q -c constraints.txt pip
+	$(VBIN)/python -m pip install --disable-pip-version-check -q -c constraints.txt -r requirements.txt
+	@# PEP 660 editable installs put console scripts in .venv/bin; setup.cfg's
+	@# script_dir (for `ros2 run` under colcon) applies only to colcon builds.
+	$(VBIN)/python -m pip install --disable-pip-version-check -q --no-deps --no-build-isolation \
+	  --use-pep517 $(addprefix -e ,$(PACKAGES))
+	@touch $@
+	@echo "endo3d: environment ready in $(VENV)"
+
+venv: $(STAMP)
+
+demo: export ROS_DOMAIN_ID := $(DEMO_DOMAIN_ID)
+demo: $(STAMP)
+	$(VBIN)/endo-demo
+
+test: export ROS_DOMAIN_ID := $(TEST_DOMAIN_ID)
+test: $(STAMP)
+	$(VBIN)/python -m pytest
+
+lint: $(STAMP)
+	$(VBIN)/ruff check src tests bench
+
+bench: export ROS_DOMAIN_ID := $(BENCH_DOMAIN_ID)
+bench: $(STAMP)
+	@for b in bench/bench_*.py; do echo "== $$b"; $(VBIN)/python $$b || exit 1; done
+
+# Prints the DDS settings a node started by this Makefile actually gets.
+doctor: export ROS_DOMAIN_ID := $(DOCTOR_DOMAIN_ID)
+doctor: $(STAMP)
+	@$(VBIN)/endo-doctor
+
+# Re-pin every version after editing requirements.txt (needs the network).
+constraints:
+	rm -rf .venv-pin && $(PYTHON) -m venv .venv-pin
+	.venv-pin/bin/python -m pip install -q -r requirements.txt
+	( echo "# Every version pin of the endo3d virtual environment, in one place."; \
+	  echo "# Regenerate after changing requirements.txt: make constraints"; \
+	  .venv-pin/bin/python -m pip freeze --all | grep -E '^(ros-|[A-Za-z0-9._-]+==)' \
+	  | grep -vE '^[a-z_]+_(msgs|interfaces)==|^(rclpy|rcutils|rmw_dds_common|rosidl_[a-z_]+)==' | sort -f ) > constraints.txt
+	rm -rf .venv-pin
+
+clean:
+	rm -rf $(VENV) build install log .pytest_cache

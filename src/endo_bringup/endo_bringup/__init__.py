@@ -1,0 +1,1 @@
+"""Launch and demo entry points that wire the endo3d nodes into one graph."""

@@ -1,0 +1,1 @@
+"""Gray-card photometric calibration (camera response and light map) and the image correction node."""

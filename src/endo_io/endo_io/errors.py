@@ -1,0 +1,45 @@
+"""Named exception classes shared by every endo3d package.
+
+Nodes catch :class:`Endo3dError` around each message: the message is dropped,
+the one-line reason is logged and counted in ``/diagnostics``, and the node
+keeps running. Each package derives its own errors from these so that a
+caller can tell *what* was wrong from the class alone.
+"""
+
+from __future__ import annotations
+
+
+class Endo3dError(Exception):
+    """Base class of every error raised on bad input anywhere in endo3d."""
+
+
+class MessageConversionError(Endo3dError, ValueError):
+    """A ROS message cannot be converted to or from numpy as asked."""
+
+
+class ImageEncodingError(MessageConversionError):
+    """An image encoding is unknown, unsupported, or not the one required."""
+
+
+class ImageLayoutError(MessageConversionError):
+    """An image's step, size or buffer length do not agree."""
+
+
+class CameraModelError(MessageConversionError):
+    """A CameraInfo or calibration YAML is inconsistent or unsupported."""
+
+
+class PoseError(MessageConversionError):
+    """A pose is not finite or its rotation is not a unit quaternion."""
+
+
+class PointCloudError(MessageConversionError):
+    """A PointCloud2 lacks the expected fields or its layout is inconsistent."""
+
+
+class BagError(Endo3dError):
+    """A bag cannot be opened, read or written."""
+
+
+class BagCorruptError(BagError):
+    """A bag is truncated or damaged; everything before the damage was read."""

@@ -1,0 +1,1 @@
+"""Shape from shading (Oren-Nayar, orthographic Eikonal and near-light perspective models) by fast sweeping."""

@@ -1,0 +1,1 @@
+"""Endoscope simulator with physically based photometry, tracker simulation and ground truth."""

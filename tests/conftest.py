@@ -1,0 +1,1 @@
+"""Shared settings for the cross-package integration tests."""
