@@ -40,7 +40,8 @@ def test_every_make_target_that_runs_nodes_sets_its_own_domain():
     assert "export ROS_AUTOMATIC_DISCOVERY_RANGE := LOCALHOST" in makefile
     domains = {}
     for target in ("demo", "test", "bench", "doctor"):
-        line = next(x for x in makefile.splitlines() if x.startswith(f"{target}: export ROS_DOMAIN_ID"))
+        prefix = f"{target}: export ROS_DOMAIN_ID"
+        line = next(x for x in makefile.splitlines() if x.startswith(prefix))
         var = line.split("$(")[1].rstrip(")")
         value = next(x for x in makefile.splitlines() if x.startswith(f"{var} ?="))
         domains[target] = int(value.split("?=")[1])

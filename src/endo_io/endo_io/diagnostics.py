@@ -58,7 +58,9 @@ class InputHealth:
         self.last_error = ""
         self._last_log: dict[str, float] = {}
         self._extra: dict[str, str] = {}
-        self._publisher = node.create_publisher(DiagnosticArray, DIAGNOSTICS_TOPIC, reliable_qos(10))
+        self._publisher = node.create_publisher(
+            DiagnosticArray, DIAGNOSTICS_TOPIC, reliable_qos(10)
+        )
         self._timer = node.create_timer(period_s, self.publish)
 
     def ok(self) -> None:
@@ -95,7 +97,7 @@ class InputHealth:
             except Endo3dError as error:
                 self.drop(type(error).__name__, str(error))
                 return None
-            except Exception as error:  # noqa: BLE001 - the node must keep running
+            except Exception as error:  # the node must keep running
                 self.drop(type(error).__name__, f"unexpected: {error}")
                 return None
             self.ok()
@@ -110,7 +112,10 @@ class InputHealth:
         message = "ok" if total_dropped == 0 else f"{total_dropped} dropped; last {self.last_error}"
         values = [KeyValue(key="processed", value=str(self.processed))]
         values.append(KeyValue(key="dropped", value=str(total_dropped)))
-        values += [KeyValue(key=f"dropped.{c}", value=str(n)) for c, n in sorted(self.dropped.items())]
+        values += [
+            KeyValue(key=f"dropped.{cause}", value=str(count))
+            for cause, count in sorted(self.dropped.items())
+        ]
         values += [KeyValue(key=k, value=v) for k, v in sorted(self._extra.items())]
         return DiagnosticStatus(
             level=level,

@@ -1,0 +1,112 @@
+"""Stamps, QoS presets and the /diagnostics drop counter."""
+
+from __future__ import annotations
+
+import time
+
+import pytest
+import rclpy
+from builtin_interfaces.msg import Time
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, ReliabilityPolicy
+from std_msgs.msg import Float32
+
+from endo_io.diagnostics import InputHealth
+from endo_io.errors import Endo3dError, ImageEncodingError
+from endo_io.qos import SENSOR_DATA_QOS, create_reliable_publisher, reliable_qos
+from endo_io.stamp import ns_to_stamp, stamp_to_ns
+
+
+def test_stamp_round_trip_is_exact_for_large_epoch_times():
+    ns = 1_763_800_000_123_456_789
+    stamp = ns_to_stamp(ns)
+    assert (stamp.sec, stamp.nanosec) == (1_763_800_000, 123_456_789)
+    assert stamp_to_ns(stamp) == ns
+    assert stamp_to_ns(Time(sec=3, nanosec=5)) == 3_000_000_005
+    with pytest.raises(ValueError, match="non-negative"):
+        ns_to_stamp(-1)
+
+
+def test_qos_presets_follow_rep_2003():
+    assert SENSOR_DATA_QOS.reliability == ReliabilityPolicy.BEST_EFFORT
+    assert SENSOR_DATA_QOS.depth == 5
+    profile = reliable_qos(7)
+    assert profile.reliability == ReliabilityPolicy.RELIABLE
+    assert profile.depth == 7
+    assert profile.durability == DurabilityPolicy.VOLATILE
+    assert reliable_qos(latched=True).durability == DurabilityPolicy.TRANSIENT_LOCAL
+
+
+@pytest.fixture
+def node():
+    rclpy.init()
+    node = Node("health_under_test")
+    yield node
+    node.destroy_node()
+    rclpy.shutdown()
+
+
+def test_publisher_qos_can_be_overridden_by_parameter():
+    rclpy.init()
+    try:
+        node = Node(
+            "qos_override_under_test",
+            parameter_overrides=[
+                rclpy.parameter.Parameter(
+                    "qos_overrides./out.publisher.reliability",
+                    value="best_effort",
+                )
+            ],
+        )
+        publisher = create_reliable_publisher(node, Float32, "/out", depth=3)
+        assert publisher.qos_profile.reliability == ReliabilityPolicy.BEST_EFFORT
+        assert publisher.qos_profile.depth == 3
+        node.destroy_node()
+    finally:
+        rclpy.shutdown()
+
+
+def test_guard_drops_bad_messages_counts_them_and_keeps_going(node):
+    health = InputHealth(node, "image input", period_s=0.05)
+    seen: list[int] = []
+
+    @health.guard
+    def callback(value: int) -> int:
+        if value == 1:
+            raise ImageEncodingError("image encoding 'yuv422' is not supported")
+        if value == 2:
+            raise ZeroDivisionError("division by zero")
+        seen.append(value)
+        return value
+
+    assert [callback(v) for v in (0, 1, 2, 3, 1)] == [0, None, None, 3, None]
+    assert seen == [0, 3]
+    assert health.processed == 2
+    assert health.dropped == {"ImageEncodingError": 2, "ZeroDivisionError": 1}
+    status = health.status()
+    assert status.level == DiagnosticStatus.WARN
+    assert status.name == "health_under_test: image input"
+    values = {kv.key: kv.value for kv in status.values}
+    assert values["processed"] == "2"
+    assert values["dropped"] == "3"
+    assert values["dropped.ImageEncodingError"] == "2"
+    assert "yuv422" in status.message or "division" in status.message
+    assert issubclass(ImageEncodingError, Endo3dError)
+
+
+def test_status_is_published_on_diagnostics(node):
+    health = InputHealth(node, "input", period_s=0.05)
+    health.ok()
+    health.set_value("latency_ms", 3.5)
+    received: list[DiagnosticArray] = []
+    node.create_subscription(DiagnosticArray, "/diagnostics", received.append, 10)
+    deadline = time.monotonic() + 10.0
+    while not received and time.monotonic() < deadline:
+        rclpy.spin_once(node, timeout_sec=0.05)
+    assert received, "no /diagnostics message within 10 s"
+    status = received[-1].status[0]
+    assert status.level == DiagnosticStatus.OK
+    values = {kv.key: kv.value for kv in status.values}
+    assert values["processed"] == "1"
+    assert values["latency_ms"] == "3.5"
