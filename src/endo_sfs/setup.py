@@ -14,7 +14,10 @@ setup(
     zip_safe=True,
     maintainer="endo3d developers",
     maintainer_email="dev@endo3d.org",
-    description="Shape from shading (Oren-Nayar, orthographic Eikonal and near-light perspective models) by fast sweeping.",
+    description=(
+        "Shape from shading (Oren-Nayar, orthographic Eikonal and near-light "
+        "perspective models) by fast sweeping."
+    ),
     license="Apache-2.0",
     tests_require=["pytest"],
     entry_points={

@@ -1,1 +1,5 @@
-"""Shape from shading (Oren-Nayar, orthographic Eikonal and near-light perspective models) by fast sweeping."""
+"""Shape from shading by fast sweeping.
+
+Oren–Nayar / Lambertian reflectance, the orthographic Eikonal model of the
+seed paper and the near-light perspective model of Prados & Faugeras.
+"""

@@ -1,0 +1,25 @@
+"""Named errors of shape from shading: what about an input frame was unusable."""
+
+from __future__ import annotations
+
+from endo_io.errors import Endo3dError
+
+
+class SfsError(Endo3dError):
+    """Base class of every endo_sfs error on bad input."""
+
+
+class SfsInputError(SfsError, ValueError):
+    """An irradiance image, mask or warm start has the wrong shape, dtype or values."""
+
+
+class CameraMismatchError(SfsInputError):
+    """The camera model's image size differs from the irradiance image's size."""
+
+
+class NoValidPixelsError(SfsInputError):
+    """No pixel is usable: the frame is all dark, all saturated, NaN or masked."""
+
+
+class UnknownModelError(SfsError, ValueError):
+    """The requested reflectance or camera model is not one endo_sfs implements."""
