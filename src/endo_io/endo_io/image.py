@@ -1,0 +1,183 @@
+"""Conversions between ``sensor_msgs/Image`` and numpy arrays.
+
+Supported encodings and the arrays they map to:
+
+============  ==========  =========  ========================
+encoding      dtype       channels   array shape
+============  ==========  =========  ========================
+``mono8``     uint8       1          (H, W)
+``mono16``    uint16      1          (H, W)
+``16UC1``     uint16      1          (H, W)
+``32FC1``     float32     1          (H, W)  REP 118 depth, metres
+``rgb8``      uint8       3          (H, W, 3)
+``bgr8``      uint8       3          (H, W, 3)
+``rgba8``     uint8       4          (H, W, 4)
+``bgra8``     uint8       4          (H, W, 4)
+============  ==========  =========  ========================
+
+Channel order is kept as the encoding names it (a ``bgr8`` image gives a
+B,G,R array, as OpenCV expects); nothing is reordered here.
+
+Rows may be padded (``step > width * bytes_per_pixel``); multi-byte data may
+be big-endian (``is_bigendian = 1``). The returned array is always C-contiguous
+in native byte order. When the message is already packed and native it is a
+zero-copy view of ``msg.data`` (as cv_bridge does), otherwise a copy.
+"""
+
+from __future__ import annotations
+
+import sys
+from array import array as byte_array
+from dataclasses import dataclass
+
+import numpy as np
+from sensor_msgs.msg import Image
+
+from endo_io.errors import ImageEncodingError, ImageLayoutError
+from endo_io.stamp import ns_to_stamp
+
+
+@dataclass(frozen=True)
+class PixelFormat:
+    """Element type and channel count of one image encoding."""
+
+    dtype: np.dtype
+    channels: int
+
+    @property
+    def bytes_per_pixel(self) -> int:
+        """Bytes one pixel occupies in ``Image.data``."""
+        return self.dtype.itemsize * self.channels
+
+
+PIXEL_FORMATS: dict[str, PixelFormat] = {
+    "mono8": PixelFormat(np.dtype(np.uint8), 1),
+    "mono16": PixelFormat(np.dtype(np.uint16), 1),
+    "16UC1": PixelFormat(np.dtype(np.uint16), 1),
+    "32FC1": PixelFormat(np.dtype(np.float32), 1),
+    "rgb8": PixelFormat(np.dtype(np.uint8), 3),
+    "bgr8": PixelFormat(np.dtype(np.uint8), 3),
+    "rgba8": PixelFormat(np.dtype(np.uint8), 4),
+    "bgra8": PixelFormat(np.dtype(np.uint8), 4),
+}
+
+#: Encodings that :func:`image_to_array` and :func:`array_to_image` handle.
+SUPPORTED_ENCODINGS: frozenset[str] = frozenset(PIXEL_FORMATS)
+
+_NATIVE_IS_BIGENDIAN = sys.byteorder == "big"
+
+
+def pixel_format(encoding: str) -> PixelFormat:
+    """Return the element dtype and channel count of ``encoding``.
+
+    Raises :class:`ImageEncodingError` if the encoding is not supported.
+    """
+    try:
+        return PIXEL_FORMATS[encoding]
+    except KeyError:
+        raise ImageEncodingError(
+            f"unsupported image encoding {encoding!r}; supported: "
+            f"{', '.join(sorted(SUPPORTED_ENCODINGS))}"
+        ) from None
+
+
+def image_to_array(msg: Image) -> np.ndarray:
+    """Return the pixels of a ``sensor_msgs/Image`` as a numpy array.
+
+    Returns an array of shape (H, W) for single-channel encodings or
+    (H, W, C) for colour ones, with dtype uint8, uint16 or float32 (see the
+    module table), C-contiguous and in native byte order. Units are those of
+    the encoding (``32FC1`` depth is metres by REP 118). The array may share
+    memory with ``msg.data`` when no copy is needed.
+
+    Raises:
+        ImageEncodingError: the encoding is not one of ``SUPPORTED_ENCODINGS``.
+        ImageLayoutError: zero width or height, a step shorter than one row
+            of pixels, or a data length other than ``step * height``.
+    """
+    fmt = pixel_format(msg.encoding)
+    height, width, step = int(msg.height), int(msg.width), int(msg.step)
+    row_bytes = width * fmt.bytes_per_pixel
+    if height == 0 or width == 0:
+        raise ImageLayoutError(f"{msg.encoding} image has zero size {width}x{height}")
+    if step < row_bytes:
+        raise ImageLayoutError(
+            f"{msg.encoding} image step {step} < width {width} x "
+            f"{fmt.bytes_per_pixel} bytes per pixel = {row_bytes}"
+        )
+    raw = np.frombuffer(msg.data, dtype=np.uint8)
+    if raw.size != step * height:
+        kind = "truncated" if raw.size < step * height else "oversized"
+        raise ImageLayoutError(
+            f"{msg.encoding} image data {kind}: {raw.size} bytes, expected step {step} x "
+            f"height {height} = {step * height}"
+        )
+
+    stored_dtype = fmt.dtype
+    if fmt.dtype.itemsize > 1:
+        stored_dtype = fmt.dtype.newbyteorder(">" if msg.is_bigendian else "<")
+    # Each row is contiguous, so a byte view of the used part of every row can
+    # be reinterpreted as the element type even when rows are padded.
+    rows = raw.reshape(height, step)[:, :row_bytes].view(stored_dtype)
+    shape = (height, width) if fmt.channels == 1 else (height, width, fmt.channels)
+    pixels = rows.reshape(shape)
+    if not stored_dtype.isnative:
+        return pixels.astype(fmt.dtype)  # byte-swapping copy, C-contiguous
+    return np.ascontiguousarray(pixels)
+
+
+def array_to_image(
+    array: np.ndarray, encoding: str, stamp_ns: int = 0, frame_id: str = ""
+) -> Image:
+    """Return a ``sensor_msgs/Image`` holding ``array`` with ``encoding``.
+
+    Args:
+        array: (H, W) for single-channel encodings ((H, W, 1) is accepted
+            too) or (H, W, C) for colour ones; the dtype must be the
+            encoding's (uint8, uint16 or float32, any byte order).
+        encoding: one of ``SUPPORTED_ENCODINGS``.
+        stamp_ns: header stamp, integer nanoseconds (>= 0).
+        frame_id: header frame id, e.g. ``endoscope_optical_frame``.
+
+    The message is packed (``step = W * bytes_per_pixel``) in native byte
+    order, with ``is_bigendian`` set accordingly.
+
+    Raises:
+        ImageEncodingError: unsupported encoding, or a dtype that does not
+            match it.
+        ImageLayoutError: a shape that does not match the encoding, or a
+            zero-sized array.
+    """
+    fmt = pixel_format(encoding)
+    pixels = np.asarray(array)
+    if pixels.dtype.newbyteorder("=") != fmt.dtype.newbyteorder("="):
+        raise ImageEncodingError(
+            f"encoding {encoding} needs dtype {fmt.dtype.name}, got {pixels.dtype.name}"
+        )
+    if fmt.channels == 1 and pixels.ndim == 3 and pixels.shape[2] == 1:
+        pixels = pixels[:, :, 0]
+    expected_ndim = 2 if fmt.channels == 1 else 3
+    if pixels.ndim != expected_ndim or (
+        expected_ndim == 3 and pixels.shape[2] != fmt.channels
+    ):
+        wanted = "(H, W)" if fmt.channels == 1 else f"(H, W, {fmt.channels})"
+        raise ImageLayoutError(
+            f"encoding {encoding} needs an array of shape {wanted}, got {pixels.shape}"
+        )
+    height, width = pixels.shape[:2]
+    if height == 0 or width == 0:
+        raise ImageLayoutError(f"cannot publish a zero-size {width}x{height} image")
+    packed = np.ascontiguousarray(pixels, dtype=fmt.dtype)  # native order, packed rows
+
+    msg = Image()
+    msg.header.stamp = ns_to_stamp(stamp_ns)
+    msg.header.frame_id = frame_id
+    msg.height = height
+    msg.width = width
+    msg.encoding = encoding
+    msg.is_bigendian = int(_NATIVE_IS_BIGENDIAN)
+    msg.step = width * fmt.bytes_per_pixel
+    # array.array is the type rclpy stores uint8[] in; building it from bytes
+    # is one memcpy, whereas assigning any other sequence is checked per byte.
+    msg.data = byte_array("B", packed.tobytes())
+    return msg
