@@ -1,0 +1,297 @@
+"""Rigid transforms: ``geometry_msgs/PoseStamped`` <-> 4x4 matrices, quaternions, SLERP.
+
+Conventions:
+
+* Quaternions are ``(x, y, z, w)`` (the ROS message order, and scipy's
+  ``Rotation.as_quat`` order). A rotation has two quaternions, ``q`` and
+  ``-q``; functions here return the canonical one with ``w >= 0`` (and, when
+  ``w == 0``, the first non-zero component positive).
+* A transform ``T`` (4, 4) float64 maps points from the pose's child frame into
+  ``header.frame_id``: ``p_parent = T[:3, :3] @ p_child + T[:3, 3]``, metres.
+* Time is integer nanoseconds (:mod:`endo_io.stamp`).
+
+Every input rotation is checked: a NaN, a quaternion whose norm is further
+than ``tolerance`` from 1, or a matrix that is not a rotation raises
+:class:`PoseError`. Accepted quaternions are normalised before use.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from geometry_msgs.msg import PoseStamped
+
+from endo_io.errors import PoseError
+from endo_io.stamp import ns_to_stamp, stamp_to_ns
+
+#: Default allowed deviation of a quaternion's norm from 1, and of a rotation
+#: matrix's ``R.T @ R`` from the identity (max abs element).
+DEFAULT_TOLERANCE = 1e-3
+
+# Below this angle between two quaternions SLERP's sin(theta) denominator loses
+# precision; linear interpolation is then exact to O(theta^2) ~ 1e-18.
+_SLERP_LINEAR_BELOW_RAD = 1e-9
+
+
+def _unit_quaternions(q_xyzw: np.ndarray, tolerance: float) -> np.ndarray:
+    """Validate (..., 4) quaternions and return them normalised (float64)."""
+    q = np.asarray(q_xyzw, dtype=np.float64)
+    if q.shape[-1:] != (4,):
+        raise PoseError(f"quaternion must have shape (..., 4) x,y,z,w, got {q.shape}")
+    if not np.all(np.isfinite(q)):
+        raise PoseError("quaternion contains NaN or infinity")
+    norm = np.linalg.norm(q, axis=-1, keepdims=True)
+    worst = float(np.max(np.abs(norm - 1.0))) if norm.size else 0.0
+    if worst > tolerance:
+        raise PoseError(
+            f"quaternion norm deviates from 1 by {worst:.3g} > tolerance {tolerance:g}"
+        )
+    return q / norm
+
+
+def canonical_quaternion(q_xyzw: np.ndarray) -> np.ndarray:
+    """Return (..., 4) quaternions flipped to the sign with ``w >= 0``.
+
+    When ``w == 0`` (a half turn) the first non-zero of x, y, z is made
+    positive, so that equal rotations always give equal quaternions.
+    """
+    q = np.array(q_xyzw, dtype=np.float64)
+    # index of the first non-zero component in the order w, x, y, z
+    ordered = np.concatenate([q[..., 3:4], q[..., :3]], axis=-1)
+    first = np.argmax(ordered != 0.0, axis=-1)[..., None]
+    sign = np.where(np.take_along_axis(ordered, first, axis=-1) < 0.0, -1.0, 1.0)
+    return q * sign
+
+
+def quaternion_to_matrix(q_xyzw: np.ndarray, *, tolerance: float = DEFAULT_TOLERANCE) -> np.ndarray:
+    """Return the rotation matrix of a unit quaternion.
+
+    Args:
+        q_xyzw: (4,) or (..., 4) quaternion(s) x, y, z, w.
+        tolerance: allowed deviation of the norm from 1.
+
+    Returns:
+        (3, 3) or (..., 3, 3) float64 rotation matrix.
+
+    Raises:
+        PoseError: NaN/inf or a norm further than ``tolerance`` from 1.
+    """
+    x, y, z, w = np.moveaxis(_unit_quaternions(q_xyzw, tolerance), -1, 0)
+    xx, yy, zz = x * x, y * y, z * z
+    xy, xz, yz = x * y, x * z, y * z
+    wx, wy, wz = w * x, w * y, w * z
+    rows = [
+        [1.0 - 2.0 * (yy + zz), 2.0 * (xy - wz), 2.0 * (xz + wy)],
+        [2.0 * (xy + wz), 1.0 - 2.0 * (xx + zz), 2.0 * (yz - wx)],
+        [2.0 * (xz - wy), 2.0 * (yz + wx), 1.0 - 2.0 * (xx + yy)],
+    ]
+    return np.stack([np.stack(row, axis=-1) for row in rows], axis=-2)
+
+
+def _check_rotation(R: np.ndarray, tolerance: float) -> np.ndarray:
+    rot = np.asarray(R, dtype=np.float64)
+    if rot.shape[-2:] != (3, 3):
+        raise PoseError(f"rotation matrix must have shape (..., 3, 3), got {rot.shape}")
+    if not np.all(np.isfinite(rot)):
+        raise PoseError("rotation matrix contains NaN or infinity")
+    gram = np.swapaxes(rot, -1, -2) @ rot
+    off = float(np.max(np.abs(gram - np.eye(3)))) if rot.size else 0.0
+    if off > tolerance:
+        raise PoseError(f"matrix is not orthonormal: |R^T R - I| = {off:.3g} > {tolerance:g}")
+    if rot.size and float(np.min(np.linalg.det(rot))) <= 0.0:
+        raise PoseError("matrix is a reflection (determinant <= 0), not a rotation")
+    return rot
+
+
+def matrix_to_quaternion(R: np.ndarray, *, tolerance: float = DEFAULT_TOLERANCE) -> np.ndarray:
+    """Return the canonical unit quaternion of a rotation matrix.
+
+    Args:
+        R: (3, 3) or (..., 3, 3) rotation matrix (a 4x4 transform's
+            ``T[:3, :3]``).
+        tolerance: allowed max abs deviation of ``R.T @ R`` from identity.
+
+    Returns:
+        (4,) or (..., 4) float64 quaternion x, y, z, w with ``w >= 0``.
+
+    Raises:
+        PoseError: NaN/inf, not orthonormal within ``tolerance``, or det <= 0.
+    """
+    rot = _check_rotation(R, tolerance)
+    m = {(i, j): rot[..., i, j] for i in range(3) for j in range(3)}
+    # Shepperd's method: build the quaternion from whichever of 4w^2, 4x^2,
+    # 4y^2, 4z^2 is largest, so the divisor is never close to zero.
+    t = np.stack(
+        [
+            1.0 + m[0, 0] - m[1, 1] - m[2, 2],
+            1.0 - m[0, 0] + m[1, 1] - m[2, 2],
+            1.0 - m[0, 0] - m[1, 1] + m[2, 2],
+            1.0 + m[0, 0] + m[1, 1] + m[2, 2],
+        ],
+        axis=-1,
+    )
+    candidates = np.stack(
+        [
+            np.stack([t[..., 0], m[0, 1] + m[1, 0], m[0, 2] + m[2, 0], m[2, 1] - m[1, 2]], -1),
+            np.stack([m[0, 1] + m[1, 0], t[..., 1], m[1, 2] + m[2, 1], m[0, 2] - m[2, 0]], -1),
+            np.stack([m[0, 2] + m[2, 0], m[1, 2] + m[2, 1], t[..., 2], m[1, 0] - m[0, 1]], -1),
+            np.stack([m[2, 1] - m[1, 2], m[0, 2] - m[2, 0], m[1, 0] - m[0, 1], t[..., 3]], -1),
+        ],
+        axis=-2,
+    )
+    best = np.argmax(t, axis=-1)[..., None, None]
+    q = np.take_along_axis(candidates, best, axis=-2)[..., 0, :]
+    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
+    return canonical_quaternion(q)
+
+
+def _check_transform(T: np.ndarray, tolerance: float, name: str = "transform") -> np.ndarray:
+    mat = np.asarray(T, dtype=np.float64)
+    if mat.shape != (4, 4):
+        raise PoseError(f"{name} must have shape (4, 4), got {mat.shape}")
+    if not np.all(np.isfinite(mat)):
+        raise PoseError(f"{name} contains NaN or infinity")
+    if not np.array_equal(mat[3], [0.0, 0.0, 0.0, 1.0]):
+        raise PoseError(f"{name} bottom row must be [0, 0, 0, 1], got {mat[3].tolist()}")
+    _check_rotation(mat[:3, :3], tolerance)
+    return mat
+
+
+def pose_to_matrix(
+    msg: PoseStamped, *, tolerance: float = DEFAULT_TOLERANCE
+) -> tuple[np.ndarray, int]:
+    """Return a ``PoseStamped`` as a (4, 4) float64 transform and its stamp in ns.
+
+    The quaternion is normalised before conversion; positions are metres.
+
+    Raises:
+        PoseError: NaN/inf in position or orientation, or a quaternion whose
+            norm is further than ``tolerance`` from 1.
+    """
+    p, o = msg.pose.position, msg.pose.orientation
+    position = np.array([p.x, p.y, p.z], dtype=np.float64)
+    if not np.all(np.isfinite(position)):
+        raise PoseError(f"pose position is not finite: {position.tolist()}")
+    T = np.eye(4)
+    T[:3, :3] = quaternion_to_matrix(np.array([o.x, o.y, o.z, o.w]), tolerance=tolerance)
+    T[:3, 3] = position
+    return T, stamp_to_ns(msg.header.stamp)
+
+
+def matrix_to_pose(
+    T: np.ndarray, stamp_ns: int, frame_id: str, *, tolerance: float = DEFAULT_TOLERANCE
+) -> PoseStamped:
+    """Return a (4, 4) rigid transform as a ``PoseStamped``.
+
+    Args:
+        T: (4, 4) transform, child frame to ``frame_id``, metres.
+        stamp_ns: header stamp, integer nanoseconds (>= 0).
+        frame_id: header frame id (the parent frame).
+        tolerance: allowed deviation of ``T[:3, :3]`` from a rotation.
+
+    Raises:
+        PoseError: wrong shape, NaN/inf, bottom row not [0, 0, 0, 1], not a
+            rotation, or a negative stamp.
+    """
+    mat = _check_transform(T, tolerance)
+    if stamp_ns < 0:
+        raise PoseError(f"stamp must be non-negative, got {stamp_ns} ns")
+    q = matrix_to_quaternion(mat[:3, :3], tolerance=tolerance)
+    msg = PoseStamped()
+    msg.header.stamp = ns_to_stamp(stamp_ns)
+    msg.header.frame_id = frame_id
+    position, orientation = msg.pose.position, msg.pose.orientation
+    position.x, position.y, position.z = (float(v) for v in mat[:3, 3])
+    orientation.x, orientation.y, orientation.z, orientation.w = (float(v) for v in q)
+    return msg
+
+
+def slerp(
+    q0_xyzw: np.ndarray,
+    q1_xyzw: np.ndarray,
+    alpha: float | np.ndarray,
+    *,
+    tolerance: float = DEFAULT_TOLERANCE,
+) -> np.ndarray:
+    """Spherical linear interpolation between two rotations, shortest path.
+
+    Args:
+        q0_xyzw: (4,) start quaternion x, y, z, w (``alpha = 0``).
+        q1_xyzw: (4,) end quaternion (``alpha = 1``); ``q1`` and ``-q1`` give
+            the same result (the shorter arc is always taken).
+        alpha: scalar or (N,) interpolation fraction; values outside [0, 1]
+            extrapolate along the same great circle.
+        tolerance: allowed deviation of the input norms from 1.
+
+    Returns:
+        (4,) or (N, 4) float64 canonical unit quaternion(s), ``w >= 0``.
+
+    Raises:
+        PoseError: NaN/inf or a non-unit input quaternion.
+    """
+    q0 = _unit_quaternions(q0_xyzw, tolerance)
+    q1 = _unit_quaternions(q1_xyzw, tolerance)
+    if q0.shape != (4,) or q1.shape != (4,):
+        raise PoseError(f"slerp needs two (4,) quaternions, got {q0.shape} and {q1.shape}")
+    if np.dot(q0, q1) < 0.0:
+        q1 = -q1
+    # Half the rotation angle between them; atan2 of chord lengths stays
+    # accurate for nearly identical quaternions, where acos(dot) does not.
+    theta = 2.0 * np.arctan2(np.linalg.norm(q1 - q0), np.linalg.norm(q1 + q0))
+    a = np.asarray(alpha, dtype=np.float64)[..., None]
+    if theta < _SLERP_LINEAR_BELOW_RAD:
+        q = (1.0 - a) * q0 + a * q1
+    else:
+        q = (np.sin((1.0 - a) * theta) * q0 + np.sin(a * theta) * q1) / np.sin(theta)
+    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
+    return canonical_quaternion(q)
+
+
+def interpolate_transform(
+    T0: np.ndarray,
+    t0_ns: int,
+    T1: np.ndarray,
+    t1_ns: int,
+    t_ns: int,
+    *,
+    extrapolate: bool = False,
+    tolerance: float = DEFAULT_TOLERANCE,
+) -> np.ndarray:
+    """Interpolate a rigid transform at time ``t_ns`` between two stamped ones.
+
+    Translation is interpolated linearly, rotation by SLERP (shortest arc),
+    both with the fraction ``(t_ns - t0_ns) / (t1_ns - t0_ns)``.
+
+    Args:
+        T0, T1: (4, 4) rigid transforms (metres) at ``t0_ns`` and ``t1_ns``.
+        t0_ns, t1_ns, t_ns: integer nanoseconds, ``t0_ns != t1_ns``.
+        extrapolate: allow ``t_ns`` outside [t0_ns, t1_ns] (default: error).
+        tolerance: allowed deviation of the rotations from orthonormal.
+
+    Returns:
+        (4, 4) float64 transform; exactly ``T0`` at ``t0_ns`` and ``T1`` at
+        ``t1_ns``.
+
+    Raises:
+        PoseError: invalid transforms, ``t0_ns == t1_ns``, or ``t_ns`` outside
+            the interval without ``extrapolate``.
+    """
+    A = _check_transform(T0, tolerance, "T0")
+    B = _check_transform(T1, tolerance, "T1")
+    if t0_ns == t1_ns:
+        raise PoseError(f"cannot interpolate between two transforms at the same time {t0_ns} ns")
+    if not extrapolate and not min(t0_ns, t1_ns) <= t_ns <= max(t0_ns, t1_ns):
+        raise PoseError(f"time {t_ns} ns is outside [{t0_ns}, {t1_ns}] ns; extrapolate=False")
+    if t_ns == t0_ns:
+        return A.copy()
+    if t_ns == t1_ns:
+        return B.copy()
+    alpha = (int(t_ns) - int(t0_ns)) / (int(t1_ns) - int(t0_ns))  # exact int difference
+    q = slerp(
+        matrix_to_quaternion(A[:3, :3], tolerance=tolerance),
+        matrix_to_quaternion(B[:3, :3], tolerance=tolerance),
+        alpha,
+    )
+    T = np.eye(4)
+    T[:3, :3] = quaternion_to_matrix(q)
+    T[:3, 3] = (1.0 - alpha) * A[:3, 3] + alpha * B[:3, 3]
+    return T

@@ -1,0 +1,209 @@
+"""endo_io.pose against closed forms and scipy.spatial.transform."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from geometry_msgs.msg import PoseStamped
+from scipy.spatial.transform import Rotation, Slerp
+
+from endo_io.errors import PoseError
+from endo_io.pose import (
+    canonical_quaternion,
+    interpolate_transform,
+    matrix_to_pose,
+    matrix_to_quaternion,
+    pose_to_matrix,
+    quaternion_to_matrix,
+    slerp,
+)
+from endo_io.stamp import ns_to_stamp
+
+
+def rot_z(angle: float) -> np.ndarray:
+    c, s = math.cos(angle), math.sin(angle)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def quat_z(angle: float) -> np.ndarray:
+    return np.array([0.0, 0.0, math.sin(angle / 2), math.cos(angle / 2)])
+
+
+def transform(R: np.ndarray, t) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = R
+    T[:3, 3] = t
+    return T
+
+
+def random_rotations(n: int, seed: int = 0) -> Rotation:
+    return Rotation.random(n, rng=np.random.default_rng(seed))
+
+
+@pytest.mark.parametrize("degrees", [0.0, 30.0, 90.0, 179.0, 180.0, -135.0])
+def test_rotation_about_z_closed_form(degrees):
+    angle = math.radians(degrees)
+    np.testing.assert_allclose(quaternion_to_matrix(quat_z(angle)), rot_z(angle), atol=1e-15)
+    q = matrix_to_quaternion(rot_z(angle))
+    expected = canonical_quaternion(quat_z(angle))
+    np.testing.assert_allclose(q, expected, atol=1e-15)
+    assert q[3] >= 0.0
+
+
+def test_matches_scipy_for_random_rotations():
+    rotations = random_rotations(500)
+    quats = rotations.as_quat()  # x, y, z, w
+    np.testing.assert_allclose(quaternion_to_matrix(quats), rotations.as_matrix(), atol=1e-14)
+    ours = matrix_to_quaternion(rotations.as_matrix())
+    assert np.all(ours[:, 3] >= 0.0)
+    np.testing.assert_allclose(ours, canonical_quaternion(quats), atol=1e-14)
+    # single-matrix call agrees with the batched one
+    np.testing.assert_array_equal(matrix_to_quaternion(rotations.as_matrix()[7]), ours[7])
+
+
+def test_half_turns_are_canonical():
+    for axis in np.eye(3):
+        R = Rotation.from_rotvec(math.pi * axis).as_matrix()
+        q = matrix_to_quaternion(R)
+        np.testing.assert_allclose(q, np.append(axis, 0.0), atol=1e-15)
+    # 2 n n^T - I for n = (0, 0.6, 0.8): a half turn written exactly, w == 0,
+    # so the sign rule falls to the first non-zero of x, y, z
+    R = np.array([[-1.0, 0.0, 0.0], [0.0, -0.28, 0.96], [0.0, 0.96, 0.28]])
+    np.testing.assert_allclose(matrix_to_quaternion(R), [0.0, 0.6, 0.8, 0.0], atol=1e-15)
+    np.testing.assert_allclose(quaternion_to_matrix([0.0, -0.6, -0.8, 0.0]), R, atol=1e-15)
+
+
+def test_pose_round_trip():
+    R = random_rotations(1, seed=3).as_matrix()[0]
+    T = transform(R, [0.01, -0.25, 1.5])
+    msg = matrix_to_pose(T, 1_700_000_000_000_000_001, "tracker")
+    assert msg.header.frame_id == "tracker"
+    assert msg.pose.orientation.w >= 0.0
+    back, stamp_ns = pose_to_matrix(msg)
+    assert stamp_ns == 1_700_000_000_000_000_001
+    np.testing.assert_allclose(back, T, atol=1e-15)
+    assert back[:3, 3].tolist() == [0.01, -0.25, 1.5]  # translation is exact
+
+
+def test_pose_to_matrix_closed_form():
+    msg = PoseStamped()
+    msg.header.stamp = ns_to_stamp(42)
+    msg.pose.position.x, msg.pose.position.y, msg.pose.position.z = 1.0, 2.0, 3.0
+    q = quat_z(math.radians(90.0))
+    o = msg.pose.orientation
+    o.x, o.y, o.z, o.w = (-q).tolist()  # the other sign of the same rotation
+    T, stamp_ns = pose_to_matrix(msg)
+    assert stamp_ns == 42
+    np.testing.assert_allclose(T, transform(rot_z(math.pi / 2), [1, 2, 3]), atol=1e-15)
+    np.testing.assert_allclose(T @ [1.0, 0.0, 0.0, 1.0], [1.0, 3.0, 3.0, 1.0], atol=1e-15)
+
+
+def test_pose_rejects_nan_and_non_unit_quaternions():
+    msg = PoseStamped()
+    msg.pose.orientation.w = 1.0005  # within the default 1e-3
+    T, _ = pose_to_matrix(msg)
+    np.testing.assert_allclose(T, np.eye(4), atol=1e-15)
+    with pytest.raises(PoseError, match=r"tolerance 0\.0001"):
+        pose_to_matrix(msg, tolerance=1e-4)
+    msg.pose.orientation.w = 1.01
+    with pytest.raises(PoseError, match="norm deviates from 1"):
+        pose_to_matrix(msg)
+    msg.pose.orientation.w = 0.0  # the all-zero default quaternion
+    with pytest.raises(PoseError, match="norm deviates from 1 by 1"):
+        pose_to_matrix(msg)
+    msg.pose.orientation.w = math.nan
+    with pytest.raises(PoseError, match="NaN"):
+        pose_to_matrix(msg)
+    msg.pose.orientation.w = 1.0
+    msg.pose.position.y = math.nan
+    with pytest.raises(PoseError, match="position is not finite"):
+        pose_to_matrix(msg)
+
+
+@pytest.mark.parametrize(
+    ("T", "match"),
+    [
+        (np.eye(3), "shape"),
+        (np.diag([1.0, 1.0, -1.0, 1.0]), "reflection"),
+        (np.diag([1.1, 1.0, 1.0, 1.0]), "not orthonormal"),
+        (np.array([[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 1, 1.0]]), "bottom row"),
+        (np.full((4, 4), np.nan), "NaN"),
+    ],
+)
+def test_matrix_to_pose_rejects_bad_transforms(T, match):
+    with pytest.raises(PoseError, match=match):
+        matrix_to_pose(T, 0, "world")
+
+
+def test_slerp_midpoint_of_0_and_90_degrees_is_45():
+    q = slerp(quat_z(0.0), quat_z(math.pi / 2), 0.5)
+    np.testing.assert_allclose(q, quat_z(math.pi / 4), atol=1e-15)
+    np.testing.assert_allclose(quaternion_to_matrix(q), rot_z(math.pi / 4), atol=1e-15)
+
+
+def test_slerp_takes_the_short_way_for_either_sign():
+    q0, q1 = quat_z(math.radians(10.0)), quat_z(math.radians(50.0))
+    expected = quat_z(math.radians(20.0))
+    np.testing.assert_allclose(slerp(q0, q1, 0.25), expected, atol=1e-15)
+    np.testing.assert_allclose(slerp(q0, -q1, 0.25), expected, atol=1e-15)
+    np.testing.assert_allclose(slerp(-q0, q1, 0.25), expected, atol=1e-15)
+    # 170 deg to -170 deg is a 20 deg step through 180 deg, not 340 deg back
+    half = slerp(quat_z(math.radians(170.0)), quat_z(math.radians(-170.0)), 0.5)
+    np.testing.assert_allclose(quaternion_to_matrix(half), rot_z(math.pi), atol=1e-15)
+
+
+def test_slerp_matches_scipy_and_is_uniform_in_angle():
+    rotations = random_rotations(2, seed=11)
+    alphas = np.linspace(0.0, 1.0, 33)
+    ours = slerp(rotations[0].as_quat(), rotations[1].as_quat(), alphas)
+    reference = Slerp([0.0, 1.0], rotations)(alphas)
+    np.testing.assert_allclose(ours, canonical_quaternion(reference.as_quat()), atol=1e-14)
+    # the rotation angle from the start grows linearly with alpha
+    total = (rotations[0].inv() * rotations[1]).magnitude()
+    steps = (rotations[0].inv() * Rotation.from_quat(ours)).magnitude()
+    np.testing.assert_allclose(steps, alphas * total, atol=1e-13)
+
+
+def test_slerp_of_nearly_identical_quaternions():
+    q0 = quat_z(0.3)
+    for delta in (1e-6, 1e-9, 1e-12, 0.0):
+        q1 = quat_z(0.3 + delta)
+        q = slerp(q0, q1, 0.5)
+        assert np.all(np.isfinite(q))
+        assert abs(np.linalg.norm(q) - 1.0) < 1e-15
+        np.testing.assert_allclose(q, quat_z(0.3 + delta / 2), atol=1e-15)
+
+
+def test_slerp_rejects_bad_quaternions():
+    with pytest.raises(PoseError, match="NaN"):
+        slerp([0, 0, 0, math.nan], quat_z(0.0), 0.5)
+    with pytest.raises(PoseError, match="norm deviates"):
+        slerp([0, 0, 0, 2.0], quat_z(0.0), 0.5)
+
+
+def test_interpolate_transform_against_scipy():
+    rotations = random_rotations(2, seed=5)
+    t_a, t_b = np.array([0.1, 0.2, 0.3]), np.array([-0.4, 0.9, 1.3])
+    T0 = transform(rotations[0].as_matrix(), t_a)
+    T1 = transform(rotations[1].as_matrix(), t_b)
+    t0_ns, t1_ns = 1_700_000_000_000_000_000, 1_700_000_000_040_000_000  # 40 ms apart
+    t_ns = t0_ns + 10_000_000  # a quarter of the way
+    T = interpolate_transform(T0, t0_ns, T1, t1_ns, t_ns)
+    expected_R = Slerp([0.0, 1.0], rotations)([0.25]).as_matrix()[0]
+    np.testing.assert_allclose(T[:3, :3], expected_R, atol=1e-14)
+    np.testing.assert_allclose(T[:3, 3], 0.75 * t_a + 0.25 * t_b, atol=1e-15)
+    np.testing.assert_array_equal(T[3], [0, 0, 0, 1])
+    np.testing.assert_array_equal(interpolate_transform(T0, t0_ns, T1, t1_ns, t0_ns), T0)
+    np.testing.assert_array_equal(interpolate_transform(T0, t0_ns, T1, t1_ns, t1_ns), T1)
+
+
+def test_interpolate_transform_time_checks():
+    T0, T1 = np.eye(4), transform(rot_z(0.2), [1.0, 0.0, 0.0])
+    with pytest.raises(PoseError, match="same time"):
+        interpolate_transform(T0, 5, T1, 5, 5)
+    with pytest.raises(PoseError, match="outside"):
+        interpolate_transform(T0, 0, T1, 10, 11)
+    T = interpolate_transform(T0, 0, T1, 10, 20, extrapolate=True)
+    np.testing.assert_allclose(T, transform(rot_z(0.4), [2.0, 0.0, 0.0]), atol=1e-15)
