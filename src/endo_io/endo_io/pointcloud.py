@@ -1,0 +1,200 @@
+"""``sensor_msgs/PointCloud2`` with x, y, z and optional packed rgb, as depth_image_proc makes them.
+
+Layout written (the one ``PointCloud2Modifier::setPointCloud2FieldsByString``
+gives depth_image_proc's ``point_cloud_xyz`` / ``point_cloud_xyzrgb``)::
+
+    without rgb: x FLOAT32 @0, y FLOAT32 @4, z FLOAT32 @8, 4 pad bytes -> point_step 16
+    with rgb:    x @0, y @4, z @8, 4 pad, rgb FLOAT32 @16, 12 pad  -> point_step 32
+
+``rgb`` holds the bytes of the uint32 ``0x00RRGGBB`` (little-endian: B at
+byte 0, G at 1, R at 2, 0 at 3) reinterpreted as float32, which is what PCL
+and RViz read. Padding bytes are zero. ``is_bigendian`` is False,
+``row_step = width * point_step``, an (H, W, 3) input gives an organised
+H x W cloud and an (N, 3) one gives 1 x N. Invalid points stay in the cloud
+as NaN (organised clouds keep their grid), and ``is_dense`` is True only
+when every coordinate is finite.
+
+The reader accepts any layout that has float32 ``x``, ``y``, ``z`` (and
+optionally ``rgb`` or ``rgba``, float32 or uint32), in any order, with any
+padding, row padding or byte order.
+"""
+
+from __future__ import annotations
+
+from array import array as byte_array
+
+import numpy as np
+from sensor_msgs.msg import PointCloud2, PointField
+
+from endo_io.errors import PointCloudError
+from endo_io.stamp import ns_to_stamp
+
+XYZ_POINT_STEP = 16
+XYZRGB_POINT_STEP = 32
+RGB_OFFSET = 16
+
+_XYZ_DTYPE = np.dtype(
+    {"names": ["x", "y", "z"], "formats": ["<f4"] * 3, "offsets": [0, 4, 8],
+     "itemsize": XYZ_POINT_STEP}
+)
+_XYZRGB_DTYPE = np.dtype(
+    {"names": ["x", "y", "z", "rgb"], "formats": ["<f4", "<f4", "<f4", "<u4"],
+     "offsets": [0, 4, 8, RGB_OFFSET], "itemsize": XYZRGB_POINT_STEP}
+)
+
+_FIELD_SIZES = {
+    PointField.INT8: 1, PointField.UINT8: 1, PointField.INT16: 2, PointField.UINT16: 2,
+    PointField.INT32: 4, PointField.UINT32: 4, PointField.FLOAT32: 4, PointField.FLOAT64: 8,
+}
+
+
+def pack_rgb(rgb: np.ndarray) -> np.ndarray:
+    """Pack (..., 3) uint8 R, G, B into (...,) uint32 ``0x00RRGGBB``."""
+    channels = rgb.astype(np.uint32)
+    return (channels[..., 0] << 16) | (channels[..., 1] << 8) | channels[..., 2]
+
+
+def unpack_rgb(packed: np.ndarray) -> np.ndarray:
+    """Unpack (...,) uint32 ``0x??RRGGBB`` into (..., 3) uint8 R, G, B."""
+    shifts = np.array([16, 8, 0], dtype=np.uint32)
+    return ((packed[..., None] >> shifts) & 0xFF).astype(np.uint8)
+
+
+def xyz_to_pointcloud2(
+    points: np.ndarray,
+    stamp_ns: int,
+    frame_id: str,
+    rgb: np.ndarray | None = None,
+) -> PointCloud2:
+    """Return a PointCloud2 with float32 x, y, z and, if given, packed rgb.
+
+    Args:
+        points: (N, 3) or (H, W, 3) float32 (any float is cast) coordinates
+            in metres in ``frame_id``; NaN marks an invalid point and is kept.
+        stamp_ns: header stamp, integer nanoseconds (>= 0).
+        frame_id: header frame id, e.g. ``endoscope_optical_frame``.
+        rgb: None, or uint8 colours with the shape of ``points``.
+
+    Returns:
+        An H x W (organised) or 1 x N cloud in depth_image_proc's layout (see
+        the module docstring).
+
+    Raises:
+        PointCloudError: a shape other than (N, 3) / (H, W, 3), a non-float
+            dtype, or an ``rgb`` whose shape or dtype does not match.
+    """
+    xyz = np.asarray(points)
+    if xyz.ndim not in (2, 3) or xyz.shape[-1] != 3:
+        raise PointCloudError(f"points must have shape (N, 3) or (H, W, 3), got {xyz.shape}")
+    if not np.issubdtype(xyz.dtype, np.floating):
+        raise PointCloudError(f"points must be floating point metres, got dtype {xyz.dtype}")
+    height, width = xyz.shape[:2] if xyz.ndim == 3 else (1, xyz.shape[0])
+    if rgb is not None:
+        colours = np.asarray(rgb)
+        if colours.shape != xyz.shape or colours.dtype != np.uint8:
+            raise PointCloudError(
+                f"rgb must be uint8 with the points' shape {xyz.shape}, "
+                f"got {colours.dtype} {colours.shape}"
+            )
+    dtype = _XYZ_DTYPE if rgb is None else _XYZRGB_DTYPE
+    cloud = np.zeros((height, width), dtype=dtype)  # zero padding bytes
+    flat = xyz.reshape(height, width, 3)
+    for axis, name in enumerate("xyz"):
+        cloud[name] = flat[..., axis]
+    if rgb is not None:
+        cloud["rgb"] = pack_rgb(colours.reshape(height, width, 3))
+
+    msg = PointCloud2()
+    msg.header.stamp = ns_to_stamp(stamp_ns)
+    msg.header.frame_id = frame_id
+    msg.height, msg.width = height, width
+    names = ["x", "y", "z"] + ([] if rgb is None else ["rgb"])
+    msg.fields = [
+        PointField(name=name, offset=dtype.fields[name][1], datatype=PointField.FLOAT32, count=1)
+        for name in names
+    ]
+    msg.is_bigendian = False
+    msg.point_step = dtype.itemsize
+    msg.row_step = width * dtype.itemsize
+    msg.data = byte_array("B", cloud.tobytes())
+    msg.is_dense = bool(np.all(np.isfinite(flat)))
+    return msg
+
+
+def _field(msg: PointCloud2, name: str) -> PointField | None:
+    for field in msg.fields:
+        if field.name == name:
+            return field
+    return None
+
+
+def pointcloud2_to_xyz(msg: PointCloud2) -> tuple[np.ndarray, np.ndarray | None]:
+    """Return the points and colours of a PointCloud2.
+
+    Returns:
+        ``(xyz, rgb)``: xyz float32 metres, (H, W, 3) for an organised cloud
+        (``height > 1``) or (N, 3) for ``height == 1``; rgb uint8 of the same
+        shape unpacked from an ``rgb``/``rgba`` field, or None when the cloud
+        has neither. NaN points are returned as they are.
+
+    Raises:
+        PointCloudError: x, y or z missing or not FLOAT32 with count 1, an
+            rgb field not 4 bytes wide, a field outside ``point_step``,
+            ``row_step < width * point_step``, or a data length other than
+            ``row_step * height``.
+    """
+    height, width = int(msg.height), int(msg.width)
+    point_step, row_step = int(msg.point_step), int(msg.row_step)
+    order = ">" if msg.is_bigendian else "<"
+    names, formats, offsets = [], [], []
+    for name in ("x", "y", "z"):
+        field = _field(msg, name)
+        if field is None:
+            present = [f.name for f in msg.fields]
+            raise PointCloudError(f"PointCloud2 has no {name!r} field (fields: {present})")
+        if field.datatype != PointField.FLOAT32 or field.count != 1:
+            raise PointCloudError(
+                f"PointCloud2 field {name!r} must be FLOAT32 x1, got datatype "
+                f"{field.datatype} x{field.count}"
+            )
+        names.append(name)
+        formats.append(order + "f4")
+        offsets.append(int(field.offset))
+    colour = _field(msg, "rgb") or _field(msg, "rgba")
+    if colour is not None:
+        if colour.datatype not in (PointField.FLOAT32, PointField.UINT32) or colour.count != 1:
+            raise PointCloudError(
+                f"PointCloud2 field {colour.name!r} must be FLOAT32 or UINT32 x1, got datatype "
+                f"{colour.datatype} x{colour.count}"
+            )
+        names.append("rgb")
+        formats.append(order + "u4")  # the float's bits are the packed colour
+        offsets.append(int(colour.offset))
+    for name, offset in zip(names, offsets, strict=True):
+        if offset + 4 > point_step:
+            raise PointCloudError(
+                f"PointCloud2 field {name!r} at offset {offset} does not fit in "
+                f"point_step {point_step}"
+            )
+    if row_step < width * point_step:
+        raise PointCloudError(
+            f"PointCloud2 row_step {row_step} < width {width} x point_step {point_step}"
+        )
+    raw = np.frombuffer(msg.data, dtype=np.uint8)
+    if raw.size != row_step * height:
+        raise PointCloudError(
+            f"PointCloud2 data has {raw.size} bytes, expected row_step {row_step} x "
+            f"height {height} = {row_step * height}"
+        )
+    dtype = np.dtype(
+        {"names": names, "formats": formats, "offsets": offsets, "itemsize": point_step}
+    )
+    rows = raw.reshape(height, row_step)[:, : width * point_step]
+    cloud = rows.view(dtype) if height * width else np.zeros((height, width), dtype)
+    shape = (height, width) if height > 1 else (height * width,)
+    cloud = cloud.reshape(shape)
+    xyz = np.empty((*shape, 3), dtype=np.float32)
+    for axis, name in enumerate("xyz"):
+        xyz[..., axis] = cloud[name]
+    rgb = unpack_rgb(cloud["rgb"].astype(np.uint32)) if colour is not None else None
+    return xyz, rgb
