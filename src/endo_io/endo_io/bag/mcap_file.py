@@ -1,0 +1,506 @@
+"""One MCAP file: its channels, and its messages in log-time order, tolerant of damage.
+
+Record parsing is the ``mcap`` package's (``Chunk.read``, ``breakup_chunk``,
+``StreamReader``); this module only decides *which* records to read, in what
+order, and what to do when one is damaged.
+
+Two ways to find the messages:
+
+* **Index** (a complete file): the summary's chunk indexes give every chunk's
+  offset and time range, and its statistics the per-topic counts.
+* **Scan** (no summary, an unchunked file, or a file cut short by a crash):
+  one linear pass with ``StreamReader(emit_chunks=True)`` lists the chunks
+  and top-level message records and their time ranges without decompressing
+  (message counts come from the message-index records that follow each
+  chunk; a chunk without them, or one that declares new channels, is
+  decompressed once). The pass stops at the first unreadable record; that
+  byte offset is the damage.
+
+Either way the result is a list of *segments* (a chunk, or one top-level
+message) with time ranges, merged by a heap keyed on ``(log_time, file
+offset, index in chunk)``: a segment is opened when its start time comes up,
+so overlapping chunks still come out in exact log-time order, while at most
+the overlapping chunks are held in memory. A chunk that fails to read
+(corrupt bytes, CRC mismatch) is skipped and remembered; after the last
+intact message the iterator raises :class:`BagCorruptError` naming the file
+and the byte offset of the first damage.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import heapq
+import io
+import os
+import zlib
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import IO, Any
+
+from mcap.data_stream import ReadDataStream
+from mcap.reader import FOOTER_SIZE, SeekingReader
+from mcap.records import (
+    Channel,
+    Chunk,
+    DataEnd,
+    Footer,
+    Header,
+    Message,
+    MessageIndex,
+    Metadata,
+    Schema,
+)
+from mcap.stream_reader import MAGIC_SIZE, StreamReader, breakup_chunk
+
+from endo_io.bag.errors import BagCorruptError, BagError, BagNotFoundError
+from endo_io.bag.interfaces import BagMessage, TopicInfo
+from endo_io.bag.metadata import (
+    ROSBAG2_METADATA_RECORD,
+    SERIALIZED_METADATA_KEY,
+    parse_bag_metadata,
+)
+
+MCAP_MAGIC = b"\x89MCAP0\r\n"
+_RECORD_PREFIX = 9  # opcode (1) + record length (8)
+_FOOTER_CRC_SIZE = 4
+# A corrupt length field must not make us allocate gigabytes.
+_RECORD_SIZE_LIMIT = 1 << 31
+_KIND_CHUNK = 0
+_KIND_MESSAGE = 1
+
+
+@dataclass(frozen=True, slots=True)
+class _Segment:
+    """A readable unit: one chunk record, or one top-level message record."""
+
+    start_ns: int
+    end_ns: int
+    offset: int
+    length: int  # record body length (for top-level messages)
+    kind: int
+    channel_ids: frozenset[int] | None  # None: unknown, must be opened to filter
+
+
+@dataclass(frozen=True, slots=True)
+class _ChannelInfo:
+    topic: str
+    msgtype: str
+    message_encoding: str
+    offered_qos_profiles: str
+    type_description_hash: str
+
+
+def _describe(exc: BaseException) -> str:
+    text = str(exc).strip().splitlines()
+    detail = text[0][:120] if text else ""
+    name = type(exc).__name__
+    if name == "EndOfFile" and not detail:
+        return "file ends inside a record"
+    return f"{name}: {detail}" if detail else name
+
+
+class McapFile:
+    """Read one MCAP file (rosbag2 ``ros2`` profile or any CDR MCAP).
+
+    Args:
+        path: The ``.mcap`` file.
+        validate_crcs: Check each chunk's CRC (when the writer stored one), so
+            that a corrupt chunk is reported instead of yielding wrong bytes.
+
+    Raises:
+        BagNotFoundError: the file does not exist.
+        BagError: it cannot be opened or is not an MCAP file.
+    """
+
+    def __init__(self, path: Path, *, validate_crcs: bool = True) -> None:
+        self.path = path
+        self.validate_crcs = validate_crcs
+        try:
+            self._file: IO[bytes] = path.open("rb")
+        except FileNotFoundError as exc:
+            raise BagNotFoundError(f"{path}: no such bag file") from exc
+        except IsADirectoryError as exc:
+            raise BagError(f"{path}: is a directory, not an MCAP file") from exc
+        except OSError as exc:
+            raise BagError(f"{path}: cannot open ({exc.strerror})") from exc
+        try:
+            self.size = os.fstat(self._file.fileno()).st_size
+            self.profile = ""
+            self.library = ""
+            self.rosbag2_metadata: dict[str, Any] | None = None
+            self.used_index = False
+            self._schemas: dict[int, Schema] = {}
+            self._channels: dict[int, _ChannelInfo] = {}
+            self._channel_records: dict[int, Channel] = {}
+            self._counts: dict[int, int] = {}
+            self._segments: list[_Segment] = []
+            self._damage: dict[int, str] = {}
+            head = self._file.read(MAGIC_SIZE)
+            if head != MCAP_MAGIC:
+                if MCAP_MAGIC.startswith(head):  # empty, or cut inside the magic
+                    self._damage[len(head)] = "file ends inside the MCAP magic"
+                    return
+                raise BagError(f"{path}: not an MCAP file (bad magic {head[:8]!r})")
+            if not self._load_index():
+                self._scan()
+        except BaseException:
+            self._file.close()
+            raise
+
+    # -- opening ---------------------------------------------------------------
+
+    def _load_index(self) -> bool:
+        """Use the summary section if it is complete and consistent; False to scan instead."""
+        stream = self._file
+        try:
+            if self.size < 2 * MAGIC_SIZE + FOOTER_SIZE:
+                return False
+            stream.seek(self.size - MAGIC_SIZE)
+            if stream.read(MAGIC_SIZE) != MCAP_MAGIC:
+                return False
+            stream.seek(self.size - MAGIC_SIZE - FOOTER_SIZE)
+            footer = next(
+                StreamReader(stream, skip_magic=True, record_size_limit=_RECORD_SIZE_LIMIT).records
+            )
+            if not isinstance(footer, Footer) or footer.summary_start == 0:
+                return False
+            summary_end = self.size - MAGIC_SIZE - _FOOTER_CRC_SIZE
+            if not MAGIC_SIZE < footer.summary_start < summary_end:
+                return False
+            if footer.summary_crc != 0:
+                stream.seek(footer.summary_start)
+                summary_bytes = stream.read(summary_end - footer.summary_start)
+                if zlib.crc32(summary_bytes) != footer.summary_crc:
+                    return False
+            stream.seek(0)
+            reader = SeekingReader(stream, record_size_limit=_RECORD_SIZE_LIMIT)
+            summary = reader.get_summary()
+            header = reader.get_header()
+        except Exception:
+            return False
+        if summary is None or summary.statistics is None:
+            return False
+        stats = summary.statistics
+        if stats.chunk_count != len(summary.chunk_indexes):
+            return False
+        if stats.message_count > 0 and stats.chunk_count == 0:
+            return False  # unchunked: messages are not indexed, scan them
+        if len(summary.channels) < stats.channel_count:
+            return False
+        for index in summary.chunk_indexes:
+            end = index.chunk_start_offset + index.chunk_length
+            if index.chunk_start_offset < MAGIC_SIZE or end > footer.summary_start:
+                return False
+        for channel in summary.channels.values():
+            if channel.schema_id != 0 and channel.schema_id not in summary.schemas:
+                return False
+        self.profile, self.library = header.profile, header.library
+        self._schemas.update(summary.schemas)
+        for channel in summary.channels.values():
+            self._add_channel(channel)
+        self._counts.update(stats.channel_message_counts)
+        self._segments = [
+            _Segment(
+                index.message_start_time,
+                index.message_end_time,
+                index.chunk_start_offset,
+                index.chunk_length,
+                _KIND_CHUNK,
+                frozenset(index.message_index_offsets) if index.message_index_offsets else None,
+            )
+            for index in summary.chunk_indexes
+        ]
+        for metadata_index in summary.metadata_indexes:
+            if metadata_index.name != ROSBAG2_METADATA_RECORD:
+                continue
+            try:
+                stream.seek(metadata_index.offset)
+                record = next(
+                    StreamReader(
+                        stream, skip_magic=True, record_size_limit=_RECORD_SIZE_LIMIT
+                    ).records
+                )
+            except Exception as exc:
+                self._damage.setdefault(metadata_index.offset, _describe(exc))
+                continue
+            if isinstance(record, Metadata):
+                self._take_metadata(record)
+        self.used_index = True
+        return True
+
+    def _scan(self) -> None:
+        """One linear pass listing segments; stops at the first unreadable record."""
+        stream = self._file
+        stream.seek(MAGIC_SIZE)
+        records = StreamReader(
+            stream, skip_magic=True, emit_chunks=True, record_size_limit=_RECORD_SIZE_LIMIT
+        ).records
+        position = MAGIC_SIZE
+        pending: tuple[Chunk, int, int] | None = None
+        pending_counts: dict[int, int] = {}
+        in_summary = False
+        try:
+            for record in records:
+                end = stream.tell()
+                if isinstance(record, MessageIndex):
+                    if pending is not None:
+                        pending_counts[record.channel_id] = len(record.records)
+                    position = end
+                    continue
+                if pending is not None:
+                    self._finish_scanned_chunk(*pending, pending_counts)
+                    pending, pending_counts = None, {}
+                if isinstance(record, Chunk):
+                    pending = (record, position, end)
+                elif isinstance(record, Schema):
+                    self._schemas.setdefault(record.id, record)
+                elif isinstance(record, Channel):
+                    self._add_channel(record)
+                elif isinstance(record, Message) and not in_summary:
+                    self._segments.append(
+                        _Segment(
+                            record.log_time,
+                            record.log_time,
+                            position,
+                            end - position - _RECORD_PREFIX,
+                            _KIND_MESSAGE,
+                            frozenset((record.channel_id,)),
+                        )
+                    )
+                    self._counts[record.channel_id] = self._counts.get(record.channel_id, 0) + 1
+                elif isinstance(record, Metadata):
+                    self._take_metadata(record)
+                elif isinstance(record, Header):
+                    self.profile, self.library = record.profile, record.library
+                elif isinstance(record, DataEnd):
+                    in_summary = True
+                elif isinstance(record, Footer):
+                    # The trailing magic is read after the footer is yielded.
+                    position = end + MAGIC_SIZE
+                    continue
+                position = end
+        except Exception as exc:
+            if pending is not None:
+                self._finish_scanned_chunk(*pending, pending_counts)
+            if position >= self.size:
+                reason = "file ends before the MCAP footer (truncated)"
+            else:
+                reason = _describe(exc)
+            self._damage.setdefault(position, reason)
+            return
+        if pending is not None:
+            self._finish_scanned_chunk(*pending, pending_counts)
+
+    def _finish_scanned_chunk(
+        self, chunk: Chunk, offset: int, end: int, index_counts: dict[int, int]
+    ) -> None:
+        if index_counts and all(cid in self._channels for cid in index_counts):
+            for cid, count in index_counts.items():
+                self._counts[cid] = self._counts.get(cid, 0) + count
+            channel_ids = frozenset(index_counts)
+        else:
+            try:
+                records = breakup_chunk(chunk, validate_crc=self.validate_crcs)
+            except Exception as exc:
+                self._damage.setdefault(offset, _describe(exc))
+                return
+            found: set[int] = set()
+            for record in records:
+                if isinstance(record, Message):
+                    found.add(record.channel_id)
+                    self._counts[record.channel_id] = self._counts.get(record.channel_id, 0) + 1
+                elif isinstance(record, Schema):
+                    self._schemas.setdefault(record.id, record)
+                elif isinstance(record, Channel):
+                    self._add_channel(record)
+            channel_ids = frozenset(found)
+        self._segments.append(
+            _Segment(
+                chunk.message_start_time,
+                chunk.message_end_time,
+                offset,
+                end - offset - _RECORD_PREFIX,
+                _KIND_CHUNK,
+                channel_ids,
+            )
+        )
+
+    def _add_channel(self, channel: Channel) -> None:
+        if channel.id in self._channels:
+            return
+        schema = self._schemas.get(channel.schema_id)
+        self._channel_records[channel.id] = channel
+        self._channels[channel.id] = _ChannelInfo(
+            topic=channel.topic,
+            msgtype=schema.name if schema is not None else "",
+            message_encoding=channel.message_encoding,
+            offered_qos_profiles=channel.metadata.get("offered_qos_profiles", ""),
+            type_description_hash=channel.metadata.get("topic_type_hash", ""),
+        )
+
+    def _take_metadata(self, record: Metadata) -> None:
+        if record.name == ROSBAG2_METADATA_RECORD and SERIALIZED_METADATA_KEY in record.metadata:
+            self.rosbag2_metadata = parse_bag_metadata(record.metadata[SERIALIZED_METADATA_KEY])
+
+    # -- queries ---------------------------------------------------------------
+
+    @property
+    def damage(self) -> list[tuple[int, str]]:
+        """Damaged regions found so far, as (byte offset, reason), by offset."""
+        return sorted(self._damage.items())
+
+    def topics(self) -> dict[str, TopicInfo]:
+        """Topics of this file with their message counts (of the intact part)."""
+        result: dict[str, TopicInfo] = {}
+        for cid in sorted(self._channels):
+            info = self._channels[cid]
+            count = self._counts.get(cid, 0)
+            previous = result.get(info.topic)
+            if previous is not None:  # several channels on one topic: first one describes it
+                result[info.topic] = dataclasses.replace(
+                    previous, message_count=previous.message_count + count
+                )
+                continue
+            result[info.topic] = TopicInfo(
+                name=info.topic,
+                msgtype=info.msgtype,
+                serialization_format=info.message_encoding,
+                offered_qos_profiles=info.offered_qos_profiles,
+                message_count=count,
+                type_description_hash=info.type_description_hash,
+            )
+        return result
+
+    def time_range(self) -> tuple[int, int] | None:
+        """(earliest, latest) log time in ns over the segments, None if there are none."""
+        if not self._segments:
+            return None
+        return min(s.start_ns for s in self._segments), max(s.end_ns for s in self._segments)
+
+    def corrupt_error(self) -> BagCorruptError | None:
+        """The error to raise after the last intact message, or None if the file is sound."""
+        if not self._damage:
+            return None
+        damage = self.damage
+        offset, reason = damage[0]
+        more = f"; {len(damage) - 1} more damaged region(s)" if len(damage) > 1 else ""
+        return BagCorruptError(
+            f"{self.path}: truncated or corrupt at byte {offset} of {self.size} ({reason}){more}"
+        )
+
+    def messages(
+        self,
+        topics: frozenset[str] | None = None,
+        start_ns: int | None = None,
+        end_ns: int | None = None,
+    ) -> Iterator[BagMessage]:
+        """Yield intact messages in log-time order (ties: file order), then raise if damaged.
+
+        Args:
+            topics: Only these topics (None: all).
+            start_ns: Only messages with log time >= start_ns.
+            end_ns: Only messages with log time < end_ns.
+
+        Raises:
+            BagCorruptError: after the last intact message, if any part of the
+                file could not be read.
+        """
+        if topics is None:
+            channel_ids: frozenset[int] | None = None
+        else:
+            channel_ids = frozenset(c for c, i in self._channels.items() if i.topic in topics)
+        heap: list[tuple[int, int, int, Any]] = []
+        for segment in self._segments:
+            if start_ns is not None and segment.end_ns < start_ns:
+                continue
+            if end_ns is not None and segment.start_ns >= end_ns:
+                continue
+            if (
+                channel_ids is not None
+                and segment.channel_ids is not None
+                and segment.channel_ids.isdisjoint(channel_ids)
+            ):
+                continue
+            heap.append((segment.start_ns, segment.offset, -1, segment))
+        heapq.heapify(heap)
+        heappop, heappush = heapq.heappop, heapq.heappush
+        while heap:
+            item = heappop(heap)
+            if item[2] >= 0:
+                yield item[3]
+                continue
+            loaded = self._load(item[3], channel_ids, topics, start_ns, end_ns)
+            # Fast path: while this segment's messages come before everything
+            # still queued, yield them directly instead of through the heap.
+            head = heap[0] if heap else None
+            for position, entry in enumerate(loaded):
+                if head is not None and head < entry:
+                    for rest in loaded[position:]:
+                        heappush(heap, rest)
+                    break
+                yield entry[3]
+        error = self.corrupt_error()
+        if error is not None:
+            raise error
+
+    def _load(
+        self,
+        segment: _Segment,
+        channel_ids: frozenset[int] | None,
+        topics: frozenset[str] | None,
+        start_ns: int | None,
+        end_ns: int | None,
+    ) -> list[tuple[int, int, int, BagMessage]]:
+        """Read one segment's messages that pass the filters, sorted by (log time, position)."""
+        stream = self._file
+        try:
+            stream.seek(segment.offset + _RECORD_PREFIX, io.SEEK_SET)
+            if segment.kind == _KIND_CHUNK:
+                chunk = Chunk.read(ReadDataStream(stream))
+                records = breakup_chunk(chunk, validate_crc=self.validate_crcs)
+            else:
+                records = [Message.read(ReadDataStream(stream), segment.length)]
+        except Exception as exc:
+            self._damage.setdefault(segment.offset, _describe(exc))
+            return []
+        channels = self._channels
+        offset = segment.offset
+        out: list[tuple[int, int, int, BagMessage]] = []
+        for index, record in enumerate(records):
+            if type(record) is not Message:
+                if isinstance(record, Schema):
+                    self._schemas.setdefault(record.id, record)
+                elif isinstance(record, Channel) and record.id not in channels:
+                    self._add_channel(record)
+                    if topics is not None and record.topic in topics:
+                        channel_ids = (channel_ids or frozenset()) | {record.id}
+                continue
+            cid = record.channel_id
+            if channel_ids is not None and cid not in channel_ids:
+                continue
+            log_time = record.log_time
+            if (start_ns is not None and log_time < start_ns) or (
+                end_ns is not None and log_time >= end_ns
+            ):
+                continue
+            info = channels.get(cid)
+            if info is None:
+                self._damage.setdefault(offset, f"message on undeclared channel {cid}")
+                continue
+            out.append(
+                (
+                    log_time,
+                    offset,
+                    index,
+                    BagMessage(
+                        info.topic, info.msgtype, log_time, record.data, record.publish_time
+                    ),
+                )
+            )
+        out.sort()
+        return out
+
+    def close(self) -> None:
+        """Close the file."""
+        self._file.close()

@@ -1,0 +1,182 @@
+"""Read rosbag2 MCAP bags: one ``.mcap`` file, or a bag directory of split files.
+
+A bag directory is described by its ``metadata.yaml``; its
+``relative_file_paths`` name the MCAP files, whose messages are merged here
+into one log-time-ordered stream. See :mod:`endo_io.bag.mcap_file` for how a
+single file is read, including damaged ones.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import heapq
+import os
+import types
+from collections.abc import Iterable, Iterator
+from pathlib import Path
+from typing import Any
+
+from endo_io.bag.errors import BagCorruptError, BagError, BagNotFoundError
+from endo_io.bag.interfaces import BagMessage, TopicInfo
+from endo_io.bag.mcap_file import McapFile
+from endo_io.bag.metadata import read_metadata_yaml
+from endo_io.bag.qos_yaml import qos_profiles_text
+
+
+def _log_time(message: BagMessage) -> int:
+    return message.log_time_ns
+
+
+class BagReader:
+    """Read a rosbag2-compatible MCAP bag.
+
+    Args:
+        path: A ``.mcap`` file, or a rosbag2 bag directory with metadata.yaml
+            (its files are merged in log-time order).
+        validate_crcs: Check chunk CRCs where the writer stored them.
+
+    Raises:
+        BagNotFoundError: the path, metadata.yaml or a listed file is missing.
+        BagError: not an MCAP file / not a rosbag2 MCAP directory.
+
+    Attributes:
+        topics: Topic name -> :class:`TopicInfo`, over all files.
+        metadata: The rosbag2 ``BagMetadata`` mapping (from metadata.yaml or
+            the file's ``rosbag2`` record), or None if the bag has none.
+    """
+
+    def __init__(self, path: str | os.PathLike[str], *, validate_crcs: bool = True) -> None:
+        self.path = Path(path)
+        self.metadata: dict[str, Any] | None = None
+        self._files: list[McapFile] = []
+        if not self.path.exists():
+            raise BagNotFoundError(f"{self.path}: no such bag file or directory")
+        try:
+            if self.path.is_dir():
+                self.metadata = read_metadata_yaml(self.path)
+                storage = self.metadata.get("storage_identifier", "mcap")
+                if storage != "mcap":
+                    raise BagError(f"{self.path}: storage '{storage}' is not supported, only mcap")
+                if self.metadata.get("compression_mode"):
+                    raise BagError(
+                        f"{self.path}: rosbag2 {self.metadata['compression_mode']} compression "
+                        "is not supported (MCAP chunk compression is)"
+                    )
+                for relative in self.metadata["relative_file_paths"]:
+                    self._files.append(
+                        McapFile(self._member_path(relative), validate_crcs=validate_crcs)
+                    )
+            else:
+                self._files.append(McapFile(self.path, validate_crcs=validate_crcs))
+                self.metadata = self._files[0].rosbag2_metadata
+        except BaseException:
+            self.close()
+            raise
+        self.topics: dict[str, TopicInfo] = self._merge_topics()
+
+    def _member_path(self, relative: str) -> Path:
+        candidate = self.path / relative
+        if not candidate.exists():
+            # rosbag2 < version 4 stored paths including the bag directory name.
+            fallback = self.path / Path(relative).name
+            if fallback.exists():
+                return fallback
+            raise BagNotFoundError(f"{candidate}: listed in {self.path}/metadata.yaml but missing")
+        return candidate
+
+    def _merge_topics(self) -> dict[str, TopicInfo]:
+        merged: dict[str, TopicInfo] = {}
+        for mcap_file in self._files:
+            for name, info in mcap_file.topics().items():
+                previous = merged.get(name)
+                if previous is None:
+                    merged[name] = info
+                else:
+                    merged[name] = dataclasses.replace(
+                        previous, message_count=previous.message_count + info.message_count
+                    )
+        # metadata.yaml may carry QoS offers for topics whose channels lack them.
+        if self.metadata is not None and self.path.is_dir():
+            for entry in self.metadata.get("topics_with_message_count") or []:
+                topic = (entry or {}).get("topic_metadata") or {}
+                info = merged.get(topic.get("name", ""))
+                if info is not None and not info.offered_qos_profiles:
+                    qos = qos_profiles_text(topic.get("offered_qos_profiles"))
+                    merged[info.name] = dataclasses.replace(info, offered_qos_profiles=qos)
+        return merged
+
+    @property
+    def files(self) -> list[Path]:
+        """The MCAP files of this bag, in metadata order."""
+        return [f.path for f in self._files]
+
+    @property
+    def message_count(self) -> int:
+        """Messages in the (intact part of the) bag."""
+        return sum(t.message_count for t in self.topics.values())
+
+    @property
+    def time_range_ns(self) -> tuple[int, int] | None:
+        """(earliest, latest) log time in ns, None for an empty bag."""
+        ranges = [r for f in self._files if (r := f.time_range()) is not None]
+        if not ranges:
+            return None
+        return min(r[0] for r in ranges), max(r[1] for r in ranges)
+
+    @property
+    def damage(self) -> str | None:
+        """One-line description of damage found so far (reading may find more), or None."""
+        errors = [e for f in self._files if (e := f.corrupt_error()) is not None]
+        return str(errors[0]) if errors else None
+
+    def messages(
+        self,
+        topics: Iterable[str] | str | None = None,
+        start_ns: int | None = None,
+        end_ns: int | None = None,
+    ) -> Iterator[BagMessage]:
+        """Iterate messages in log-time order (ties keep file order), raw CDR.
+
+        Args:
+            topics: Topic names to read (None: all).
+            start_ns: Only log times >= start_ns.
+            end_ns: Only log times < end_ns.
+
+        Raises:
+            BagCorruptError: after every intact message has been yielded, if
+                any file is truncated or damaged (the message names the file
+                and byte offset).
+        """
+        if isinstance(topics, str):
+            topics = [topics]
+        wanted = frozenset(topics) if topics is not None else None
+        if len(self._files) == 1:
+            yield from self._files[0].messages(wanted, start_ns, end_ns)
+            return
+        errors: list[BagCorruptError] = []
+
+        def intact(mcap_file: McapFile) -> Iterator[BagMessage]:
+            try:
+                yield from mcap_file.messages(wanted, start_ns, end_ns)
+            except BagCorruptError as exc:
+                errors.append(exc)
+
+        yield from heapq.merge(*(intact(f) for f in self._files), key=_log_time)
+        if errors:
+            raise errors[0]
+
+    def close(self) -> None:
+        """Close all files."""
+        for mcap_file in self._files:
+            mcap_file.close()
+
+    def __enter__(self) -> BagReader:
+        return self
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: types.TracebackType | None,
+    ) -> None:
+        self.close()
