@@ -38,7 +38,10 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import IO, Any
 
+import lz4.frame
+import zstandard
 from mcap.data_stream import ReadDataStream
+from mcap.opcode import Opcode
 from mcap.reader import FOOTER_SIZE, SeekingReader
 from mcap.records import (
     Channel,
@@ -68,6 +71,7 @@ _FOOTER_CRC_SIZE = 4
 _RECORD_SIZE_LIMIT = 1 << 31
 _KIND_CHUNK = 0
 _KIND_MESSAGE = 1
+_KIND_RECOVERED = 2  # the readable head of a chunk cut short by the end of the file
 
 
 @dataclass(frozen=True, slots=True)
@@ -136,6 +140,7 @@ class McapFile:
             self._counts: dict[int, int] = {}
             self._segments: list[_Segment] = []
             self._damage: dict[int, str] = {}
+            self._recovered: dict[int, list[Any]] = {}
             head = self._file.read(MAGIC_SIZE)
             if head != MCAP_MAGIC:
                 if MCAP_MAGIC.startswith(head):  # empty, or cut inside the magic
@@ -287,6 +292,7 @@ class McapFile:
                 reason = "file ends before the MCAP footer (truncated)"
             else:
                 reason = _describe(exc)
+                self._recover_cut_chunk(position)
             self._damage.setdefault(position, reason)
             return
         if pending is not None:
@@ -323,6 +329,65 @@ class McapFile:
                 end - offset - _RECORD_PREFIX,
                 _KIND_CHUNK,
                 channel_ids,
+            )
+        )
+
+    def _recover_cut_chunk(self, offset: int) -> None:
+        """Keep the complete messages at the head of a chunk that the end of the file cuts.
+
+        A writer killed in the middle of writing a chunk leaves its first part:
+        the compressed stream of that part still decompresses (zstd and lz4
+        frames decode block by block), and every message record that is whole
+        in it is as good as any other.
+        """
+        stream = self._file
+        try:
+            stream.seek(offset)
+            prefix = stream.read(_RECORD_PREFIX)
+            if len(prefix) < _RECORD_PREFIX or prefix[0] != Opcode.CHUNK:
+                return
+            if offset + _RECORD_PREFIX + int.from_bytes(prefix[1:], "little") <= self.size:
+                return  # the record fits in the file: corrupt, not cut
+            chunk = Chunk.read(ReadDataStream(stream))
+            if chunk.compression == "zstd":
+                data = zstandard.ZstdDecompressor().decompressobj().decompress(chunk.data)
+            elif chunk.compression == "lz4":
+                data = lz4.frame.LZ4FrameDecompressor().decompress(chunk.data)
+            elif chunk.compression == "":
+                data = chunk.data
+            else:
+                return
+        except Exception:
+            return
+        records: list[Any] = []
+        try:
+            inner = StreamReader(
+                io.BytesIO(data), skip_magic=True, record_size_limit=_RECORD_SIZE_LIMIT
+            )
+            for record in inner.records:  # stops at the first incomplete record
+                records.append(record)
+        except Exception:
+            pass
+        found: set[int] = set()
+        for record in records:
+            if isinstance(record, Schema):
+                self._schemas.setdefault(record.id, record)
+            elif isinstance(record, Channel):
+                self._add_channel(record)
+            elif isinstance(record, Message):
+                found.add(record.channel_id)
+                self._counts[record.channel_id] = self._counts.get(record.channel_id, 0) + 1
+        if not found:
+            return
+        self._recovered[offset] = records
+        self._segments.append(
+            _Segment(
+                chunk.message_start_time,
+                chunk.message_end_time,
+                offset,
+                0,
+                _KIND_RECOVERED,
+                frozenset(found),
             )
         )
 
@@ -459,6 +524,8 @@ class McapFile:
             if segment.kind == _KIND_CHUNK:
                 chunk = Chunk.read(ReadDataStream(stream))
                 records = breakup_chunk(chunk, validate_crc=self.validate_crcs)
+            elif segment.kind == _KIND_RECOVERED:
+                records = self._recovered[segment.offset]
             else:
                 records = [Message.read(ReadDataStream(stream), segment.length)]
         except Exception as exc:
