@@ -14,10 +14,16 @@ setup(
     zip_safe=True,
     maintainer="endo3d developers",
     maintainer_email="dev@endo3d.org",
-    description="Optical tracker (ROS, OpenIGTLink, NDI, CSV) to camera pose through hand-eye and clock calibration.",
+    description=(
+        "Optical tracker (ROS, OpenIGTLink, NDI, CSV) to camera pose "
+        "through hand-eye and clock calibration."
+    ),
     license="Apache-2.0",
     tests_require=["pytest"],
     entry_points={
-        "console_scripts": [],
+        "console_scripts": [
+            "endo-tracker-bridge = endo_tracker_bridge.node:main",
+            "endo-handeye = endo_tracker_bridge.handeye_cli:main",
+        ],
     },
 )

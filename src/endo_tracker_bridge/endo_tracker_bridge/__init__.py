@@ -1,1 +1,4 @@
-"""Optical tracker (ROS, OpenIGTLink, NDI, CSV) to camera pose through hand-eye and clock calibration."""
+"""Optical tracker (ROS, OpenIGTLink, NDI, CSV) to camera pose.
+
+Includes the hand-eye and clock calibration (``endo-handeye``).
+"""

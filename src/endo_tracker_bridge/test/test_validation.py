@@ -1,0 +1,102 @@
+"""Rejection of bad samples: NaN, non-unit quaternions, hidden tools, time, speed."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from endo_tracker_bridge.conventions import LengthUnit, transform_from_quaternion
+from endo_tracker_bridge.errors import (
+    NonFinitePoseError,
+    NonOrthonormalRotationError,
+    NonUnitQuaternionError,
+    SpeedLimitError,
+    TimeWentBackwardsError,
+    ToolNotVisibleError,
+)
+from endo_tracker_bridge.sample import ToolStatus, TrackerSample
+from endo_tracker_bridge.validation import (
+    SampleGate,
+    SpeedLimits,
+    check_rotation_matrix,
+    check_unit_quaternion,
+)
+
+MS = 1_000_000
+
+
+def _sample(stamp_ms, x_m=0.0, angle_deg=0.0, tool="scope", status=ToolStatus.VISIBLE):
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_euler("z", angle_deg, degrees=True).as_matrix()
+    T[0, 3] = x_m
+    return TrackerSample(stamp_ns=stamp_ms * MS, T_tracker_marker=T, tool_id=tool, status=status)
+
+
+def test_nan_is_rejected():
+    with pytest.raises(NonFinitePoseError, match="translation is not finite"):
+        transform_from_quaternion(
+            np.array([0, 0, 0, 1.0]), np.array([1.0, np.nan, 0.0]), LengthUnit.MILLIMETRE
+        )
+    with pytest.raises(NonFinitePoseError, match="quaternion"):
+        check_unit_quaternion(np.array([np.nan, 0, 0, 1.0]))
+    T = np.eye(4)
+    T[2, 3] = np.inf
+    with pytest.raises(NonFinitePoseError):
+        SampleGate().check(TrackerSample(stamp_ns=1, T_tracker_marker=T, tool_id="a"))
+
+
+def test_non_unit_quaternion_is_rejected_and_near_unit_is_normalised():
+    with pytest.raises(NonUnitQuaternionError, match=r"norm 1\.0100"):
+        check_unit_quaternion(np.array([0.0, 0.0, 0.0, 1.01]))
+    with pytest.raises(NonUnitQuaternionError):
+        check_unit_quaternion(np.array([0.0, 0.0, 0.0, 0.5]), tolerance=0.1)
+    q = check_unit_quaternion(np.array([0.0, 0.0, 0.0, 1.0004]))
+    assert np.linalg.norm(q) == pytest.approx(1.0, abs=1e-15)
+    # a looser tolerance accepts what the default rejects
+    q = check_unit_quaternion(np.array([0.0, 0.0, 0.0, 1.01]), tolerance=0.02)
+    np.testing.assert_allclose(q, [0, 0, 0, 1.0])
+
+
+def test_non_rotation_matrix_is_rejected():
+    with pytest.raises(NonOrthonormalRotationError):
+        check_rotation_matrix(np.diag([1.0, 1.0, 1.1]))
+    with pytest.raises(NonOrthonormalRotationError, match="det"):
+        check_rotation_matrix(np.diag([1.0, 1.0, -1.0]))
+
+
+def test_missing_or_disabled_tool_is_rejected():
+    gate = SampleGate()
+    with pytest.raises(ToolNotVisibleError, match="missing"):
+        gate.check(_sample(0, status=ToolStatus.MISSING))
+    with pytest.raises(ToolNotVisibleError, match="disabled"):
+        gate.check(_sample(0, status=ToolStatus.DISABLED))
+    assert gate.check(_sample(1)).stamp_ns == 1 * MS
+
+
+def test_time_going_backwards_or_repeating_is_rejected():
+    gate = SampleGate()
+    gate.check(_sample(100))
+    with pytest.raises(TimeWentBackwardsError, match="16000000 ns before"):
+        gate.check(_sample(84))
+    with pytest.raises(TimeWentBackwardsError):
+        gate.check(_sample(100))
+    # the reference stays the last accepted sample; a later one passes
+    assert gate.check(_sample(117)).stamp_ns == 117 * MS
+    # tools are independent
+    assert gate.check(_sample(50, tool="pointer")).tool_id == "pointer"
+
+
+def test_speed_jumps_are_rejected():
+    gate = SampleGate(SpeedLimits(linear_m_s=1.0, angular_deg_s=360.0))
+    gate.check(_sample(0))
+    # 10 mm in 16 ms = 0.625 m/s: fine
+    gate.check(_sample(16, x_m=0.010))
+    # 50 mm more in the next 16 ms = 3.1 m/s: a glitch
+    with pytest.raises(SpeedLimitError, match=r"moved 50.0 mm in 16.0 ms"):
+        gate.check(_sample(32, x_m=0.060))
+    # 10° in 16 ms = 625°/s > 360°/s
+    with pytest.raises(SpeedLimitError, match="turned"):
+        gate.check(_sample(32, x_m=0.010, angle_deg=10.0))
+    # after the glitch the stream resumes against the last good sample
+    assert gate.check(_sample(48, x_m=0.012, angle_deg=2.0)).stamp_ns == 48 * MS
