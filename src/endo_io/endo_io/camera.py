@@ -302,11 +302,11 @@ class CameraModel:
             height=height,
             K=K,
             D=matrix("distortion_coefficients").ravel(),
-            distortion_model=str(doc["distortion_model"]),
+            distortion_model=str(doc["distortion_model"] or ""),
             R=matrix("rectification_matrix") if "rectification_matrix" in doc else np.eye(3),
             P=matrix("projection_matrix") if "projection_matrix" in doc else np.zeros((0, 4)),
             frame_id=frame_id,
-            camera_name=str(doc.get("camera_name", DEFAULT_CAMERA_NAME)),
+            camera_name=str(doc.get("camera_name", DEFAULT_CAMERA_NAME) or ""),
         )
 
     def save_yaml(self, path: str | Path) -> None:
@@ -321,7 +321,7 @@ class CameraModel:
             f"image_height: {self.full_height}",
             f"camera_name: {_yaml_name(self.camera_name)}",
             *_yaml_matrix("camera_matrix", self.K_full),
-            f"distortion_model: {self.distortion_model}",
+            f"distortion_model: {_yaml_name(self.distortion_model)}",
             *_yaml_matrix("distortion_coefficients", self.D.reshape(1, -1)),
             *_yaml_matrix("rectification_matrix", self.R),
             *_yaml_matrix("projection_matrix", self.P_full),
@@ -645,7 +645,7 @@ def _yaml_float(value: float) -> str:
 
 
 def _yaml_name(name: str) -> str:
-    """camera_calibration writes the name bare; quote it only when YAML would misread it."""
+    """camera_calibration writes names bare; quote one only when YAML would misread it."""
     try:
         if name and "\n" not in name and yaml.safe_load(f"k: {name}") == {"k": name}:
             return name
