@@ -589,7 +589,8 @@ def _radial_tangential(
     x: np.ndarray, y: np.ndarray, D: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
     """Apply plumb_bob / rational_polynomial distortion to normalised (x, y)."""
-    return _radial_tangential_with_jacobian(x, y, D)[:2]
+    xd, yd, *_ = _radial_tangential_with_jacobian(x, y, D)
+    return xd, yd
 
 
 def _radial_tangential_with_jacobian(

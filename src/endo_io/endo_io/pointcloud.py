@@ -108,10 +108,10 @@ def xyz_to_pointcloud2(
     msg.header.stamp = ns_to_stamp(stamp_ns)
     msg.header.frame_id = frame_id
     msg.height, msg.width = height, width
-    names = ["x", "y", "z"] + ([] if rgb is None else ["rgb"])
+    offsets = {"x": 0, "y": 4, "z": 8} | ({} if rgb is None else {"rgb": RGB_OFFSET})
     msg.fields = [
-        PointField(name=name, offset=dtype.fields[name][1], datatype=PointField.FLOAT32, count=1)
-        for name in names
+        PointField(name=name, offset=offset, datatype=PointField.FLOAT32, count=1)
+        for name, offset in offsets.items()
     ]
     msg.is_bigendian = False
     msg.point_step = dtype.itemsize
