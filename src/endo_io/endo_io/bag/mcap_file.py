@@ -289,7 +289,7 @@ class McapFile:
             if pending is not None:
                 self._finish_scanned_chunk(*pending, pending_counts)
             if position >= self.size:
-                reason = "file ends before the MCAP footer (truncated)"
+                reason = "file ends before the MCAP footer"
             else:
                 reason = _describe(exc)
                 self._recover_cut_chunk(position)

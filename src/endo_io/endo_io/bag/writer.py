@@ -128,7 +128,8 @@ class BagWriter:
             once the current one exceeds this size. None: never split.
 
     Use as a context manager; leaving the block (also by an exception)
-    finalises the file.
+    finalises the file. Not thread-safe: call it from one thread (a node's
+    single-threaded executor), or serialise calls with a lock.
     """
 
     def __init__(
