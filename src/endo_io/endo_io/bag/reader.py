@@ -99,10 +99,10 @@ class BagReader:
         if self.metadata is not None and self.path.is_dir():
             for entry in self.metadata.get("topics_with_message_count") or []:
                 topic = (entry or {}).get("topic_metadata") or {}
-                info = merged.get(topic.get("name", ""))
-                if info is not None and not info.offered_qos_profiles:
+                known = merged.get(topic.get("name", ""))
+                if known is not None and not known.offered_qos_profiles:
                     qos = qos_profiles_text(topic.get("offered_qos_profiles"))
-                    merged[info.name] = dataclasses.replace(info, offered_qos_profiles=qos)
+                    merged[known.name] = dataclasses.replace(known, offered_qos_profiles=qos)
         return merged
 
     @property

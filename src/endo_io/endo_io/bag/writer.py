@@ -29,7 +29,7 @@ import os
 import types
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import IO, Any, cast
 
 from mcap.writer import CompressionType
 from mcap.writer import Writer as McapWriter
@@ -191,7 +191,7 @@ class BagWriter:
         self._sink = _OsFileSink(file_path)
         self._files.append(_FileStats(relative))
         self._mcap = McapWriter(
-            self._sink,
+            cast(IO[Any], self._sink),  # write/tell/flush is all it uses
             chunk_size=self.chunk_size,
             compression=_COMPRESSION[self.compression],
         )
@@ -327,7 +327,7 @@ class BagWriter:
         self._mcap.add_message(
             channel_id=channel_id,
             log_time=int(log_time_ns),
-            data=data,
+            data=cast(bytes, data),  # any buffer works; avoid copying images
             publish_time=int(publish_time_ns),
             sequence=sequence,
         )
