@@ -9,7 +9,9 @@ from __future__ import annotations
 
 import array
 import dataclasses
+import importlib
 import sys
+import warnings
 from pathlib import Path
 from typing import Any
 
@@ -194,6 +196,15 @@ def test_mcap_ros2_reads_our_bag(tmp_path):
     for (topic, msg, t), (r_topic, r_msg, r_t) in zip(originals, got, strict=True):
         assert (r_topic, r_t) == (topic, t)
         assert plain(r_msg) == plain(msg)
+    # The high-level mcap_ros2.reader (deprecated upstream, same decoder) agrees.
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", DeprecationWarning)
+        ros2_reader = importlib.import_module("mcap_ros2.reader")
+    high_level = [
+        (m.channel.topic, plain(m.ros_msg), m.log_time_ns)
+        for m in ros2_reader.read_ros2_messages(str(path))
+    ]
+    assert high_level == [(topic, plain(msg), t) for topic, msg, t in originals]
 
 
 @pytest.mark.parametrize(
