@@ -1,0 +1,748 @@
+"""Hand–eye and clock calibration of a tracked endoscope from checkerboard views.
+
+Frames and unknowns (x_a = T_a_b · x_b):
+
+* ``A_i = T_tracker_marker`` at the time of image i (tracker, interpolated);
+* ``B_i = T_camera_target`` of image i (checkerboard PnP);
+* ``X = T_marker_camera`` (the hand–eye transform, wanted);
+* ``W = T_tracker_target`` (the board, fixed in the tracker frame);
+* ``time_offset``: tracker_stamp = camera_time + time_offset (see
+  :mod:`endo_tracker_bridge.composition`).
+
+Every view satisfies ``A_i · X · B_i = W``. For two views i, j the relative
+motions ``A_ij = A_j⁻¹ A_i`` (marker) and ``B_ij = B_j B_i⁻¹`` (camera) satisfy
+the classical ``A_ij X = X B_ij``.
+
+Steps (:func:`calibrate_hand_eye`):
+
+1. Coarse clock search: for each candidate offset on a grid, interpolate the
+   marker poses at ``image_stamp + offset`` (SLERP,
+   :func:`endo_io.pose.interpolate_transform`), solve the closed form (Park)
+   and score the median spread of the implied board poses ``A_i X B_i``.
+2. At the best offset, solve ``A X = X B`` with Tsai–Lenz (1989), Park–Martin
+   (1994) and Daniilidis (1999); keep the one whose implied board poses
+   agree best; reject views whose board pose is an outlier (median + 4 MAD).
+3. Refine X and W by non-linear least squares on the reprojection error of
+   every checkerboard corner (scipy.optimize.least_squares).
+4. Fine clock search: minimise the refined reprojection RMS over the offset
+   in a bracket around the coarse optimum (bounded Brent), then refine once
+   more at the optimum and report the residuals.
+
+OpenCV's ``calibrateHandEye`` is not exposed to Python in the pinned
+opencv-python-headless 5.0.0.93 (opencv/opencv#29565), so the three closed
+forms are implemented here from the papers.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+from scipy.optimize import least_squares, minimize_scalar
+from scipy.spatial.transform import Rotation
+
+from endo_io.camera import CameraModel
+from endo_io.pose import interpolate_transform, matrix_to_quaternion
+from endo_tracker_bridge.composition import invert_transform
+from endo_tracker_bridge.errors import HandEyeError
+
+METHODS = ("tsai", "park", "daniilidis")
+MS = 1_000_000
+
+
+# -- the board -----------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Checkerboard:
+    """A planar checkerboard target.
+
+    ``columns`` × ``rows`` are the *inner* corners (OpenCV's pattern size),
+    ``square_m`` the square side in metres. The target frame has its origin
+    at the first detected corner, x along a row of corners, y down the
+    columns, z into the board (right-handed).
+    """
+
+    columns: int
+    rows: int
+    square_m: float
+
+    def __post_init__(self) -> None:
+        if self.columns < 3 or self.rows < 3 or not self.square_m > 0.0:
+            raise HandEyeError(
+                f"checkerboard needs >= 3x3 inner corners and a positive square, got "
+                f"{self.columns}x{self.rows}, {self.square_m} m"
+            )
+
+    @property
+    def pattern_size(self) -> tuple[int, int]:
+        """(columns, rows) as OpenCV's ``patternSize``."""
+        return (self.columns, self.rows)
+
+    def object_points(self) -> np.ndarray:
+        """(rows·columns, 3) float64 corner positions in the target frame, metres.
+
+        Row-major, matching the order of OpenCV's detections.
+        """
+        r, c = np.mgrid[0 : self.rows, 0 : self.columns]
+        points = np.stack([c.ravel(), r.ravel(), np.zeros(c.size)], axis=-1)
+        return points * self.square_m
+
+
+def detect_checkerboard(image: np.ndarray, board: Checkerboard) -> np.ndarray | None:
+    """Find the inner corners of ``board`` in an image.
+
+    ``image`` is (H, W) or (H, W, 3|4), uint8 or uint16. Returns (N, 2)
+    float64 sub-pixel corner positions (pixel centres at integers), row-major
+    like :meth:`Checkerboard.object_points`, or None when the whole board is
+    not found.
+    """
+    gray = np.asarray(image)
+    if gray.ndim == 3:
+        gray = cv2.cvtColor(gray, cv2.COLOR_RGBA2GRAY if gray.shape[2] == 4 else cv2.COLOR_RGB2GRAY)
+    if gray.dtype != np.uint8:
+        gray = cv2.normalize(gray, None, 0, 255, cv2.NORM_MINMAX).astype(np.uint8)
+    found, corners = cv2.findChessboardCornersSB(
+        gray, board.pattern_size, flags=cv2.CALIB_CB_NORMALIZE_IMAGE | cv2.CALIB_CB_ACCURACY
+    )
+    if not found:
+        found, corners = cv2.findChessboardCorners(
+            gray,
+            board.pattern_size,
+            flags=cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE,
+        )
+        if not found:
+            return None
+        criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_MAX_ITER, 40, 1e-3)
+        corners = cv2.cornerSubPix(gray, corners, (5, 5), (-1, -1), criteria)
+    return np.asarray(corners, dtype=np.float64).reshape(-1, 2)
+
+
+@dataclass(frozen=True)
+class BoardView:
+    """One image in which the board was found.
+
+    ``stamp_ns``: image stamp (camera clock); ``corners``: (N, 2) pixels;
+    ``T_camera_target``: (4, 4) PnP pose, metres; ``reprojection_rms_px``:
+    RMS corner residual of that pose.
+    """
+
+    stamp_ns: int
+    corners: np.ndarray = field(repr=False)
+    T_camera_target: np.ndarray = field(repr=False)
+    reprojection_rms_px: float
+
+
+def board_view(
+    stamp_ns: int, corners: np.ndarray, board: Checkerboard, camera: CameraModel
+) -> BoardView:
+    """Solve the board pose (PnP) of one image's corners.
+
+    ``corners`` (N, 2) pixels in the image ``camera`` describes (any of its
+    distortion models: the corners are undistorted through
+    ``camera.pixels_to_rays`` and PnP runs on normalised coordinates).
+    Raises HandEyeError when PnP fails.
+    """
+    corners = np.asarray(corners, dtype=np.float64).reshape(-1, 2)
+    object_points = board.object_points()
+    rays = camera.pixels_to_rays(corners)
+    if not np.all(np.isfinite(rays)):
+        raise HandEyeError("a corner lies where the lens distortion cannot be inverted")
+    normalised = rays[:, :2] / rays[:, 2:3]
+    found, rvec, tvec = cv2.solvePnP(
+        object_points, normalised, np.eye(3), None, flags=cv2.SOLVEPNP_IPPE
+    )
+    if not found:
+        raise HandEyeError("PnP found no board pose")
+    rvec, tvec = cv2.solvePnPRefineLM(object_points, normalised, np.eye(3), None, rvec, tvec)
+    T = np.eye(4)
+    T[:3, :3] = cv2.Rodrigues(rvec)[0]
+    T[:3, 3] = tvec.ravel()
+    projected = camera.project(object_points @ T[:3, :3].T + T[:3, 3])
+    rms = float(np.sqrt(np.mean(np.sum((projected - corners) ** 2, axis=-1))))
+    return BoardView(int(stamp_ns), corners, T, rms)
+
+
+# -- interpolation of the tracker stream ---------------------------------------------
+
+
+def marker_poses_at(
+    tracker_stamps_ns: np.ndarray,
+    tracker_poses: np.ndarray,
+    query_ns: np.ndarray,
+    max_gap_ns: int,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Interpolate the marker pose at each query time.
+
+    ``tracker_stamps_ns`` (M,) int64 increasing, ``tracker_poses`` (M, 4, 4)
+    metres, ``query_ns`` (N,) int64 (tracker clock). A query is valid when it
+    lies between two samples at most ``max_gap_ns`` apart (a dropout longer
+    than that is not bridged). Returns ((N, 4, 4) float64, NaN where
+    invalid; (N,) bool valid).
+    """
+    stamps = np.asarray(tracker_stamps_ns, dtype=np.int64)
+    query = np.asarray(query_ns, dtype=np.int64)
+    after = np.searchsorted(stamps, query, side="right")
+    before = after - 1
+    b, a = np.clip(before, 0, len(stamps) - 1), np.clip(after, 0, len(stamps) - 1)
+    exact = (before >= 0) & (stamps[b] == query)
+    bracketed = (before >= 0) & (after < len(stamps)) & ((stamps[a] - stamps[b]) <= max_gap_ns)
+    valid = exact | bracketed
+    poses = np.full((len(query), 4, 4), np.nan)
+    poses[exact] = tracker_poses[b[exact]]
+    for k in np.flatnonzero(bracketed & ~exact):
+        poses[k] = interpolate_transform(
+            tracker_poses[b[k]],
+            int(stamps[b[k]]),
+            tracker_poses[a[k]],
+            int(stamps[a[k]]),
+            int(query[k]),
+        )
+    return poses, valid
+
+
+# -- closed-form hand-eye (A X = X B) ------------------------------------------------
+
+
+def _skew(v: np.ndarray) -> np.ndarray:
+    """(..., 3) → (..., 3, 3) cross-product matrices."""
+    s = np.zeros((*v.shape[:-1], 3, 3))
+    s[..., 0, 1], s[..., 0, 2] = -v[..., 2], v[..., 1]
+    s[..., 1, 0], s[..., 1, 2] = v[..., 2], -v[..., 0]
+    s[..., 2, 0], s[..., 2, 1] = -v[..., 1], v[..., 0]
+    return s
+
+
+def relative_motions(
+    T_tracker_marker: np.ndarray, T_camera_target: np.ndarray, min_angle_deg: float = 10.0
+) -> tuple[np.ndarray, np.ndarray]:
+    """Marker and camera motions between pairs of views, for ``A X = X B``.
+
+    Inputs (N, 4, 4). Uses every pair whose marker rotation is at least
+    ``min_angle_deg`` (pairs with little rotation constrain X poorly), or
+    the best-rotated quarter of all pairs if fewer qualify; at most 4000
+    pairs, spread evenly. Returns (A (P, 4, 4), B (P, 4, 4)) with
+    ``A = A_j⁻¹ A_i`` and ``B = B_j B_i⁻¹``.
+    """
+    n = len(T_tracker_marker)
+    i, j = np.triu_indices(n, k=1)
+    A = invert_transform(T_tracker_marker)[j] @ T_tracker_marker[i]
+    B = T_camera_target[j] @ invert_transform(T_camera_target)[i]
+    angle = np.degrees(Rotation.from_matrix(A[:, :3, :3]).magnitude())
+    keep = np.flatnonzero(angle >= min_angle_deg)
+    if len(keep) < max(3, len(angle) // 4):
+        keep = np.argsort(angle)[-max(3, len(angle) // 4) :]
+    if len(keep) > 4000:
+        keep = keep[np.linspace(0, len(keep) - 1, 4000).astype(int)]
+    return A[keep], B[keep]
+
+
+def _translation_least_squares(A: np.ndarray, B: np.ndarray, R_x: np.ndarray) -> np.ndarray:
+    """t_X from (R_A − I) t_X = R_X t_B − t_A stacked over pairs (metres)."""
+    lhs = (A[:, :3, :3] - np.eye(3)).reshape(-1, 3)
+    rhs = (B[:, :3, 3] @ R_x.T - A[:, :3, 3]).reshape(-1)
+    return np.linalg.lstsq(lhs, rhs, rcond=None)[0]
+
+
+def _hand_eye_tsai(A: np.ndarray, B: np.ndarray) -> np.ndarray:
+    # Tsai & Lenz 1989: modified Rodrigues vectors P = 2 sin(θ/2) n satisfy
+    # skew(P_A + P_B) P' = P_B − P_A with P' = P_X / sqrt(4 − |P_X|²).
+    def rodrigues(T: np.ndarray) -> np.ndarray:
+        rotvec = Rotation.from_matrix(T[:, :3, :3]).as_rotvec()
+        angle = np.linalg.norm(rotvec, axis=-1, keepdims=True)
+        axis = np.divide(rotvec, angle, out=np.zeros_like(rotvec), where=angle > 0)
+        return 2.0 * np.sin(angle / 2.0) * axis
+
+    p_a, p_b = rodrigues(A), rodrigues(B)
+    p_prime = np.linalg.lstsq(_skew(p_a + p_b).reshape(-1, 3), (p_b - p_a).reshape(-1), rcond=None)[
+        0
+    ]
+    p_x = 2.0 * p_prime / math.sqrt(1.0 + float(p_prime @ p_prime))
+    norm2 = float(p_x @ p_x)
+    R_x = (1.0 - norm2 / 2.0) * np.eye(3) + 0.5 * (
+        np.outer(p_x, p_x) + math.sqrt(max(0.0, 4.0 - norm2)) * _skew(p_x)
+    )
+    u, _, vt = np.linalg.svd(R_x)
+    R_x = u @ vt
+    X = np.eye(4)
+    X[:3, :3], X[:3, 3] = R_x, _translation_least_squares(A, B, R_x)
+    return X
+
+
+def _hand_eye_park(A: np.ndarray, B: np.ndarray) -> np.ndarray:
+    # Park & Martin 1994: the rotation logs satisfy α = R_X β; R_X is the
+    # orthogonal Procrustes solution of Σ α βᵀ.
+    alpha = Rotation.from_matrix(A[:, :3, :3]).as_rotvec()
+    beta = Rotation.from_matrix(B[:, :3, :3]).as_rotvec()
+    u, _, vt = np.linalg.svd(alpha.T @ beta)
+    R_x = u @ np.diag([1.0, 1.0, np.linalg.det(u @ vt)]) @ vt
+    X = np.eye(4)
+    X[:3, :3], X[:3, 3] = R_x, _translation_least_squares(A, B, R_x)
+    return X
+
+
+def _dual_quaternions(T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(P, 4, 4) → real and dual parts (P, 4) as (w, x, y, z), w >= 0."""
+    q_xyzw = matrix_to_quaternion(T[:, :3, :3])
+    q = np.concatenate([q_xyzw[:, 3:], q_xyzw[:, :3]], axis=-1)
+    t = np.concatenate([np.zeros((len(T), 1)), T[:, :3, 3]], axis=-1)
+    return q, 0.5 * _quaternion_product(t, q)
+
+
+def _quaternion_product(p: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """Hamilton product of (..., 4) (w, x, y, z) quaternions."""
+    pw, pv, qw, qv = p[..., :1], p[..., 1:], q[..., :1], q[..., 1:]
+    return np.concatenate(
+        [pw * qw - np.sum(pv * qv, axis=-1, keepdims=True), pw * qv + qw * pv + np.cross(pv, qv)],
+        axis=-1,
+    )
+
+
+def _hand_eye_daniilidis(A: np.ndarray, B: np.ndarray) -> np.ndarray:
+    # Daniilidis 1999: with dual quaternions a x = x b, each pair gives six
+    # linear equations in the 8 unknowns of x; x lies in the span of the two
+    # right singular vectors of least singular value, fixed by |q| = 1 and
+    # q·q' = 0.
+    qa, qa_dual = _dual_quaternions(A)
+    qb, qb_dual = _dual_quaternions(B)
+    rows = np.zeros((len(A), 6, 8))
+    rows[:, :3, 0] = qa[:, 1:] - qb[:, 1:]
+    rows[:, :3, 1:4] = _skew(qa[:, 1:] + qb[:, 1:])
+    rows[:, 3:, 0] = qa_dual[:, 1:] - qb_dual[:, 1:]
+    rows[:, 3:, 1:4] = _skew(qa_dual[:, 1:] + qb_dual[:, 1:])
+    rows[:, 3:, 4] = qa[:, 1:] - qb[:, 1:]
+    rows[:, 3:, 5:8] = _skew(qa[:, 1:] + qb[:, 1:])
+    _, _, vt = np.linalg.svd(rows.reshape(-1, 8), full_matrices=False)
+    v1, v2 = vt[-2], vt[-1]
+    u1, w1, u2, w2 = v1[:4], v1[4:], v2[:4], v2[4:]
+    # s = λ1/λ2 solves s² u1·w1 + s (u1·w2 + u2·w1) + u2·w2 = 0
+    roots = np.roots([u1 @ w1, u1 @ w2 + u2 @ w1, u2 @ w2])
+    roots = roots[np.isreal(roots)].real
+    if len(roots) == 0:
+        raise HandEyeError("Daniilidis: no real solution (too little motion)")
+    norms = roots**2 * (u1 @ u1) + 2.0 * roots * (u1 @ u2) + (u2 @ u2)
+    s = roots[np.argmax(norms)]
+    lambda2 = 1.0 / math.sqrt(float(np.max(norms)))
+    x = s * lambda2 * v1 + lambda2 * v2
+    q, q_dual = x[:4], x[4:]
+    t = 2.0 * _quaternion_product(q_dual, q * np.array([1.0, -1.0, -1.0, -1.0]))[1:]
+    X = np.eye(4)
+    X[:3, :3] = Rotation.from_quat(np.concatenate([q[1:], q[:1]])).as_matrix()
+    X[:3, 3] = t
+    return X
+
+
+_SOLVERS: dict[str, Callable[[np.ndarray, np.ndarray], np.ndarray]] = {
+    "tsai": _hand_eye_tsai,
+    "park": _hand_eye_park,
+    "daniilidis": _hand_eye_daniilidis,
+}
+
+
+def solve_hand_eye(
+    T_tracker_marker: np.ndarray, T_camera_target: np.ndarray, method: str = "park"
+) -> np.ndarray:
+    """Closed-form T_marker_camera (4, 4) from N >= 3 views (N, 4, 4) each, metres.
+
+    ``method`` is ``tsai``, ``park`` or ``daniilidis``. Raises HandEyeError
+    with fewer than 3 views or an unknown method.
+    """
+    if method not in _SOLVERS:
+        raise HandEyeError(f"unknown hand-eye method '{method}' (expected {', '.join(METHODS)})")
+    if len(T_tracker_marker) < 3:
+        raise HandEyeError(f"hand-eye needs at least 3 views, got {len(T_tracker_marker)}")
+    A, B = relative_motions(T_tracker_marker, T_camera_target)
+    return _SOLVERS[method](A, B)
+
+
+# -- residuals ---------------------------------------------------------------------------
+
+
+def mean_transform(T: np.ndarray) -> np.ndarray:
+    """Chordal mean (4, 4) of rigid transforms (N, 4, 4).
+
+    The rotation is the SO(3) projection of the mean rotation matrix, the
+    translation the mean translation.
+    """
+    u, _, vt = np.linalg.svd(np.sum(T[:, :3, :3], axis=0))
+    mean = np.eye(4)
+    mean[:3, :3] = u @ np.diag([1.0, 1.0, np.linalg.det(u @ vt)]) @ vt
+    mean[:3, 3] = np.mean(T[:, :3, 3], axis=0)
+    return mean
+
+
+def target_pose(
+    T_tracker_marker: np.ndarray, T_marker_camera: np.ndarray, T_camera_target: np.ndarray
+) -> np.ndarray:
+    """Board pose W (4, 4) in the tracker frame: mean of the views' ``A_i X B_i``."""
+    return mean_transform(T_tracker_marker @ T_marker_camera @ T_camera_target)
+
+
+def tracker_residuals(
+    T_tracker_marker: np.ndarray,
+    T_camera_target: np.ndarray,
+    T_marker_camera: np.ndarray,
+    T_tracker_target: np.ndarray,
+) -> np.ndarray:
+    """Measured vs predicted marker pose of each view, in the marker frame.
+
+    The marker pose predicted from the board view is ``Â_i = W B_i⁻¹ X⁻¹``;
+    the residual is ``A_i⁻¹ Â_i`` as (N, 6) float64: rotation vector
+    (radians, 3) then translation (metres, 3). When the tracker's noise
+    dominates (it does: a 0.1° tracker error moves a camera 25 cm away by
+    0.4 mm, far more than PnP's error), these are the tracker's own errors,
+    so weighting them by the tracker's noise gives the maximum-likelihood fit.
+    """
+    predicted = (
+        T_tracker_target @ invert_transform(T_camera_target) @ invert_transform(T_marker_camera)
+    )
+    delta = invert_transform(T_tracker_marker) @ predicted
+    rotation = Rotation.from_matrix(delta[:, :3, :3]).as_rotvec()
+    return np.concatenate([rotation, delta[:, :3, 3]], axis=-1)
+
+
+@dataclass(frozen=True)
+class TrackerNoise:
+    """RMS tracker error (norm over the three axes): degrees and millimetres."""
+
+    rotation_deg: float = 0.1
+    translation_mm: float = 0.25
+
+    @classmethod
+    def from_residuals(cls, residuals: np.ndarray) -> TrackerNoise:
+        """RMS norms of (N, 6) :func:`tracker_residuals`, floored at 1e-5° / 1e-5 mm."""
+        rotation_deg = float(np.degrees(np.sqrt(np.mean(np.sum(residuals[:, :3] ** 2, axis=-1)))))
+        translation_mm = 1e3 * float(np.sqrt(np.mean(np.sum(residuals[:, 3:] ** 2, axis=-1))))
+        return cls(max(rotation_deg, 1e-5), max(translation_mm, 1e-5))
+
+    def whiten(self, residuals: np.ndarray) -> np.ndarray:
+        """(N, 6) residuals divided by the per-axis standard deviation."""
+        sigma_rotation = math.radians(self.rotation_deg) / math.sqrt(3.0)
+        sigma_translation = 1e-3 * self.translation_mm / math.sqrt(3.0)
+        return residuals / np.array([sigma_rotation] * 3 + [sigma_translation] * 3)
+
+
+def _robust_inliers(errors: np.ndarray, floor: float) -> np.ndarray:
+    median = float(np.median(errors))
+    mad = 1.4826 * float(np.median(np.abs(errors - median)))
+    return errors <= max(median + 4.0 * mad, 2.0 * median, floor)
+
+
+# -- non-linear refinement ----------------------------------------------------------------
+
+
+def _pack(X: np.ndarray, W: np.ndarray) -> np.ndarray:
+    return np.concatenate(
+        [
+            Rotation.from_matrix(X[:3, :3]).as_rotvec(),
+            X[:3, 3] * 1e3,
+            Rotation.from_matrix(W[:3, :3]).as_rotvec(),
+            W[:3, 3] * 1e3,
+        ]
+    )
+
+
+def _unpack(params: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    X, W = np.eye(4), np.eye(4)
+    X[:3, :3] = Rotation.from_rotvec(params[0:3]).as_matrix()
+    X[:3, 3] = params[3:6] * 1e-3
+    W[:3, :3] = Rotation.from_rotvec(params[6:9]).as_matrix()
+    W[:3, 3] = params[9:12] * 1e-3
+    return X, W
+
+
+def refine_hand_eye(
+    T_tracker_marker: np.ndarray,
+    T_camera_target: np.ndarray,
+    T_marker_camera: np.ndarray,
+    T_tracker_target: np.ndarray,
+    noise: TrackerNoise,
+) -> tuple[np.ndarray, np.ndarray, float]:
+    """Least-squares refinement of X and W on the noise-weighted tracker residuals.
+
+    ``T_tracker_marker``, ``T_camera_target``: (N, 4, 4); X, W: (4, 4)
+    starting values. Minimises Σ |whiten(tracker_residuals)|² over the six
+    parameters of each of X and W. Returns (X, W, mean squared whitened
+    residual per degree of freedom; about 1 when ``noise`` is right).
+    """
+
+    def residuals(params: np.ndarray) -> np.ndarray:
+        X, W = _unpack(params)
+        return noise.whiten(tracker_residuals(T_tracker_marker, T_camera_target, X, W)).ravel()
+
+    start = _pack(T_marker_camera, T_tracker_target)
+    solution = least_squares(residuals, start, method="lm", xtol=1e-12, ftol=1e-12)
+    X, W = _unpack(solution.x)
+    return X, W, float(np.mean(solution.fun**2))
+
+
+def reprojection_residuals(
+    T_tracker_marker: np.ndarray,
+    corners: np.ndarray,
+    object_points: np.ndarray,
+    camera: CameraModel,
+    T_marker_camera: np.ndarray,
+    T_tracker_target: np.ndarray,
+) -> np.ndarray:
+    """Corner residuals (N, K, 2) pixels of the board predicted through the tracker.
+
+    The board pose in view i is predicted as ``X⁻¹ A_i⁻¹ W`` and its corners
+    (K, 3) projected with ``camera``; ``corners`` (N, K, 2) are the
+    detections. Points behind the camera give NaN.
+    """
+    predicted = (
+        invert_transform(T_marker_camera) @ invert_transform(T_tracker_marker) @ T_tracker_target
+    )
+    points = (
+        np.einsum("nij,kj->nki", predicted[:, :3, :3], object_points) + predicted[:, None, :3, 3]
+    )
+    return camera.project(points) - corners
+
+
+# -- the whole calibration --------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class HandEyeResult:
+    """Outcome of :func:`calibrate_hand_eye`.
+
+    Residuals are over the views kept: ``translation_rms_mm`` and
+    ``rotation_rms_deg`` are the RMS differences between each measured marker
+    pose and the one the calibration predicts from the board view;
+    ``reprojection_rms_px`` is the RMS corner error of the board projected
+    through tracker and calibration. ``closed_form`` holds each closed-form
+    method's residuals before refinement.
+    """
+
+    T_marker_camera: np.ndarray
+    T_tracker_target: np.ndarray
+    time_offset_ns: int
+    reprojection_rms_px: float
+    translation_rms_mm: float
+    rotation_rms_deg: float
+    method: str
+    views_used: int
+    views_total: int
+    closed_form: dict[str, dict[str, float]]
+    coarse_offsets_ms: list[float]
+    coarse_costs: list[float]
+
+
+@dataclass(frozen=True)
+class OffsetSearch:
+    """Clock offset search: ``[low_ns, high_ns]`` with a coarse grid step, all ns."""
+
+    low_ns: int = -200 * MS
+    high_ns: int = 200 * MS
+    step_ns: int = 4 * MS
+
+
+@dataclass
+class _Fit:
+    A: np.ndarray
+    mask: np.ndarray
+    forms: dict[str, tuple[np.ndarray, TrackerNoise, float]]
+    best: str
+    X: np.ndarray
+    W: np.ndarray
+    cost: float
+
+
+class _Problem:
+    """Views and tracker stream, evaluated at any clock offset."""
+
+    def __init__(
+        self,
+        views: list[BoardView],
+        tracker_stamps_ns: np.ndarray,
+        tracker_poses: np.ndarray,
+        max_gap_ns: int,
+        coarse_views: int,
+    ) -> None:
+        self.stamps = np.array([v.stamp_ns for v in views], dtype=np.int64)
+        self.B = np.stack([v.T_camera_target for v in views])
+        self.tracker_stamps = np.asarray(tracker_stamps_ns, dtype=np.int64)
+        self.tracker_poses = np.asarray(tracker_poses, dtype=np.float64)
+        self.max_gap_ns = max_gap_ns
+        self.coarse_subset = np.unique(np.linspace(0, len(views) - 1, coarse_views).astype(int))
+
+    def marker_poses(
+        self, offset_ns: int, subset: np.ndarray | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
+        stamps = self.stamps if subset is None else self.stamps[subset]
+        return marker_poses_at(
+            self.tracker_stamps, self.tracker_poses, stamps + offset_ns, self.max_gap_ns
+        )
+
+    def coarse_cost(self, offset_ns: int, noise: TrackerNoise) -> float:
+        """Median squared whitened residual after a Park closed form, on a subset of views."""
+        A, valid = self.marker_poses(offset_ns, self.coarse_subset)
+        B = self.B[self.coarse_subset][valid]
+        if valid.sum() < 5:
+            return math.inf
+        try:
+            X = solve_hand_eye(A[valid], B, "park")
+        except (HandEyeError, np.linalg.LinAlgError, ValueError):
+            return math.inf
+        W = target_pose(A[valid], X, B)
+        whitened = noise.whiten(tracker_residuals(A[valid], B, X, W))
+        return float(np.median(np.sum(whitened**2, axis=-1)))
+
+    def closed_forms(
+        self, A: np.ndarray, mask: np.ndarray, noise: TrackerNoise
+    ) -> dict[str, tuple[np.ndarray, TrackerNoise, float]]:
+        """Each method's X, its residual RMS (as TrackerNoise) and whitened cost."""
+        results = {}
+        for method in METHODS:
+            try:
+                X = solve_hand_eye(A[mask], self.B[mask], method)
+            except (HandEyeError, np.linalg.LinAlgError, ValueError):
+                continue
+            W = target_pose(A[mask], X, self.B[mask])
+            residuals = tracker_residuals(A[mask], self.B[mask], X, W)
+            cost = float(np.mean(noise.whiten(residuals) ** 2))
+            results[method] = (X, TrackerNoise.from_residuals(residuals), cost)
+        if not results:
+            raise HandEyeError("no closed-form hand-eye method succeeded")
+        return results
+
+    def inliers(
+        self, A: np.ndarray, valid: np.ndarray, X: np.ndarray, noise: TrackerNoise
+    ) -> np.ndarray:
+        """Views whose whitened residual is not an outlier (median + 4 MAD), iterated."""
+        mask = valid.copy()
+        for _ in range(3):
+            W = target_pose(A[mask], X, self.B[mask])
+            whitened = noise.whiten(tracker_residuals(A[valid], self.B[valid], X, W))
+            keep = _robust_inliers(np.sqrt(np.sum(whitened**2, axis=-1)), floor=3.0)
+            new_mask = np.zeros_like(valid)
+            new_mask[np.flatnonzero(valid)[keep]] = True
+            if new_mask.sum() < 5 or np.array_equal(new_mask, mask):
+                break
+            mask = new_mask
+            X = solve_hand_eye(A[mask], self.B[mask], "park")
+        return mask
+
+    def fit(self, offset_ns: int, noise: TrackerNoise) -> _Fit:
+        """Closed forms, outlier rejection and refinement at one clock offset."""
+        A, valid = self.marker_poses(offset_ns)
+        if valid.sum() < 5:
+            raise HandEyeError(f"only {int(valid.sum())} views have tracker poses around them")
+        forms = self.closed_forms(A, valid, noise)
+        best = min(forms, key=lambda m: forms[m][2])
+        mask = self.inliers(A, valid, forms[best][0], noise)
+        if mask.sum() < 5:
+            raise HandEyeError(f"only {int(mask.sum())} views left after outlier rejection")
+        X0 = forms[best][0]
+        W0 = target_pose(A[mask], X0, self.B[mask])
+        X, W, cost = refine_hand_eye(A[mask], self.B[mask], X0, W0, noise)
+        return _Fit(A, mask, forms, best, X, W, cost)
+
+
+def calibrate_hand_eye(
+    views: list[BoardView],
+    tracker_stamps_ns: np.ndarray,
+    tracker_poses: np.ndarray,
+    board: Checkerboard,
+    camera: CameraModel,
+    search: OffsetSearch | None = None,
+    max_gap_ns: int = 60 * MS,
+    coarse_views: int = 40,
+) -> HandEyeResult:
+    """Hand–eye transform, board pose and clock offset from board views and tracker poses.
+
+    ``views``: board detections with camera-clock stamps; ``tracker_stamps_ns``
+    (M,) int64 tracker stamps; ``tracker_poses`` (M, 4, 4) T_tracker_marker in
+    metres; ``search``: range and step of the offset search
+    (``OffsetSearch(0, 0)`` fixes the offset at zero); ``max_gap_ns``:
+    longest tracker dropout bridged by interpolation; ``coarse_views``: views
+    used on the coarse grid (all of them afterwards).
+    Raises HandEyeError when fewer than 5 views remain or the views do not
+    rotate enough.
+    """
+    search = search or OffsetSearch()
+    if len(views) < 5:
+        raise HandEyeError(f"hand-eye needs at least 5 board views, got {len(views)}")
+    order = np.argsort(tracker_stamps_ns, kind="stable")
+    problem = _Problem(
+        views,
+        np.asarray(tracker_stamps_ns)[order],
+        np.asarray(tracker_poses)[order],
+        max_gap_ns,
+        coarse_views,
+    )
+
+    # 1. coarse grid, with a typical optical tracker's noise as weights
+    default_noise = TrackerNoise()
+    if search.high_ns > search.low_ns:
+        grid = np.arange(search.low_ns, search.high_ns + 1, max(1, search.step_ns), dtype=np.int64)
+    else:
+        grid = np.array([search.low_ns], dtype=np.int64)
+    costs = np.array([problem.coarse_cost(int(o), default_noise) for o in grid])
+    if not np.any(np.isfinite(costs)):
+        raise HandEyeError("no clock offset in the search range leaves 5 views with tracker poses")
+    offset_ns = int(grid[int(np.argmin(costs))])
+
+    # 2.-3. fit at the coarse optimum; the residuals then give this tracker's noise
+    fit = problem.fit(offset_ns, default_noise)
+    noise = TrackerNoise.from_residuals(
+        tracker_residuals(fit.A[fit.mask], problem.B[fit.mask], fit.X, fit.W)
+    )
+
+    # 4. fine offset: profile of the refined cost, views and weights fixed
+    if len(grid) > 1:
+        mask, warm = fit.mask, {"X": fit.X, "W": fit.W}
+
+        def profile(offset_ms: float) -> float:
+            A, valid = problem.marker_poses(round(offset_ms * MS))
+            use = mask & valid
+            if use.sum() < 5:
+                return math.inf
+            X, W, cost = refine_hand_eye(A[use], problem.B[use], warm["X"], warm["W"], noise)
+            warm.update(X=X, W=W)
+            return cost
+
+        step_ms = search.step_ns / MS
+        low = max(search.low_ns / MS, offset_ns / MS - 2 * step_ms)
+        high = min(search.high_ns / MS, offset_ns / MS + 2 * step_ms)
+        fine = minimize_scalar(
+            profile, bounds=(low, high), method="bounded", options={"xatol": 0.01}
+        )
+        offset_ns = round(float(fine.x) * MS)
+        fit = problem.fit(offset_ns, noise)
+
+    A, B, mask = fit.A[fit.mask], problem.B[fit.mask], fit.mask
+    rotation_span = _rotation_span_deg(A)
+    if rotation_span < 10.0:
+        raise HandEyeError(
+            f"the views span only {rotation_span:.1f}° of marker rotation; need >= 10°"
+        )
+    residual = TrackerNoise.from_residuals(tracker_residuals(A, B, fit.X, fit.W))
+    corners = np.stack([v.corners for v, keep in zip(views, mask, strict=True) if keep])
+    pixels = reprojection_residuals(A, corners, board.object_points(), camera, fit.X, fit.W)
+    return HandEyeResult(
+        T_marker_camera=fit.X,
+        T_tracker_target=fit.W,
+        time_offset_ns=offset_ns,
+        reprojection_rms_px=float(np.sqrt(np.nanmean(np.sum(pixels**2, axis=-1)))),
+        translation_rms_mm=residual.translation_mm,
+        rotation_rms_deg=residual.rotation_deg,
+        method=f"{fit.best} + least-squares",
+        views_used=int(mask.sum()),
+        views_total=len(views),
+        closed_form={
+            m: {"translation_rms_mm": r.translation_mm, "rotation_rms_deg": r.rotation_deg}
+            for m, (_, r, _) in fit.forms.items()
+        },
+        coarse_offsets_ms=[float(o) / MS for o in grid],
+        coarse_costs=[float(c) for c in costs],
+    )
+
+
+def _rotation_span_deg(T: np.ndarray) -> float:
+    """Largest rotation angle (degrees) between the first view and any other."""
+    relative = np.swapaxes(T[:1, :3, :3], -1, -2) @ T[:, :3, :3]
+    return float(np.degrees(np.max(Rotation.from_matrix(relative).magnitude())))

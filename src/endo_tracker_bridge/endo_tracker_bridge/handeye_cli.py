@@ -1,0 +1,263 @@
+"""``endo-handeye BAG -o handeye.yaml``: hand–eye and clock calibration from a bag.
+
+The bag holds checkerboard images (``/endoscope/image_raw``), the camera's
+intrinsics (``/endoscope/camera_info``) and the tracker's marker poses
+(``/tracker/pose``, as ``endo-tracker-bridge`` publishes them, or as the
+``endo_sim`` hand–eye bag has them). For each image the board's inner
+corners are detected and its pose solved (PnP with the camera_info
+intrinsics and distortion); :func:`endo_tracker_bridge.handeye.calibrate_hand_eye`
+does the rest. The result goes to ``handeye.yaml``, which the bridge loads
+through its ``handeye_file`` parameter.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import sys
+from collections.abc import Iterator, Sequence
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from endo_io.bag import BagReader, deserialize
+from endo_io.camera import CameraModel
+from endo_io.errors import Endo3dError
+from endo_io.image import image_to_array
+from endo_io.pose import pose_to_matrix
+from endo_io.stamp import stamp_to_ns
+from endo_tracker_bridge.conventions import LengthUnit
+from endo_tracker_bridge.errors import HandEyeError
+from endo_tracker_bridge.handeye import (
+    MS,
+    BoardView,
+    Checkerboard,
+    HandEyeResult,
+    OffsetSearch,
+    board_view,
+    calibrate_hand_eye,
+    detect_checkerboard,
+)
+from endo_tracker_bridge.handeye_file import HandEyeCalibration
+
+
+@dataclass(frozen=True)
+class BagTopics:
+    """Topic names of the calibration bag."""
+
+    image: str = "/endoscope/image_raw"
+    camera_info: str = "/endoscope/camera_info"
+    pose: str = "/tracker/pose"
+
+
+@dataclass(frozen=True)
+class BagObservations:
+    """What the bag gives the solver: board views, tracker stream, camera."""
+
+    views: list[BoardView]
+    images: int
+    tracker_stamps_ns: np.ndarray
+    tracker_poses: np.ndarray
+    camera: CameraModel
+
+
+def read_observations(
+    path: str | Path,
+    board: Checkerboard,
+    topics: BagTopics | None = None,
+    pose_unit: LengthUnit = LengthUnit.METRE,
+    max_views: int = 0,
+    workers: int = 2,
+) -> BagObservations:
+    """Detect the board in the bag's images and collect the tracker poses.
+
+    ``max_views`` > 0 uses at most that many images, evenly spread over the
+    recording; ``workers`` threads run the corner detection (OpenCV releases
+    the GIL). Raises HandEyeError when the bag lacks a topic.
+    """
+    topics = topics or BagTopics()
+    with BagReader(path) as bag:
+        for name in (topics.image, topics.camera_info, topics.pose):
+            if name not in bag.topics:
+                raise HandEyeError(f"bag {path} has no topic {name}")
+        info = next(bag.messages(topics=[topics.camera_info]))
+        camera = CameraModel.from_camera_info(deserialize(info))
+        image_count = bag.topics[topics.image].message_count
+        stride = max(1, -(-image_count // max_views)) if max_views > 0 else 1
+
+        stamps: list[int] = []
+        poses: list[np.ndarray] = []
+        images: list[tuple[int, np.ndarray]] = []
+        image_index = 0
+        for message in bag.messages(topics=[topics.image, topics.pose]):
+            if message.topic == topics.pose:
+                T, stamp_ns = pose_to_matrix(deserialize(message))
+                T[:3, 3] *= pose_unit.metres_per_unit
+                poses.append(T)
+                stamps.append(stamp_ns)
+                continue
+            if image_index % stride == 0:
+                msg = deserialize(message)
+                images.append((stamp_to_ns(msg.header.stamp), image_to_array(msg)))
+            image_index += 1
+
+    def detect(item: tuple[int, np.ndarray]) -> BoardView | None:
+        stamp_ns, image = item
+        corners = detect_checkerboard(image, board)
+        if corners is None:
+            return None
+        try:
+            return board_view(stamp_ns, corners, board, camera)
+        except HandEyeError:
+            return None
+
+    with ThreadPoolExecutor(max_workers=max(1, workers)) as pool:
+        detected = list(pool.map(detect, images))
+    views = [v for v in detected if v is not None]
+    return BagObservations(
+        views=views,
+        images=len(images),
+        tracker_stamps_ns=np.asarray(stamps, dtype=np.int64),
+        tracker_poses=np.stack(poses) if poses else np.zeros((0, 4, 4)),
+        camera=camera,
+    )
+
+
+def result_to_calibration(
+    result: HandEyeResult, observations: BagObservations
+) -> HandEyeCalibration:
+    """The handeye.yaml content of a solver result."""
+    return HandEyeCalibration(
+        T_marker_camera=result.T_marker_camera,
+        time_offset_ns=result.time_offset_ns,
+        residuals={
+            "reprojection_rms_px": result.reprojection_rms_px,
+            "translation_rms_mm": result.translation_rms_mm,
+            "rotation_rms_deg": result.rotation_rms_deg,
+        },
+        method=result.method,
+        date=datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
+        views_used=result.views_used,
+        views_total=result.views_total,
+        T_tracker_target=result.T_tracker_target,
+        details={
+            "closed_form": result.closed_form,
+            "images_read": observations.images,
+            "tracker_poses": len(observations.tracker_stamps_ns),
+            "offset_search_ms": [result.coarse_offsets_ms[0], result.coarse_offsets_ms[-1]],
+            "residual_meaning": (
+                "translation_rms_mm/rotation_rms_deg: RMS difference between each measured "
+                "marker pose and the one predicted from its board view; reprojection_rms_px: "
+                "board corners projected through tracker pose and calibration"
+            ),
+        },
+    )
+
+
+def _summary_lines(result: HandEyeResult, observations: BagObservations) -> Iterator[str]:
+    yield (
+        f"board found in {len(observations.views)} of {observations.images} images; "
+        f"{len(observations.tracker_stamps_ns)} tracker poses"
+    )
+    for method, values in result.closed_form.items():
+        yield (
+            f"  closed form {method:<10} residual {values['translation_rms_mm']:.3f} mm "
+            f"{values['rotation_rms_deg']:.3f} deg"
+        )
+    yield f"chosen: {result.method}; views used {result.views_used}/{result.views_total}"
+    yield f"time offset (tracker_stamp = camera_time + offset): {result.time_offset_ns / MS:.3f} ms"
+    yield (
+        f"residuals: {result.translation_rms_mm:.3f} mm, {result.rotation_rms_deg:.3f} deg, "
+        f"reprojection {result.reprojection_rms_px:.2f} px"
+    )
+    T = result.T_marker_camera
+    yield f"T_marker_camera translation (mm): {np.array2string(T[:3, 3] * 1e3, precision=3)}"
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The ``endo-handeye`` command line."""
+    parser = argparse.ArgumentParser(
+        prog="endo-handeye",
+        description="Hand-eye (T_marker_camera) and tracker clock offset from a checkerboard bag.",
+    )
+    parser.add_argument("bag", type=Path, help="rosbag2 MCAP file or directory")
+    parser.add_argument("-o", "--output", type=Path, default=Path("handeye.yaml"))
+    parser.add_argument(
+        "--board",
+        default="9x6",
+        metavar="COLSxROWS",
+        help="inner corners of the checkerboard (default 9x6)",
+    )
+    parser.add_argument(
+        "--square-mm", type=float, default=5.0, help="checkerboard square side in mm (default 5)"
+    )
+    parser.add_argument("--image-topic", default=BagTopics.image)
+    parser.add_argument("--camera-info-topic", default=BagTopics.camera_info)
+    parser.add_argument("--pose-topic", default=BagTopics.pose)
+    parser.add_argument("--pose-unit", choices=("m", "mm"), default="m")
+    parser.add_argument(
+        "--offset-range-ms",
+        type=float,
+        nargs=2,
+        default=(-200.0, 200.0),
+        metavar=("LOW", "HIGH"),
+        help="clock offset search range in ms (equal values fix the offset)",
+    )
+    parser.add_argument("--offset-step-ms", type=float, default=4.0, help="coarse search step")
+    parser.add_argument(
+        "--max-views", type=int, default=0, help="use at most this many images (0: all)"
+    )
+    parser.add_argument(
+        "--max-gap-ms",
+        type=float,
+        default=60.0,
+        help="longest tracker dropout bridged by interpolation",
+    )
+    return parser
+
+
+def parse_board(text: str, square_mm: float) -> Checkerboard:
+    """``"9x6"`` and a square size in mm → Checkerboard; HandEyeError if malformed."""
+    try:
+        columns, rows = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise HandEyeError(f"--board must look like 9x6, got '{text}'") from None
+    return Checkerboard(columns, rows, square_mm * 1e-3)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Console script ``endo-handeye``."""
+    options = build_parser().parse_args(argv)
+    try:
+        board = parse_board(options.board, options.square_mm)
+        observations = read_observations(
+            options.bag,
+            board,
+            BagTopics(options.image_topic, options.camera_info_topic, options.pose_topic),
+            LengthUnit.parse(options.pose_unit),
+            options.max_views,
+        )
+        low, high = (round(v * MS) for v in options.offset_range_ms)
+        result = calibrate_hand_eye(
+            observations.views,
+            observations.tracker_stamps_ns,
+            observations.tracker_poses,
+            board,
+            observations.camera,
+            OffsetSearch(low, high, round(options.offset_step_ms * MS)),
+            max_gap_ns=round(options.max_gap_ms * MS),
+        )
+        result_to_calibration(result, observations).save(options.output)
+    except Endo3dError as error:
+        print(f"endo-handeye: {type(error).__name__}: {error}", file=sys.stderr)
+        return 1
+    for line in _summary_lines(result, observations):
+        print(line)
+    print(f"wrote {options.output}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
