@@ -18,6 +18,9 @@ setup(
     license="Apache-2.0",
     tests_require=["pytest"],
     entry_points={
-        "console_scripts": [],
+        "console_scripts": [
+            "endo-replay = endo_io.replay_node:main",
+            "endo-record = endo_io.record_node:main",
+        ],
     },
 )

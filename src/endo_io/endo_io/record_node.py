@@ -1,0 +1,235 @@
+"""``endo-record``: record live topics, raw, into a rosbag2-compatible MCAP file.
+
+The node is a thin adapter around :mod:`endo_io.record`: a discovery timer
+looks for the requested topics (or all of them) in the graph, subscribes to
+each new one with a QoS that matches all its publishers, and stores their
+offers as the topic's ``offered_qos_profiles``. Raw CDR bytes go straight
+into :class:`~endo_io.bag.BagWriter` with the receive time as log time.
+
+A flush timer closes the current chunk about once a second, so a recorder
+killed with SIGKILL leaves a file that reads up to the last flush. SIGINT and
+SIGTERM end the recording cleanly (summary and footer written), as do
+``--max-messages`` and ``--max-duration``.
+
+The recorder deliberately publishes nothing but rclpy's own /rosout and
+/parameter_events (no /diagnostics): a recorder must not add traffic to the
+graph it records.
+"""
+
+from __future__ import annotations
+
+import argparse
+import functools
+import sys
+import time
+from collections.abc import Sequence
+from pathlib import Path
+
+from rclpy.node import Node
+from rclpy.utilities import remove_ros_args
+
+from endo_io.bag import BagWriter, message_class
+from endo_io.bag.qos_yaml import qos_profiles_to_yaml
+from endo_io.errors import Endo3dError
+from endo_io.process import run_node
+from endo_io.record import (
+    DEFAULT_QUEUE_DEPTH,
+    Recording,
+    RecordOptionError,
+    adapt_request_to_offers,
+    mixed_offer_warning,
+    seconds_to_ns,
+    topics_to_record,
+)
+
+COMPRESSIONS = ("zstd", "lz4", "none")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The ``endo-record`` command line (ROS arguments after ``--ros-args`` are separate)."""
+    parser = argparse.ArgumentParser(
+        prog="endo-record",
+        description="Record live ROS 2 topics, raw, into a rosbag2-compatible MCAP file.",
+    )
+    parser.add_argument("--topics", nargs="+", default=[], metavar="TOPIC", help="topics to record")
+    parser.add_argument(
+        "-a",
+        "--all",
+        action="store_true",
+        help="record every topic, discovering new ones as they appear "
+        "(/rosout, /parameter_events and hidden topics only when given in --topics)",
+    )
+    parser.add_argument(
+        "-o",
+        "--output",
+        type=Path,
+        default=None,
+        help="output .mcap file (default endo_record_<date>_<time>.mcap); must not exist",
+    )
+    parser.add_argument(
+        "--compression", choices=COMPRESSIONS, default="zstd", help="chunk compression"
+    )
+    parser.add_argument(
+        "--max-duration", type=float, default=None, metavar="SECONDS", help="stop after this long"
+    )
+    parser.add_argument(
+        "--max-messages",
+        type=int,
+        default=None,
+        metavar="N",
+        help="stop after N messages over all topics",
+    )
+    parser.add_argument(
+        "--queue-depth",
+        type=int,
+        default=DEFAULT_QUEUE_DEPTH,
+        metavar="N",
+        help="subscription history depth per topic",
+    )
+    parser.add_argument(
+        "--discovery-period",
+        type=float,
+        default=0.1,
+        metavar="SECONDS",
+        help="how often to look for new topics",
+    )
+    parser.add_argument(
+        "--flush-period",
+        type=float,
+        default=1.0,
+        metavar="SECONDS",
+        help="how often to write buffered messages out as a chunk",
+    )
+    return parser
+
+
+class RecordNode(Node):
+    """Subscribes to discovered topics and writes what arrives into a :class:`Recording`."""
+
+    def __init__(self, recording: Recording, options: argparse.Namespace) -> None:
+        super().__init__("endo_record")
+        self._recording = recording
+        self._options = options
+        self._subscribed: set[str] = set()
+        self._unrecordable: set[str] = set()
+        self._stopping = False
+        recording.start(self.get_clock().now().nanoseconds)
+        self.create_timer(options.discovery_period, self._discover)
+        self.create_timer(options.flush_period, recording.flush)
+        what = "all topics" if options.all else ", ".join(options.topics)
+        self.get_logger().info(f"recording {what} into {options.output}")
+        self._discover()
+
+    def _discover(self) -> None:
+        if self._recording.limit_reached(self.get_clock().now().nanoseconds):
+            self._stop()
+            return
+        choices = topics_to_record(
+            self.get_topic_names_and_types(),
+            self._options.topics,
+            record_all=self._options.all,
+            already=self._subscribed | self._unrecordable,
+        )
+        for choice in choices:
+            offers = [info.qos_profile for info in self.get_publishers_info_by_topic(choice.name)]
+            if not offers:
+                continue  # only subscribers so far; the type and QoS come with a publisher
+            try:
+                msg_class = message_class(choice.msgtype)
+            except Endo3dError as error:
+                self._unrecordable.add(choice.name)
+                self.get_logger().warning(f"not recording {choice.name}: {error}")
+                continue
+            if choice.other_types:
+                self.get_logger().warning(
+                    f"{choice.name} is published with several types; recording "
+                    f"{choice.msgtype}, ignoring {', '.join(choice.other_types)}"
+                )
+            warning = mixed_offer_warning(choice.name, offers)
+            if warning:
+                self.get_logger().warning(warning)
+            self._recording.add_topic(choice.name, choice.msgtype, qos_profiles_to_yaml(offers))
+            qos = adapt_request_to_offers(offers, self._options.queue_depth)
+            self.create_subscription(
+                msg_class,
+                choice.name,
+                functools.partial(self._on_message, choice.name),
+                qos,
+                raw=True,
+            )
+            self._subscribed.add(choice.name)
+            self.get_logger().info(f"subscribed to {choice.name} [{choice.msgtype}]")
+
+    def _on_message(self, topic: str, data: bytes) -> None:
+        if self._stopping:
+            return
+        if self._recording.write(topic, data, self.get_clock().now().nanoseconds):
+            self._stop()
+
+    def _stop(self) -> None:
+        # Ends spin() in run_node, which then calls close().
+        self._stopping = True
+        self.context.try_shutdown()
+
+    def close(self) -> None:
+        """Finalise the bag and print what was recorded."""
+        report = self._recording.close()
+        print(f"endo-record: wrote {self._options.output}", flush=True)
+        for line in report.summary_lines():
+            print(line, flush=True)
+
+
+def default_output(now: float | None = None) -> Path:
+    """``endo_record_<YYYYmmdd>_<HHMMSS>.mcap`` in the working directory."""
+    stamp = time.strftime("%Y%m%d_%H%M%S", time.localtime(now))
+    return Path(f"endo_record_{stamp}.mcap")
+
+
+def _check_options(options: argparse.Namespace) -> None:
+    if not options.all and not options.topics:
+        raise RecordOptionError("give --topics TOPIC [TOPIC ...] or --all")
+    for name in options.topics:
+        if not name.startswith("/"):
+            raise RecordOptionError(f"topic {name!r} is not an absolute topic name")
+    if options.max_messages is not None and options.max_messages < 1:
+        raise RecordOptionError(f"--max-messages must be >= 1, got {options.max_messages}")
+    if options.queue_depth < 1:
+        raise RecordOptionError(f"--queue-depth must be >= 1, got {options.queue_depth}")
+    if not (options.discovery_period > 0 and options.flush_period > 0):
+        raise RecordOptionError("--discovery-period and --flush-period must be > 0")
+    if options.output.exists():
+        raise RecordOptionError(f"{options.output} exists; not overwriting it")
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Run ``endo-record``; returns the process exit status."""
+    args = list(sys.argv if argv is None else argv)
+    options = build_parser().parse_args(remove_ros_args(args)[1:])
+    if options.output is None:
+        options.output = default_output()
+    try:
+        _check_options(options)
+        max_duration_ns = seconds_to_ns(options.max_duration)
+        recording = Recording(
+            BagWriter(options.output, compression=options.compression),
+            max_messages=options.max_messages,
+            max_duration_ns=max_duration_ns,
+        )
+    except (Endo3dError, OSError) as error:
+        print(f"endo-record: error: {error}", file=sys.stderr)
+        return 2
+    nodes: list[RecordNode] = []
+
+    def factory() -> RecordNode:
+        nodes.append(RecordNode(recording, options))
+        return nodes[0]
+
+    try:
+        return run_node(factory, args)
+    finally:
+        if not nodes:
+            recording.close()
+
+
+if __name__ == "__main__":
+    sys.exit(main())
