@@ -169,7 +169,7 @@ class TrackerBridgeNode(Node):
             ),
             (
                 "igtl_stale_timeout_s",
-                2.0,
+                0.0,
                 "source=igtl: reconnect after this long without data (s); 0 disables.",
                 _float_range(0.0, 3600.0),
             ),

@@ -12,8 +12,10 @@ rather than with ``pyigtl.OpenIGTLinkClient``: pyigtl 0.3.4's client treats a
 closed socket (``recv`` returning no bytes) like "no data yet" and never
 reconnects, while the bridge must survive the server going away and coming
 back (a PLUS restart) without restarting the node. This client reconnects
-when the peer closes, on any socket error, and when no byte has arrived for
-``stale_timeout_s`` (a peer that vanished without closing).
+when the peer closes, on any socket error, and when TCP keep-alive finds the
+peer gone without closing (a crashed host, a pulled cable: about 5 s).
+``stale_timeout_s`` > 0 also reconnects after that long without data; it is
+off by default because 3D Slicer sends a TRANSFORM only when it changes.
 """
 
 from __future__ import annotations
@@ -128,7 +130,7 @@ class IgtlSource(BackgroundSource):
         stamp_from: str = "message",
         tolerance: float = DEFAULT_ROTATION_TOLERANCE,
         reconnect_interval_s: float = 0.5,
-        stale_timeout_s: float = 2.0,
+        stale_timeout_s: float = 0.0,
         log: Callable[[str], None] | None = None,
     ) -> None:
         super().__init__(log)
@@ -166,6 +168,7 @@ class IgtlSource(BackgroundSource):
             self._log(f"connected to OpenIGTLink server {self.host}:{self.port}")
             try:
                 connection.settimeout(0.1)
+                _enable_keepalive(connection)
                 self._receive(connection, stop)
             except (OSError, IgtlMessageError) as error:
                 self._log(
@@ -216,3 +219,11 @@ class IgtlSource(BackgroundSource):
             remaining -= len(chunk)
             last_data = time.monotonic()
         return b"".join(chunks)
+
+
+def _enable_keepalive(connection: socket.socket) -> None:
+    """Probe an idle connection after 2 s, every 1 s, give up after 3 misses."""
+    connection.setsockopt(socket.SOL_SOCKET, socket.SO_KEEPALIVE, 1)
+    for name, value in (("TCP_KEEPIDLE", 2), ("TCP_KEEPINTVL", 1), ("TCP_KEEPCNT", 3)):
+        if hasattr(socket, name):  # Linux names; other systems keep their defaults
+            connection.setsockopt(socket.IPPROTO_TCP, getattr(socket, name), value)
