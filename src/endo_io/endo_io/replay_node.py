@@ -237,7 +237,14 @@ class ReplayNode(Node):
             self.create_timer(1.0 / options.clock, self._publish_clock)
         self.context.on_shutdown(self._stop.set)
         self._thread = threading.Thread(target=self._play, name="endo_replay_player", daemon=True)
-        self._thread.start()
+        # Start playing from inside spin(): a short bag must not end (and shut
+        # the context down) before the node is up and spinning.
+        self._start_timer = self.create_timer(0.0, self._start_playback)
+
+    def _start_playback(self) -> None:
+        self._start_timer.cancel()
+        if self._thread.ident is None:  # not started yet
+            self._thread.start()
 
     def _publish_clock(self) -> None:
         # One lock: the timer and the final publish after playback never
@@ -332,7 +339,8 @@ class ReplayNode(Node):
     def close(self) -> None:
         """Stop playback (if still running) and print what was done."""
         self._stop.set()
-        self._thread.join()
+        if self._thread.ident is not None:
+            self._thread.join()
         report = self._player.report
         print(f"endo-replay: {self._options.bag}", flush=True)
         for line in report.summary_lines():

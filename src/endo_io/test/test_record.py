@@ -202,3 +202,25 @@ def test_bad_limits_are_named_errors():
         seconds_to_ns(float("inf"))
     assert seconds_to_ns(None) is None
     assert seconds_to_ns(1.5) == 1_500_000_000
+
+
+def test_record_cli_rejects_bad_options_before_starting_ros(tmp_path, capsys):
+    from endo_io.record_node import main
+
+    assert main(["endo-record", "-o", str(tmp_path / "a.mcap")]) == 2
+    assert "--topics" in capsys.readouterr().err
+    assert main(["endo-record", "--topics", "relative/name", "-o", str(tmp_path / "a.mcap")]) == 2
+    assert "not an absolute topic name" in capsys.readouterr().err
+    existing = tmp_path / "existing.mcap"
+    existing.write_bytes(b"keep me")
+    assert main(["endo-record", "--all", "-o", str(existing)]) == 2
+    assert "not overwriting" in capsys.readouterr().err
+    assert existing.read_bytes() == b"keep me"
+    b, c = str(tmp_path / "b.mcap"), str(tmp_path / "c.mcap")
+    assert main(["endo-record", "--all", "--max-messages", "0", "-o", b]) == 2
+    assert "--max-messages" in capsys.readouterr().err
+    assert main(["endo-record", "--all", "--max-duration", "-1", "-o", c]) == 2
+    assert "positive" in capsys.readouterr().err
+    assert not (tmp_path / "a.mcap").exists()
+    assert not (tmp_path / "b.mcap").exists()
+    assert not (tmp_path / "c.mcap").exists()

@@ -410,3 +410,83 @@ def test_clock_follows_playback_and_never_passes_the_next_unsent_message():
     # The clock runs with the wall clock but waits at each unsent message.
     assert [(bag - T0) // MS for _, bag in seen] == [0, 65, 100, 165, 200]
     assert player.bag_time_ns() == T0 + 200 * MS  # stays at the last message after the end
+
+
+# ---------------------------------------------------------------- the CLI on real bags
+
+
+@pytest.fixture
+def fresh_default_context():
+    """main() runs a node in this process; leave rclpy's default context reusable."""
+    import rclpy
+
+    yield
+    # The node ends spin() by shutting its context down, which (unlike
+    # rclpy.try_shutdown()) does not replace the global default context.
+    rclpy.try_shutdown()
+
+
+def _write_bag_with_unknown_type(path: Path) -> None:
+    from std_msgs.msg import Float32
+
+    from endo_io.bag import BagWriter
+
+    with BagWriter(path, chunk_size=512) as writer:
+        writer.add_topic("/gadget", "acme_msgs/msg/Gadget")  # not installed here
+        for i in range(40):
+            writer.write_message("/scalar", Float32(data=0.25 * i), T0 + i * MS)
+            if i % 8 == 0:
+                writer.write("/gadget", b"\x00\x01\x00\x00\x07\x00\x00\x00", T0 + i * MS + 1)
+
+
+@pytest.mark.ros
+def test_cli_skips_uninstalled_types_and_reports_counts(
+    tmp_path: Path, capsys, fresh_default_context
+):
+    from endo_io.replay_node import main
+
+    bag = tmp_path / "mixed.mcap"
+    _write_bag_with_unknown_type(bag)
+    assert main(["endo-replay", str(bag), "--rate", "inf"]) == 0
+    out = capsys.readouterr()
+    assert "/scalar [std_msgs/msg/Float32]: 40 messages, 320 bytes" in out.out
+    assert "/gadget [acme_msgs/msg/Gadget]: 0 messages, 0 bytes, 5 not published" in out.out
+    assert "total: 40 messages" in out.out
+
+
+@pytest.mark.ros
+def test_cli_plays_a_truncated_bag_up_to_the_damage_and_fails(
+    tmp_path: Path, capsys, fresh_default_context
+):
+    from endo_io.bag import BagReader
+    from endo_io.replay_node import main
+
+    whole = tmp_path / "whole.mcap"
+    _write_bag_with_unknown_type(whole)
+    cut = tmp_path / "cut.mcap"
+    data = whole.read_bytes()
+    cut.write_bytes(data[: len(data) // 2])
+    intact = 0
+    with BagReader(cut) as reader, pytest.raises(BagCorruptError):
+        for message in reader.messages():
+            intact += message.topic == "/scalar"
+    assert 0 < intact < 40
+    assert main(["endo-replay", str(cut), "--rate", "inf", "--topics", "/scalar"]) == 1
+    out = capsys.readouterr()
+    assert f"/scalar [std_msgs/msg/Float32]: {intact} messages" in out.out
+    assert "stopped at damaged data" in out.out
+    assert out.err.startswith("endo-replay: error: ")
+    assert len(out.err.strip().splitlines()) == 1
+
+
+def test_cli_rejects_bad_options_before_starting_ros(tmp_path: Path, capsys):
+    from endo_io.replay_node import main
+
+    assert main(["endo-replay", str(tmp_path / "missing.mcap")]) == 2
+    assert "no such bag" in capsys.readouterr().err
+    bag = tmp_path / "ok.mcap"
+    _write_bag_with_unknown_type(bag)
+    assert main(["endo-replay", str(bag), "--rate", "0"]) == 2
+    assert "--rate" in capsys.readouterr().err
+    assert main(["endo-replay", str(bag), "--remap", "/scalar=/x"]) == 2
+    assert "remap rule" in capsys.readouterr().err
