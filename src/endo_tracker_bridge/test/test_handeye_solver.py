@@ -187,22 +187,34 @@ def test_fixed_offset_and_refusals():
         calibrate_hand_eye(still[::3], stamps, poses, BOARD, CAMERA, OffsetSearch(0, 0))
 
 
+_RAYS: dict[int, list[np.ndarray]] = {}
+
+
+def _rays(supersample):
+    """Unit rays through supersample x supersample points of every pixel (cached)."""
+    if supersample not in _RAYS:
+        v, u = np.mgrid[0 : CAMERA.height, 0 : CAMERA.width].astype(np.float64)
+        offsets = (np.arange(supersample) + 0.5) / supersample - 0.5
+        _RAYS[supersample] = [
+            CAMERA.pixels_to_rays(np.stack([u + du, v + dv], axis=-1))
+            for du in offsets
+            for dv in offsets
+        ]
+    return _RAYS[supersample]
+
+
 def _render_board(B, supersample=3):
     """Grey image of the board seen with pose B: white margin, black/white squares."""
-    v, u = np.mgrid[0 : CAMERA.height, 0 : CAMERA.width].astype(np.float64)
-    offsets = (np.arange(supersample) + 0.5) / supersample - 0.5
     image = np.zeros((CAMERA.height, CAMERA.width))
     R, t = B[:3, :3], B[:3, 3]
     normal = R[:, 2]
-    for du in offsets:
-        for dv in offsets:
-            rays = CAMERA.pixels_to_rays(np.stack([u + du, v + dv], axis=-1))
-            depth = (normal @ t) / (rays @ normal)
-            hit = (rays * depth[..., None] - t) @ R  # board coordinates
-            col = np.floor(hit[..., 0] / BOARD.square_m + 1)
-            row = np.floor(hit[..., 1] / BOARD.square_m + 1)
-            inside = (col >= 0) & (col <= BOARD.columns) & (row >= 0) & (row <= BOARD.rows)
-            image += np.where(inside & ((col + row) % 2 == 1), 0.1, 0.9)
+    for rays in _rays(supersample):
+        depth = (normal @ t) / (rays @ normal)
+        hit = (rays * depth[..., None] - t) @ R  # board coordinates
+        col = np.floor(hit[..., 0] / BOARD.square_m + 1)
+        row = np.floor(hit[..., 1] / BOARD.square_m + 1)
+        inside = (col >= 0) & (col <= BOARD.columns) & (row >= 0) & (row <= BOARD.rows)
+        image += np.where(inside & ((col + row) % 2 == 1), 0.1, 0.9)
     return np.clip(image / supersample**2 * 255, 0, 255).astype(np.uint8)
 
 
@@ -219,3 +231,42 @@ def test_corners_detected_in_a_rendered_image_give_the_true_pose():
     view = board_view(0, corners, BOARD, CAMERA)
     assert np.linalg.norm(view.T_camera_target[:3, 3] - B[:3, 3]) * 1e3 < 0.1
     assert detect_checkerboard(np.full((480, 640), 128, np.uint8), BOARD) is None
+
+
+def test_endo_handeye_cli_on_a_rendered_bag(tmp_path):
+    """Render a short hand-eye recording into a bag and run the CLI on it."""
+    from endo_io.bag import BagWriter
+    from endo_io.image import array_to_image
+    from endo_io.pose import matrix_to_pose
+    from endo_tracker_bridge.handeye_cli import main
+    from endo_tracker_bridge.handeye_file import HandEyeCalibration
+
+    latency_ms, duration_s = 31.0, 3.0
+    rng = np.random.default_rng(8)
+    bag_path = tmp_path / "handeye.mcap"
+    with BagWriter(bag_path) as bag:
+        bag.write_message("/endoscope/camera_info", CAMERA.to_camera_info(EPOCH_NS), EPOCH_NS)
+        for t in np.arange(0.0, duration_s, 1 / 60):
+            A = _camera_pose(t) @ invert_transform(X_TRUE)
+            A[:3, 3] += rng.normal(0.0, 0.25e-3 / np.sqrt(3), 3)
+            stamp = EPOCH_NS + round((t + latency_ms * 1e-3) * 1e9)
+            bag.write_message("/tracker/pose", matrix_to_pose(A, stamp, "tracker"), stamp)
+        for t in np.arange(0.1, duration_s - 0.1, 1 / 12):
+            B = invert_transform(_camera_pose(t)) @ W_TRUE
+            stamp = EPOCH_NS + round(t * 1e9)
+            image = array_to_image(_render_board(B, supersample=2), "mono8", stamp, "camera")
+            bag.write_message("/endoscope/image_raw", image, stamp)
+    output = tmp_path / "handeye.yaml"
+    assert main([str(bag_path), "-o", str(output), "--board", "9x6", "--square-mm", "5"]) == 0
+    calibration = HandEyeCalibration.load(output)
+    translation_mm, rotation_deg = _errors(calibration.T_marker_camera)
+    assert translation_mm < 0.5
+    assert rotation_deg < 0.2
+    assert abs(calibration.time_offset_ns / MS - latency_ms) < 2.0
+    assert calibration.views_used >= 30
+    assert set(calibration.residuals) == {
+        "reprojection_rms_px",
+        "translation_rms_mm",
+        "rotation_rms_deg",
+    }
+    assert calibration.residuals["translation_rms_mm"] < 0.5
