@@ -20,6 +20,7 @@ setup(
     entry_points={
         "console_scripts": [
             "endo-doctor = endo_bringup.doctor:main",
+            "endo-demo = endo_bringup.demo:main",
         ],
     },
 )
