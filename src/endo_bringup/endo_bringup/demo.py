@@ -27,6 +27,7 @@ from collections import defaultdict
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import cv2
 import numpy as np
 from std_msgs.msg import Float32
 
@@ -69,9 +70,8 @@ def write_synthetic_bag(path: Path, seconds: float = 2.0) -> None:
     camera = CameraModel.pinhole(width, height, fx=140.0, fy=140.0, cx=79.5, cy=59.5)
     rng = np.random.default_rng(3)
     texture = rng.random((height * 2, width * 2)).astype(np.float32)
-    kernel = np.ones(9, np.float32) / 9  # a smoother, tissue-like texture
-    texture = np.apply_along_axis(np.convolve, 0, texture, kernel, mode="same")
-    texture = np.apply_along_axis(np.convolve, 1, texture, kernel, mode="same")
+    texture = cv2.blur(texture, (9, 9))  # smoother, tissue-like
+    texture = (texture - texture.min()) / (texture.max() - texture.min())
     y, x = np.mgrid[0:height, 0:width]
     vignette = np.clip(1.0 - ((x - 79.5) ** 2 + (y - 59.5) ** 2) / 90.0**2, 0.0, 1.0)
     tint = np.array([1.0, 0.55, 0.45], np.float32)
@@ -79,9 +79,8 @@ def write_synthetic_bag(path: Path, seconds: float = 2.0) -> None:
     for i in range(round(30 * seconds)):
         t = SYNTHETIC_START_NS + round(i * 1e9 / 30)
         patch = texture[i : i + height, 2 * i % width : 2 * i % width + width]
-        pixels = (255 * np.clip(patch[..., None] * vignette[..., None] * tint, 0, 1)).astype(
-            np.uint8
-        )
+        shade = (0.35 + 0.65 * patch) * vignette
+        pixels = (255 * np.clip(shade[..., None] * tint, 0, 1)).astype(np.uint8)
         events.append(
             (t, "/endoscope/image_raw", array_to_image(pixels, "rgb8", t, camera.frame_id))
         )
