@@ -62,8 +62,10 @@ class Checkerboard:
 
     ``columns`` × ``rows`` are the *inner* corners (OpenCV's pattern size),
     ``square_m`` the square side in metres. The target frame has its origin
-    at the first detected corner, x along a row of corners, y down the
-    columns, z into the board (right-handed).
+    at the inner corner next to a dark outer corner square, x along a row of
+    corners, y down the columns, z into the board (right-handed). Use a board
+    with columns + rows odd (e.g. 9x6, 8x5): then only one end has a dark
+    corner square and every view numbers the corners the same way.
     """
 
     columns: int
@@ -128,7 +130,34 @@ def detect_checkerboard(image: np.ndarray, board: Checkerboard) -> np.ndarray | 
         )
         if not found:
             return None
-    return np.asarray(corners, dtype=np.float64).reshape(-1, 2)
+    return _orient_corners(gray, np.asarray(corners, dtype=np.float64).reshape(-1, 2), board)
+
+
+def _orient_corners(gray: np.ndarray, corners: np.ndarray, board: Checkerboard) -> np.ndarray:
+    """Put the corner next to the board's dark outer corner square first.
+
+    OpenCV may number a board from either end (a 180° turn). When the
+    columns + rows of inner corners are odd, the two outer corner squares at
+    the ends of the numbering have opposite colours, so the dark one fixes
+    the origin and every view agrees; otherwise the order is left as found.
+    (N, 2) corners in, (N, 2) out.
+    """
+    columns, rows = board.pattern_size
+    if (columns + rows) % 2 == 0:
+        return corners
+    grid = np.stack(np.meshgrid(np.arange(columns), np.arange(rows)), axis=-1).reshape(-1, 2)
+    homography, _ = cv2.findHomography(grid.astype(np.float64), corners)
+    if homography is None:
+        return corners
+    centres = np.array([[-0.5, -0.5], [columns - 0.5, rows - 0.5]])
+    pixels = cv2.perspectiveTransform(centres[None], homography)[0]
+    height, width = gray.shape
+    levels = []
+    for u, v in np.round(pixels).astype(int):
+        if not (1 <= u < width - 1 and 1 <= v < height - 1):
+            return corners
+        levels.append(float(np.mean(gray[v - 1 : v + 2, u - 1 : u + 2])))
+    return corners if levels[0] <= levels[1] else corners[::-1].copy()
 
 
 @dataclass(frozen=True)

@@ -270,3 +270,16 @@ def test_endo_handeye_cli_on_a_rendered_bag(tmp_path):
         "rotation_rms_deg",
     }
     assert calibration.residuals["translation_rms_mm"] < 0.5
+
+
+def test_corner_numbering_does_not_depend_on_the_image_orientation():
+    B = invert_transform(_camera_pose(0.7)) @ W_TRUE
+    image = _render_board(B, supersample=2)
+    corners = detect_checkerboard(image, BOARD)
+    turned = detect_checkerboard(np.ascontiguousarray(image[::-1, ::-1]), BOARD)
+    assert corners is not None and turned is not None
+    back = np.array([CAMERA.width - 1, CAMERA.height - 1]) - turned
+    np.testing.assert_allclose(back, corners, atol=0.3)
+    # the first corner is the one next to the dark outer square (board's far end here)
+    truth = CAMERA.project(BOARD.object_points() @ B[:3, :3].T + B[:3, 3])
+    assert np.linalg.norm(corners[0] - truth[-1]) < 0.5
