@@ -30,7 +30,7 @@ from rclpy.utilities import remove_ros_args
 
 from endo_io.bag import BagWriter, message_class
 from endo_io.bag.qos_yaml import qos_profiles_to_yaml
-from endo_io.errors import Endo3dError
+from endo_io.errors import BagError, Endo3dError
 from endo_io.process import run_node
 from endo_io.record import (
     DEFAULT_QUEUE_DEPTH,
@@ -113,6 +113,7 @@ class RecordNode(Node):
         self._subscribed: set[str] = set()
         self._unrecordable: set[str] = set()
         self._stopping = False
+        self.exit_code = 0
         recording.start(self.get_clock().now().nanoseconds)
         self.create_timer(options.discovery_period, self._discover)
         self.create_timer(options.flush_period, recording.flush)
@@ -163,7 +164,15 @@ class RecordNode(Node):
     def _on_message(self, topic: str, data: bytes) -> None:
         if self._stopping:
             return
-        if self._recording.write(topic, data, self.get_clock().now().nanoseconds):
+        try:
+            limit_reached = self._recording.write(topic, data, self.get_clock().now().nanoseconds)
+        except (BagError, OSError) as error:
+            # A full disk or a vanished file: stop cleanly, keep what is written.
+            self.get_logger().error(f"stopping: cannot write {topic}: {error}")
+            self.exit_code = 1
+            self._stop()
+            return
+        if limit_reached:
             self._stop()
 
     def _stop(self) -> None:
@@ -173,7 +182,12 @@ class RecordNode(Node):
 
     def close(self) -> None:
         """Finalise the bag and print what was recorded."""
-        report = self._recording.close()
+        try:
+            report = self._recording.close()
+        except (BagError, OSError) as error:
+            self.get_logger().error(f"cannot finalise {self._options.output}: {error}")
+            self.exit_code = 1
+            report = self._recording.report
         print(f"endo-record: wrote {self._options.output}", flush=True)
         for line in report.summary_lines():
             print(line, flush=True)
@@ -225,10 +239,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         return nodes[0]
 
     try:
-        return run_node(factory, args)
+        code = run_node(factory, args)
     finally:
         if not nodes:
             recording.close()
+    return nodes[0].exit_code or code
 
 
 if __name__ == "__main__":
