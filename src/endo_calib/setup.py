@@ -14,10 +14,17 @@ setup(
     zip_safe=True,
     maintainer="endo3d developers",
     maintainer_email="dev@endo3d.org",
-    description="Gray-card photometric calibration (camera response and light map) and the image correction node.",
+    description=(
+        "Gray-card photometric calibration (camera response and light map) "
+        "and the image correction node."
+    ),
     license="Apache-2.0",
     tests_require=["pytest"],
     entry_points={
-        "console_scripts": [],
+        "console_scripts": [
+            "endo-calibrate = endo_calib.cli:main",
+            "photometric_correction = endo_calib.node:main",
+            "endo-photometric-correction = endo_calib.node:main",
+        ],
     },
 )

@@ -1,1 +1,1 @@
-"""Gray-card photometric calibration (camera response and light map) and the image correction node."""
+"""Gray-card photometric calibration (camera response, light map) and the correction node."""

@@ -1,0 +1,299 @@
+"""``endo-calibrate``: fit a photometric calibration from gray-card images.
+
+Input is either a gray-card bag (image topic plus ``/calibration/gray_level``,
+std_msgs/Float32 with the reflectance of the card in view) or a manifest YAML::
+
+    camera_info: camera.yaml          # optional, else --camera-info
+    bit_depth: 8                      # optional
+    card: {distance_m: 0.05, normal: [0, 0, -1]}   # optional
+    levels:
+      - reflectance: 0.2
+        images: [card20_0.png, card20_1.png]   # relative to the manifest
+      - reflectance: 0.3
+        images: [...]
+        card: {distance_m: 0.04}      # optional per-level pose
+
+It writes ``photometric.yaml`` (plus the light-map PNG beside it), optionally
+the report figure and the TUM/DSO files. ``--import-dso`` converts a DSO
+calibration instead of fitting one.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+import yaml
+from numpy.typing import NDArray
+
+from endo_calib.calibration import LIGHT_SOURCES, PhotometricCalibration
+from endo_calib.dso import export_dso, import_dso
+from endo_calib.errors import InsufficientLevelsError, ManifestError
+from endo_calib.fit import GrayCardAccumulator, fit_gray_card
+from endo_calib.geometry import CardPose
+from endo_calib.raw_image import to_raw_frame
+from endo_io.camera import CameraModel
+from endo_io.errors import Endo3dError
+
+DEFAULT_IMAGE_TOPIC = "/endoscope/image_raw"
+DEFAULT_LEVEL_TOPIC = "/calibration/gray_level"
+DEFAULT_INFO_TOPIC = "/endoscope/camera_info"
+
+
+def read_raw_image(path: Path) -> NDArray[np.integer]:
+    """Read an 8/16-bit PNG/TIFF as (H, W) or (H, W, 3) RGB; ManifestError when unreadable."""
+    if not path.is_file():
+        raise ManifestError(f"image {path} not found")
+    image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if image is None:
+        raise ManifestError(f"image {path} cannot be decoded")
+    if image.dtype not in (np.uint8, np.uint16):
+        raise ManifestError(f"image {path} is {image.dtype}, raw 8- or 16-bit values are needed")
+    if image.ndim == 3:
+        image = to_raw_frame(image, "bgra8" if image.shape[2] == 4 else "bgr8")
+    return np.ascontiguousarray(image)
+
+
+def card_pose(spec: Any, base: CardPose) -> CardPose:
+    """A CardPose from a manifest mapping ({distance_m, normal}), defaults from ``base``."""
+    if spec is None:
+        return base
+    if not isinstance(spec, dict):
+        raise ManifestError(f"card must be a mapping of distance_m/normal, got {spec!r}")
+    try:
+        normal = tuple(float(x) for x in spec.get("normal", base.normal))
+        pose = CardPose(
+            normal=(normal[0], normal[1], normal[2]),
+            distance_m=float(spec.get("distance_m", base.distance_m)),
+        )
+        pose.unit_normal()
+    except (TypeError, ValueError, IndexError) as error:
+        raise ManifestError(f"invalid card pose {spec!r}: {error}") from error
+    return pose
+
+
+def load_manifest(path: Path) -> dict[str, Any]:
+    """Read and check the top level of a manifest YAML (see the module docstring)."""
+    if not path.is_file():
+        raise ManifestError(f"manifest {path} not found")
+    try:
+        manifest = yaml.safe_load(path.read_text(encoding="utf-8"))
+    except yaml.YAMLError as error:
+        raise ManifestError(
+            f"manifest {path} is not valid YAML: {str(error).splitlines()[0]}"
+        ) from error
+    if not isinstance(manifest, dict) or not isinstance(manifest.get("levels"), list):
+        raise ManifestError(f"manifest {path} needs a 'levels' list")
+    return manifest
+
+
+def accumulate_manifest(
+    manifest: dict[str, Any], base_dir: Path, accumulator: GrayCardAccumulator, base_pose: CardPose
+) -> None:
+    """Stream every image a manifest names (paths relative to ``base_dir``) into ``accumulator``."""
+    default_pose = card_pose(manifest.get("card"), base_pose)
+    for index, level in enumerate(manifest["levels"]):
+        if not isinstance(level, dict) or "reflectance" not in level:
+            raise ManifestError(f"manifest level {index} needs a reflectance")
+        try:
+            reflectance = float(level["reflectance"])
+            exposure = float(level.get("exposure", 1.0))
+        except (TypeError, ValueError) as error:
+            raise ManifestError(f"manifest level {index}: {error}") from error
+        images = level.get("images") or []
+        if not isinstance(images, list) or not images:
+            raise InsufficientLevelsError(f"manifest gray level {reflectance:g} lists no images")
+        pose = card_pose(level.get("card"), default_pose)
+        for name in images:
+            frame = read_raw_image(base_dir / str(name))
+            accumulator.add(frame, reflectance, pose, exposure)
+
+
+def accumulate_bag(
+    path: Path,
+    accumulator: GrayCardAccumulator,
+    pose: CardPose,
+    image_topic: str,
+    level_topic: str,
+    info_topic: str,
+    settle_frames: int = 0,
+) -> CameraModel | None:
+    """Stream a gray-card bag into ``accumulator``; returns the bag's camera model if it has one.
+
+    Each image is paired with the latest gray level published before it; images
+    before the first level, and the first ``settle_frames`` after each change,
+    are skipped.
+    """
+    from endo_io.bag import BagReader, deserialize
+    from endo_io.image import image_to_array
+
+    camera: CameraModel | None = None
+    level: float | None = None
+    since_change = 0
+    with BagReader(path) as bag:
+        if image_topic not in bag.topics:
+            raise ManifestError(f"bag {path} has no topic {image_topic}")
+        if level_topic not in bag.topics:
+            raise InsufficientLevelsError(f"bag {path} has no gray-level topic {level_topic}")
+        for message in bag.messages(topics=[image_topic, level_topic, info_topic]):
+            msg = deserialize(message)
+            if message.topic == level_topic:
+                value = float(msg.data)
+                if value != level:
+                    level, since_change = value, 0
+            elif message.topic == info_topic:
+                if camera is None:
+                    camera = CameraModel.from_camera_info(msg)
+            elif level is not None and level > 0.0:
+                since_change += 1
+                if since_change <= settle_frames:
+                    continue
+                frame = to_raw_frame(image_to_array(msg), msg.encoding)
+                accumulator.add(frame, level, pose)
+    return camera
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The command-line interface of ``endo-calibrate``."""
+    parser = argparse.ArgumentParser(
+        prog="endo-calibrate",
+        description="Fit a camera's inverse response and light map from gray-card images.",
+    )
+    source = parser.add_mutually_exclusive_group(required=True)
+    source.add_argument("--bag", type=Path, help="gray-card bag (.mcap or rosbag2 directory)")
+    source.add_argument("--manifest", type=Path, help="levels.yaml listing images per reflectance")
+    source.add_argument(
+        "--import-dso",
+        type=Path,
+        metavar="DIR",
+        help="convert a TUM/DSO pcalib.txt + vignette.png instead of fitting",
+    )
+    parser.add_argument("--camera-info", type=Path, help="camera calibration YAML (for G)")
+    parser.add_argument("--image-topic", default=DEFAULT_IMAGE_TOPIC)
+    parser.add_argument("--gray-level-topic", default=DEFAULT_LEVEL_TOPIC)
+    parser.add_argument("--camera-info-topic", default=DEFAULT_INFO_TOPIC)
+    parser.add_argument(
+        "--settle-frames",
+        type=int,
+        default=0,
+        help="frames to skip after each gray-level change in a bag",
+    )
+    parser.add_argument(
+        "--card-distance",
+        type=float,
+        default=0.05,
+        metavar="M",
+        help="card distance from the optical centre in metres (default 0.05)",
+    )
+    parser.add_argument(
+        "--card-normal",
+        type=float,
+        nargs=3,
+        default=(0.0, 0.0, -1.0),
+        metavar=("NX", "NY", "NZ"),
+        help="card normal in the optical frame",
+    )
+    parser.add_argument("--bit-depth", type=int, help="raw bit depth (default: inferred)")
+    parser.add_argument("--saturation-value", type=int, help="raw values >= this are saturated")
+    parser.add_argument("--light-degree", type=int, default=8, help="light model degree")
+    parser.add_argument(
+        "--light-source",
+        choices=LIGHT_SOURCES,
+        default="model",
+        help="divide by the smooth light model or the per-pixel map",
+    )
+    parser.add_argument("-o", "--output", type=Path, default=Path("photometric.yaml"))
+    parser.add_argument("--report", type=Path, help="write the report figure (PNG)")
+    parser.add_argument(
+        "--export-dso", type=Path, metavar="DIR", help="also write pcalib.txt + vignette.png"
+    )
+    parser.add_argument("--dso-channel", help="channel to export to DSO (default mono / green)")
+    return parser
+
+
+def run(args: argparse.Namespace) -> PhotometricCalibration:
+    """Execute a parsed command line; returns the calibration written."""
+    if args.import_dso is not None:
+        calibration = import_dso(args.import_dso)
+    else:
+        pose = CardPose(tuple(args.card_normal), args.card_distance)
+        pose = card_pose({}, pose)
+        camera = CameraModel.load_yaml(args.camera_info) if args.camera_info else None
+        if args.manifest is not None:
+            manifest = load_manifest(args.manifest)
+            bit_depth = args.bit_depth or manifest.get("bit_depth")
+            accumulator = GrayCardAccumulator(
+                int(bit_depth) if bit_depth else None, args.saturation_value
+            )
+            accumulate_manifest(manifest, args.manifest.parent, accumulator, pose)
+            if camera is None and manifest.get("camera_info"):
+                camera = CameraModel.load_yaml(args.manifest.parent / str(manifest["camera_info"]))
+        else:
+            accumulator = GrayCardAccumulator(args.bit_depth, args.saturation_value)
+            bag_camera = accumulate_bag(
+                args.bag,
+                accumulator,
+                pose,
+                args.image_topic,
+                args.gray_level_topic,
+                args.camera_info_topic,
+                args.settle_frames,
+            )
+            camera = camera or bag_camera
+        if camera is None:
+            raise ManifestError(
+                "no camera model: pass --camera-info (or record camera_info in the bag)"
+            )
+        started = time.monotonic()
+        calibration = fit_gray_card(
+            accumulator,
+            camera,
+            saturation_value=args.saturation_value,
+            light_model_degree=args.light_degree,
+        )
+        calibration.light_source = args.light_source
+        report = calibration.fit_report
+        assert report is not None
+        for level in report.levels:
+            print(
+                f"level {level['reflectance']:.3g}: {level['frames']} frames, "
+                f"{100 * level['usable_fraction']:.0f}% of the FOV usable"
+            )
+        for name, fit in report.channels.items():
+            print(
+                f"channel {name}: residual RMS {fit.residual_rms:.3f} DN, "
+                f"{fit.iterations} iterations"
+                f"{'' if fit.converged else ' (not converged)'}"
+            )
+        print(f"fit took {time.monotonic() - started:.1f} s")
+    written = calibration.save(args.output)
+    print(f"wrote {written}")
+    if args.report is not None:
+        from endo_calib.report import write_report
+
+        print(f"wrote {write_report(calibration, args.report)}")
+    if args.export_dso is not None:
+        pcalib, vignette = export_dso(calibration, args.export_dso, args.dso_channel)
+        print(f"wrote {pcalib} and {vignette}")
+    return calibration
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Console entry point; exit code 0 on success, 2 on bad input."""
+    args = build_parser().parse_args(argv)
+    try:
+        run(args)
+    except Endo3dError as error:
+        print(f"endo-calibrate: {type(error).__name__}: {error}", file=sys.stderr)
+        return 2
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

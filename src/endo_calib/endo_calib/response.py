@@ -1,0 +1,300 @@
+"""Camera response: the forward fit model and the inverse-response LUT.
+
+A raw value is ``v = f(E)`` with ``f`` monotone. The calibration hands out the
+inverse ``g = f⁻¹`` as a look-up table with one entry per raw value
+(``2^bits`` entries), normalised so that ``g(0) = 0`` and ``g(v_max) = 1``.
+
+The fit, however, models the *forward* response ``f`` as a monotone
+piecewise-linear function of irradiance on a knot grid, parametrised by
+non-negative increments (so monotonicity is a simple bound). The reason is
+statistical: the noise of a camera lives in the raw values (read noise,
+quantisation, and shot noise passed through the response), so regressing the
+observed value on a known irradiance, E[v | E] ≈ f(E), is unbiased, whereas
+averaging irradiances per observed value, E[E | v], is biased by about one
+noise standard deviation at both ends of the observed range. The LUT is the
+exact inverse of the fitted forward curve.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.linalg
+import scipy.optimize
+from numpy.typing import ArrayLike, NDArray
+
+from endo_calib.errors import CalibrationError, FitError
+
+#: Bit depths a raw image may have (values stored in uint8 or uint16).
+SUPPORTED_BIT_DEPTHS = (8, 10, 12, 14, 16)
+
+
+class InverseResponseError(CalibrationError, ValueError):
+    """An inverse-response table is not monotone, not normalised, or has the wrong length."""
+
+
+@dataclass(frozen=True, eq=False)
+class InverseResponse:
+    """The inverse camera response ``g`` as a table over raw values.
+
+    lut:
+        (2^bit_depth,) float64, ``lut[v] = g(v)``: linear irradiance of raw
+        value ``v``, non-decreasing, ``lut[0] = 0``, ``lut[-1] = 1``.
+    bit_depth:
+        Significant bits of the raw values (8, 10, 12, 14 or 16).
+    """
+
+    lut: NDArray[np.float64]
+    bit_depth: int
+
+    def __post_init__(self) -> None:
+        lut = np.array(self.lut, dtype=np.float64).reshape(-1)
+        if self.bit_depth not in SUPPORTED_BIT_DEPTHS:
+            raise InverseResponseError(
+                f"bit depth {self.bit_depth} not one of {SUPPORTED_BIT_DEPTHS}"
+            )
+        if lut.size != 1 << self.bit_depth:
+            raise InverseResponseError(
+                f"inverse response has {lut.size} entries, {1 << self.bit_depth} expected "
+                f"for {self.bit_depth}-bit raw values"
+            )
+        if not np.all(np.isfinite(lut)):
+            raise InverseResponseError("inverse response has non-finite entries")
+        if np.any(np.diff(lut) < 0.0):
+            raise InverseResponseError("inverse response is not monotone non-decreasing")
+        if abs(lut[0]) > 1e-9 or abs(lut[-1] - 1.0) > 1e-6:
+            raise InverseResponseError(
+                "inverse response must run from g(0)=0 to g(max)=1, "
+                f"got {lut[0]:.6g}..{lut[-1]:.6g}"
+            )
+        lut.setflags(write=False)
+        object.__setattr__(self, "lut", lut)
+
+    @classmethod
+    def from_values(cls, values: ArrayLike) -> InverseResponse:
+        """Build from any monotone table of 2^bits values, rescaled to g(0)=0, g(max)=1.
+
+        values: (2^bits,) float, non-decreasing with values[-1] > values[0].
+        """
+        table = np.asarray(values, dtype=np.float64).reshape(-1)
+        bits = table.size.bit_length() - 1
+        if table.size < 2 or 1 << bits != table.size:
+            raise InverseResponseError(
+                f"an inverse response needs 2^bits entries, got {table.size}"
+            )
+        span = table[-1] - table[0]
+        if not np.isfinite(span) or span <= 0.0:
+            raise InverseResponseError("inverse response table is flat or not finite")
+        return cls((table - table[0]) / span, bits)
+
+    @classmethod
+    def linear(cls, bit_depth: int = 8) -> InverseResponse:
+        """The identity response (a linear camera)."""
+        n = 1 << bit_depth
+        return cls(np.arange(n, dtype=np.float64) / (n - 1), bit_depth)
+
+    @property
+    def max_value(self) -> int:
+        """The largest raw value, 2^bits − 1."""
+        return (1 << self.bit_depth) - 1
+
+    def __call__(self, values: ArrayLike) -> NDArray[np.float64]:
+        """g at raw values (any shape, integer or fractional; linear between entries).
+
+        Values are clipped to [0, max_value]. Returns float64 irradiance in [0, 1].
+        """
+        v = np.asarray(values)
+        if np.issubdtype(v.dtype, np.integer):
+            return np.take(self.lut, np.clip(v, 0, self.max_value))
+        grid = np.arange(self.lut.size, dtype=np.float64)
+        return np.interp(np.asarray(v, dtype=np.float64), grid, self.lut)
+
+    def forward(self, irradiance: ArrayLike) -> NDArray[np.float64]:
+        """The response f = g⁻¹: raw value (fractional, float64) of irradiance in [0, 1]."""
+        grid = np.arange(self.lut.size, dtype=np.float64)
+        lut, keep = np.unique(self.lut, return_index=True)
+        return np.interp(np.asarray(irradiance, dtype=np.float64), lut, grid[keep])
+
+
+@dataclass(frozen=True, eq=False)
+class PiecewiseLinearResponse:
+    """A monotone forward response ``f``: raw value (DN) against irradiance.
+
+    knots: (n+1,) float64 irradiances, strictly increasing, knots[0] = 0.
+    values: (n+1,) float64 raw values at the knots, non-decreasing, values[0] = 0.
+    Beyond the last knot ``f`` continues with the last segment's slope.
+    """
+
+    knots: NDArray[np.float64]
+    values: NDArray[np.float64]
+
+    def __call__(self, irradiance: ArrayLike) -> NDArray[np.float64]:
+        """f(E): (...) irradiance (same units as the knots) to (...) float64 raw values."""
+        e = np.asarray(irradiance, dtype=np.float64)
+        knots, values = self._extended()
+        return np.interp(e, knots, values)
+
+    def slope(self, irradiance: ArrayLike) -> NDArray[np.float64]:
+        """df/dE at ``irradiance``, float64, smoothed: the segment slopes interpolated
+        linearly between segment midpoints (a continuous Jacobian for Gauss–Newton)."""
+        e = np.asarray(irradiance, dtype=np.float64)
+        slopes = np.diff(self.values) / np.diff(self.knots)
+        mids = 0.5 * (self.knots[:-1] + self.knots[1:])
+        return np.interp(e, mids, slopes)
+
+    def _extended(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """Knots and values with a far point that continues the last segment's slope."""
+        k, v = self.knots, self.values
+        far = k[-1] + 1e6 * max(k[-1], 1.0)
+        top = v[-1] + (far - k[-1]) * (v[-1] - v[-2]) / (k[-1] - k[-2])
+        return np.append(k, far), np.append(v, top)
+
+    def inverse(self, raw: ArrayLike) -> NDArray[np.float64]:
+        """E = f⁻¹(v) for (...) raw values.
+
+        Flat stretches of ``f`` map to their lowest irradiance. Above the last
+        knot (the brightest data) the curve is continued by a quadratic fitted to
+        the knots of the top 15% of the irradiance range, which follows the
+        bend of a compressive (gamma or S-shaped) top better than the noisy
+        slope of the last segment; a straight line is used when that quadratic
+        would not rise.
+        """
+        v = np.asarray(raw, dtype=np.float64)
+        rising = np.concatenate([[True], np.diff(self.values) > 0.0])
+        ys, es = self.values[rising], self.knots[rising]
+        inside = np.interp(v, ys, es)
+        above = self._extrapolate_top(v)
+        return np.where(v > ys[-1], above, inside)
+
+    def _extrapolate_top(self, raw: NDArray[np.float64]) -> NDArray[np.float64]:
+        """Irradiance above the last knot for raw values beyond its value."""
+        k, y = self.knots, self.values
+        e_top, v_top = k[-1], y[-1]
+        slope = (y[-1] - y[-2]) / (k[-1] - k[-2])
+        sel = k >= 0.85 * e_top
+        if sel.sum() < 4:
+            sel = np.zeros_like(sel)
+            sel[-min(4, k.size) :] = True
+        x = k[sel] - e_top
+        a, b, _ = np.polyfit(x, y[sel] - v_top, 2)
+        dv = np.maximum(raw - v_top, 0.0)
+        if b > 0.0 and a < 0.0:
+            disc = b * b + 4.0 * a * dv
+            # Beyond the quadratic's vertex fall back to the straight line.
+            ok = disc > 0.0
+            root = np.where(ok, (-b + np.sqrt(np.where(ok, disc, 0.0))) / (2.0 * a), dv / b)
+            return e_top + np.where(ok, root, dv / b)
+        if b > 0.0:
+            return e_top + dv / b
+        return e_top + dv / max(slope, 1e-12)
+
+    def with_top_knot(self, irradiance: float, raw: float) -> PiecewiseLinearResponse:
+        """This curve with one more knot (irradiance, raw) beyond its last one.
+
+        Used to pin the curve at the saturation onset found from partly
+        saturated data; ignored (self returned) unless it extends the curve upwards.
+        """
+        if irradiance <= self.knots[-1] or raw <= self.values[-1]:
+            return self
+        return PiecewiseLinearResponse(
+            np.append(self.knots, irradiance), np.append(self.values, raw)
+        )
+
+    def inverse_response(
+        self, bit_depth: int, saturation_irradiance: float | None = None
+    ) -> InverseResponse:
+        """The normalised inverse LUT of this curve for ``bit_depth``-bit raw values.
+
+        saturation_irradiance: the irradiance that maps to the top raw value; by
+        default f⁻¹(2^bits − 1), extrapolated with the top slope when the data
+        stop short of it.
+        """
+        top = (1 << bit_depth) - 1
+        table = self.inverse(np.arange(top + 1, dtype=np.float64))
+        scale = (
+            float(self.inverse(float(top)))
+            if saturation_irradiance is None
+            else saturation_irradiance
+        )
+        table = np.clip(table - table[0], 0.0, None)
+        table = np.maximum.accumulate(table) / scale
+        table[-1] = 1.0
+        return InverseResponse(np.minimum(table, 1.0), bit_depth)
+
+
+def _segment(
+    knots: NDArray[np.float64], e: NDArray[np.float64]
+) -> tuple[NDArray[np.intp], NDArray[np.float64]]:
+    """Segment index and fractional position of irradiances on the knot grid (t > 1 above)."""
+    seg = np.clip(np.searchsorted(knots, e, side="right") - 1, 0, knots.size - 2)
+    t = (e - knots[seg]) / (knots[seg + 1] - knots[seg])
+    return seg, t
+
+
+def fit_forward_response(
+    irradiance: NDArray[np.floating],
+    raw: NDArray[np.floating],
+    weight: NDArray[np.floating],
+    knots: NDArray[np.float64],
+    smoothness: float = 1e-4,
+    min_slope_fraction: float = 1e-3,
+) -> PiecewiseLinearResponse:
+    """Weighted least-squares fit of a monotone piecewise-linear response.
+
+    Minimises Σ w·(v − f(E))² + λ·W·Σ_j (h̄_j·Δs_j)² over f with f(0) = 0 and
+    non-negative increments, where Δs_j is the change of slope at interior knot
+    j, h̄_j the mean length of its two segments and W = Σ w; λ = ``smoothness``
+    keeps knots without data on a straight continuation of their neighbours.
+
+    irradiance, raw, weight: (N,) samples: irradiance E (≥ 0, knot units), the
+    observed mean raw value (DN) and its weight (1/variance of the mean, 1/DN²).
+    knots: (n+1,) strictly increasing irradiances with knots[0] = 0.
+    min_slope_fraction: lower bound of every segment's slope, as a fraction of
+    the mean slope max(v)/max(E), which makes f strictly increasing.
+    Returns the fitted :class:`PiecewiseLinearResponse`.
+    """
+    knots = np.asarray(knots, dtype=np.float64)
+    n = knots.size - 1
+    if n < 2 or knots[0] != 0.0 or np.any(np.diff(knots) <= 0.0):
+        raise FitError("response knots must start at 0 and increase strictly (>= 3 knots)")
+    e = np.asarray(irradiance, dtype=np.float64).ravel()
+    v = np.asarray(raw, dtype=np.float64).ravel()
+    w = np.asarray(weight, dtype=np.float64).ravel()
+    total = float(w.sum())
+    if e.size == 0 or total <= 0.0:
+        raise FitError("no samples to fit the response to")
+    seg, t = _segment(knots, e)
+    size = n + 1
+    # Normal equations of the hat basis: tridiagonal, accumulated per segment.
+    diag = np.bincount(seg, w * (1 - t) ** 2, size) + np.bincount(seg + 1, w * t * t, size)
+    off = np.bincount(seg, w * t * (1 - t), size)[:n]
+    rhs = np.bincount(seg, w * (1 - t) * v, size) + np.bincount(seg + 1, w * t * v, size)
+    normal = np.diag(diag) + np.diag(off, 1) + np.diag(off, -1)
+    # Slope-change penalty: row j acts on knots j-1, j, j+1.
+    h = np.diff(knots)
+    rows = np.zeros((n - 1, size))
+    idx = np.arange(n - 1)
+    hbar = 0.5 * (h[:-1] + h[1:])
+    rows[idx, idx] = hbar / h[:-1]
+    rows[idx, idx + 1] = -hbar / h[:-1] - hbar / h[1:]
+    rows[idx, idx + 2] = hbar / h[1:]
+    system = normal + smoothness * total * (rows.T @ rows)
+    # Unknowns: increments d_j = y_j - y_{j-1} >= 0, j = 1..n (y_0 = 0 fixed).
+    cumulative = np.tril(np.ones((n, n)))
+    q = cumulative.T @ system[1:, 1:] @ cumulative
+    c = cumulative.T @ rhs[1:]
+    q += np.eye(n) * (1e-12 * np.trace(q) / n)
+    try:
+        chol = scipy.linalg.cholesky(q, lower=True)
+    except np.linalg.LinAlgError as error:
+        raise FitError(f"response fit is singular: {error}") from error
+    target = scipy.linalg.solve_triangular(chol, c, lower=True)
+    # A floor on every slope (min_slope_fraction of the mean slope of the data)
+    # keeps f strictly increasing: a flat stretch has no inverse and would stall
+    # the light update, which follows the slope.
+    mean_slope = max(float(np.max(v) - 0.0), 1e-12) / max(float(np.max(e)), 1e-12)
+    floor = min_slope_fraction * mean_slope * h
+    shifted, _ = scipy.optimize.nnls(chol.T, target - chol.T @ floor, maxiter=50 * n)
+    values = np.concatenate([[0.0], np.cumsum(shifted + floor)])
+    return PiecewiseLinearResponse(knots, values)
