@@ -111,3 +111,27 @@ def test_ros_source_in_millimetres(tmp_path):
         "NonUnitQuaternionError",
     ):
         assert values[f"dropped.{cause}"] == "1", values
+
+
+def test_bad_configuration_is_refused_with_a_named_error(tmp_path):
+    from endo_tracker_bridge.errors import HandEyeFileError, TrackerSourceError
+
+    context = rclpy.Context()
+    rclpy.init(context=context)
+    try:
+        with pytest.raises(TrackerSourceError, match="unknown source 'serial'"):
+            TrackerBridgeNode(
+                context=context, parameter_overrides=[Parameter("source", value="serial")]
+            )
+        with pytest.raises(TrackerSourceError, match="16 row-major"):
+            TrackerBridgeNode(
+                context=context,
+                parameter_overrides=[Parameter("T_world_tracker", value=[1.0, 0.0])],
+            )
+        with pytest.raises(HandEyeFileError):
+            TrackerBridgeNode(
+                context=context,
+                parameter_overrides=[Parameter("handeye_file", value=str(tmp_path / "none.yaml"))],
+            )
+    finally:
+        rclpy.shutdown(context=context)
