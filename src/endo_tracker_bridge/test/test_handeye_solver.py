@@ -280,6 +280,9 @@ def test_corner_numbering_does_not_depend_on_the_image_orientation():
     assert corners is not None and turned is not None
     back = np.array([CAMERA.width - 1, CAMERA.height - 1]) - turned
     np.testing.assert_allclose(back, corners, atol=0.3)
+    # 12-bit data in mono16 is stretched to 8 bits and gives the same corners
+    twelve_bit = detect_checkerboard(image.astype(np.uint16) * 16 + 7, BOARD)
+    np.testing.assert_allclose(twelve_bit, corners, atol=0.05)
     # the first corner is the one next to the dark outer square (board's far end here)
     truth = CAMERA.project(BOARD.object_points() @ B[:3, :3].T + B[:3, 3])
     assert np.linalg.norm(corners[0] - truth[-1]) < 0.5
