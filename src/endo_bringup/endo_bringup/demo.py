@@ -69,9 +69,9 @@ def write_synthetic_bag(path: Path, seconds: float = 2.0) -> None:
     width, height = 160, 120
     camera = CameraModel.pinhole(width, height, fx=140.0, fy=140.0, cx=79.5, cy=59.5)
     rng = np.random.default_rng(3)
-    texture = rng.random((height * 2, width * 2)).astype(np.float32)
-    texture = cv2.blur(texture, (9, 9))  # smoother, tissue-like
-    texture = (texture - texture.min()) / (texture.max() - texture.min())
+    noise = rng.random((height * 2, width * 2)).astype(np.float32)
+    blurred = cv2.blur(noise, (9, 9))  # smoother, tissue-like
+    texture = (blurred - blurred.min()) / (blurred.max() - blurred.min())
     y, x = np.mgrid[0:height, 0:width]
     vignette = np.clip(1.0 - ((x - 79.5) ** 2 + (y - 59.5) ** 2) / 90.0**2, 0.0, 1.0)
     tint = np.array([1.0, 0.55, 0.45], np.float32)
