@@ -44,6 +44,7 @@ from endo_calib.errors import (
 from endo_calib.geometry import CardPose, geometry_term
 from endo_calib.light_map import LightModel, fit_light_model
 from endo_calib.response import (
+    LOW_DATA_QUANTILE,
     SUPPORTED_BIT_DEPTHS,
     InverseResponse,
     PiecewiseLinearResponse,
@@ -316,12 +317,14 @@ def _knots(irradiance: NDArray[np.float64], count: int) -> NDArray[np.float64]:
     the steep dark end of a gamma curve), ``count`` evenly spaced irradiances up
     to the brightest sample (so that sparse bright data still get short
     segments where the curve bends), and a geometric run from the darkest
-    sample to 0. Knots closer than a tenth of the even spacing are merged.
+    sample (the ``LOW_DATA_QUANTILE`` quantile) to 0. Knots closer than a
+    tenth of the even spacing are merged.
 
     irradiance: (N,) irradiances of the used groups (scale: max ≈ 1).
     Returns (n+1,) strictly increasing float64 knots starting at 0.
     """
-    lo, hi = float(np.min(irradiance)), float(np.max(irradiance))
+    lo = float(np.quantile(irradiance, LOW_DATA_QUANTILE))
+    hi = float(np.max(irradiance))
     quantiles = np.quantile(irradiance, np.linspace(0.0, 1.0, count))
     even = np.linspace(lo, hi, count)
     below = lo * np.array([0.125, 0.25, 0.5])
@@ -391,6 +394,7 @@ def _saturation_onset(
     n_high: NDArray[np.float64],
     n_total: NDArray[np.float64],
     data_top: float,
+    max_rel_error: float = 0.003,
 ) -> float | None:
     """Irradiance at which half the samples saturate, from partly saturated groups.
 
@@ -403,28 +407,53 @@ def _saturation_onset(
 
     irradiance, n_high, n_total: (N,) per group, in the fit's irradiance scale.
     data_top: the highest irradiance of the unsaturated data.
-    Returns E*, or None when too few groups straddle the threshold or the
-    estimate is not above ``data_top``.
+    max_rel_error: the estimate is used only if its standard error (from the
+    curvature of the likelihood) is below this fraction of ``data_top``.
+    Returns E*, or None when the data do not pin it down or it is not above
+    ``data_top``.
     """
     near = (irradiance > 0.8 * data_top) & (n_total > 0)
     e, k, n = irradiance[near], n_high[near], n_total[near]
     straddle = (k > 0) & (k < n)
-    if straddle.sum() < 20 or k.sum() < 50 or (k == 0).sum() < 20:
+    if straddle.sum() < 3 or (k == 0).sum() < 3:
         return None
+    scale = data_top
 
     def negative_log_likelihood(params: NDArray[np.float64]) -> float:
-        z = (e - params[0]) / np.exp(params[1])
+        z = (e - params[0] * scale) / (np.exp(params[1]) * scale)
         return -float(np.sum(k * scipy.special.log_ndtr(z) + (n - k) * scipy.special.log_ndtr(-z)))
 
-    start = np.array([float(np.median(e[straddle])), np.log(0.01 * data_top)])
+    start = np.array([float(np.median(e[straddle])) / scale, np.log(0.01)])
     result = scipy.optimize.minimize(
         negative_log_likelihood,
         start,
         method="Nelder-Mead",
-        options={"xatol": 1e-7 * data_top, "fatol": 1e-9},
+        options={"xatol": 1e-7, "fatol": 1e-9, "maxiter": 2000},
     )
-    onset = float(result.x[0])
-    if not result.success or not (data_top < onset < 1.5 * data_top):
+    if not result.success:
+        return None
+    # Standard error of E* from a finite-difference Hessian of the likelihood.
+    x0, h = result.x, np.array([1e-4, 1e-3])
+    hess = np.zeros((2, 2))
+    f0 = negative_log_likelihood(x0)
+    for i in range(2):
+        for j in range(2):
+            di, dj = np.eye(2)[i] * h[i], np.eye(2)[j] * h[j]
+            hess[i, j] = (
+                negative_log_likelihood(x0 + di + dj)
+                - negative_log_likelihood(x0 + di - dj)
+                - negative_log_likelihood(x0 - di + dj)
+                + negative_log_likelihood(x0 - di - dj)
+            ) / (4 * h[i] * h[j])
+    del f0
+    try:
+        covariance = np.linalg.inv(hess)
+    except np.linalg.LinAlgError:
+        return None
+    onset = float(x0[0]) * scale
+    if not (covariance[0, 0] > 0.0 and np.sqrt(covariance[0, 0]) < max_rel_error):
+        return None
+    if not data_top < onset < 1.5 * data_top:
         return None
     return onset
 
@@ -486,12 +515,9 @@ def _fit_channel(
             raise FitError("gray-card data give no positive irradiance")
         m /= scale
         e /= scale
+        knots = _knots(e[s_valid], knot_count)
         forward = fit_forward_response(
-            e[s_valid],
-            s_means[s_valid],
-            s_weight[s_valid],
-            _knots(e[s_valid], knot_count),
-            smoothness,
+            e[s_valid], s_means[s_valid], s_weight[s_valid], knots, smoothness
         )
         m = _update_light(forward, s_means, s_weight, s_coeff, m, s_ok, steps=2)
         g = forward.inverse_response(bit_depth)
@@ -580,7 +606,7 @@ def fit_gray_card(
     knot_count: int = 48,
     smoothness: float = 1e-6,
     max_iterations: int = 60,
-    tolerance: float = 2e-5,
+    tolerance: float = 2e-4,
     sample_pixels: int = 40000,
 ) -> PhotometricCalibration:
     """Fit the inverse response and the light map of a camera from gray-card frames.

@@ -26,6 +26,8 @@ from numpy.typing import ArrayLike, NDArray
 
 from endo_calib.errors import CalibrationError, FitError
 
+#: Quantile of the fitted irradiances taken as the bottom of the data.
+LOW_DATA_QUANTILE = 0.001
 #: Bit depths a raw image may have (values stored in uint8 or uint16).
 SUPPORTED_BIT_DEPTHS = (8, 10, 12, 14, 16)
 
@@ -123,11 +125,13 @@ class PiecewiseLinearResponse:
 
     knots: (n+1,) float64 irradiances, strictly increasing, knots[0] = 0.
     values: (n+1,) float64 raw values at the knots, non-decreasing, values[0] = 0.
-    Beyond the last knot ``f`` continues with the last segment's slope.
+    data_low: the lowest irradiance the curve was fitted to (0: unknown). Below
+        it the inverse follows a power law (see :meth:`inverse`).
     """
 
     knots: NDArray[np.float64]
     values: NDArray[np.float64]
+    data_low: float = 0.0
 
     def __call__(self, irradiance: ArrayLike) -> NDArray[np.float64]:
         """f(E): (...) irradiance (same units as the knots) to (...) float64 raw values."""
@@ -165,29 +169,50 @@ class PiecewiseLinearResponse:
         ys, es = self.values[rising], self.knots[rising]
         inside = np.interp(v, ys, es)
         above = self._extrapolate_top(v)
-        return np.where(v > ys[-1], above, inside)
+        result = np.where(v > ys[-1], above, inside)
+        if self.data_low > 0.0:
+            # Below the darkest data a straight chord to (0, 0) would misjudge
+            # a curved toe (g ∝ v^2.2 for a gamma camera); continue with the
+            # power law of the lowest fitted stretch instead.
+            v_low = float(np.interp(self.data_low, self.knots, self.values))
+            v_two = 2.0 * v_low
+            if v_low > 0.0 and v_two < ys[-1]:
+                e_two = float(np.interp(v_two, ys, es))
+                exponent = float(np.clip(np.log(e_two / self.data_low) / np.log(2.0), 0.5, 4.0))
+                below = self.data_low * (np.clip(v, 0.0, None) / v_low) ** exponent
+                result = np.where(v < v_low, below, result)
+        return result
 
     def _extrapolate_top(self, raw: NDArray[np.float64]) -> NDArray[np.float64]:
-        """Irradiance above the last knot for raw values beyond its value."""
+        """Irradiance above the last knot for raw values beyond its value.
+
+        A quadratic through the knots of the top 15% of the irradiance range
+        follows the bend of a compressive top; it is bounded between one and
+        two times the straight-line extrapolation with the mean slope of those
+        knots, so that noise in the top knots cannot throw it far off.
+        """
         k, y = self.knots, self.values
         e_top, v_top = k[-1], y[-1]
-        slope = (y[-1] - y[-2]) / (k[-1] - k[-2])
         sel = k >= 0.85 * e_top
         if sel.sum() < 4:
             sel = np.zeros_like(sel)
             sel[-min(4, k.size) :] = True
         x = k[sel] - e_top
-        a, b, _ = np.polyfit(x, y[sel] - v_top, 2)
         dv = np.maximum(raw - v_top, 0.0)
-        if b > 0.0 and a < 0.0:
-            disc = b * b + 4.0 * a * dv
-            # Beyond the quadratic's vertex fall back to the straight line.
-            ok = disc > 0.0
-            root = np.where(ok, (-b + np.sqrt(np.where(ok, disc, 0.0))) / (2.0 * a), dv / b)
-            return e_top + np.where(ok, root, dv / b)
-        if b > 0.0:
-            return e_top + dv / b
-        return e_top + dv / max(slope, 1e-12)
+        mean_slope = float(np.polyfit(x, y[sel], 1)[0])
+        if not mean_slope > 0.0:
+            mean_slope = float((y[-1] - y[0]) / (k[-1] - k[0]))
+        linear = dv / mean_slope
+        a, b, _ = np.polyfit(x, y[sel] - v_top, 2)
+        disc = b * b + 4.0 * a * dv
+        with np.errstate(invalid="ignore", divide="ignore"):
+            root = np.where(
+                (disc >= 0.0) & (a != 0.0),
+                (-b + np.sqrt(np.maximum(disc, 0.0))) / (2.0 * a),
+                np.nan,
+            )
+        root = np.where(np.isfinite(root) & (root >= 0.0), root, 2.0 * linear)
+        return e_top + np.clip(root, linear, 2.0 * linear)
 
     def with_top_knot(self, irradiance: float, raw: float) -> PiecewiseLinearResponse:
         """This curve with one more knot (irradiance, raw) beyond its last one.
@@ -198,7 +223,7 @@ class PiecewiseLinearResponse:
         if irradiance <= self.knots[-1] or raw <= self.values[-1]:
             return self
         return PiecewiseLinearResponse(
-            np.append(self.knots, irradiance), np.append(self.values, raw)
+            np.append(self.knots, irradiance), np.append(self.values, raw), self.data_low
         )
 
     def inverse_response(
@@ -252,7 +277,8 @@ def fit_forward_response(
     knots: (n+1,) strictly increasing irradiances with knots[0] = 0.
     min_slope_fraction: lower bound of every segment's slope, as a fraction of
     the mean slope max(v)/max(E), which makes f strictly increasing.
-    Returns the fitted :class:`PiecewiseLinearResponse`.
+    Returns the fitted :class:`PiecewiseLinearResponse` (``data_low``: the
+    ``LOW_DATA_QUANTILE`` quantile of E, robust to a few stray dark samples).
     """
     knots = np.asarray(knots, dtype=np.float64)
     n = knots.size - 1
@@ -297,4 +323,4 @@ def fit_forward_response(
     floor = min_slope_fraction * mean_slope * h
     shifted, _ = scipy.optimize.nnls(chol.T, target - chol.T @ floor, maxiter=50 * n)
     values = np.concatenate([[0.0], np.cumsum(shifted + floor)])
-    return PiecewiseLinearResponse(knots, values)
+    return PiecewiseLinearResponse(knots, values, float(np.quantile(e, LOW_DATA_QUANTILE)))
