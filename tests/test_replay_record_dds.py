@@ -254,15 +254,21 @@ def test_recorder_killed_with_sigkill_leaves_a_readable_file(
         assert data == [cycle[i % len(cycle)] for i in range(len(data))], topic
 
 
-def test_clock_publishes_the_bag_time(input_bag: Path, processes: Processes, tmp_path: Path):
+def test_clock_start_offset_remap_and_qos_override(
+    input_bag: Path, processes: Processes, tmp_path: Path
+):
     output = tmp_path / "clock.mcap"
     offset_ns = 250 * MS
+    renamed = "/tool/pose_replayed"
+    overrides = tmp_path / "qos.yaml"
+    overrides.write_text(f"{renamed}:\n  durability: transient_local\n")  # recorded: volatile
     recorder = processes.start(
-        "endo-record", "--topics", "/clock", POSE, "-o", output, "--flush-period", "0.2"
+        "endo-record", "--topics", "/clock", renamed, "-o", output, "--flush-period", "0.2"
     )
     replay = processes.start(
         "endo-replay", input_bag, "--clock", "100", "--topics", POSE,
-        "--start-offset", str(offset_ns / 1e9), "--wait-for-subscribers", "1",
+        "--start-offset", str(offset_ns / 1e9), "--remap", f"{POSE}:={renamed}",
+        "--qos-profile-overrides-path", overrides, "--wait-for-subscribers", "1",
     )  # fmt: skip
     assert replay.wait(30) == 0, processes.output(replay)
     poses = [
@@ -291,4 +297,11 @@ def test_clock_publishes_the_bag_time(input_bag: Path, processes: Processes, tmp
     assert clock[-1] == last
     assert all(a <= b for a, b in itertools.pairwise(clock))
     assert any(T0 + offset_ns < c < last for c in clock)
-    assert [m.data for m in recorded if m.topic == POSE] == [m.data for m in poses]
+    # Only the poses from the offset on, published under the new name, with
+    # the overridden QoS offered.
+    assert [m.data for m in recorded if m.topic == renamed] == [m.data for m in poses]
+    with BagReader(output) as reader:
+        assert set(reader.topics) == {"/clock", renamed}
+        (offer,) = qos_profiles_from_yaml(reader.topics[renamed].offered_qos_profiles)
+    assert offer.durability == DurabilityPolicy.TRANSIENT_LOCAL
+    assert offer.reliability == ReliabilityPolicy.RELIABLE

@@ -26,7 +26,6 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from rclpy.node import Node
-from rclpy.utilities import remove_ros_args
 
 from endo_io.bag import BagWriter, message_class
 from endo_io.bag.qos_yaml import qos_profiles_to_yaml
@@ -41,6 +40,7 @@ from endo_io.record import (
     seconds_to_ns,
     topics_to_record,
 )
+from endo_io.replay_node import split_ros_args
 
 COMPRESSIONS = ("zstd", "lz4", "none")
 
@@ -217,8 +217,8 @@ def _check_options(options: argparse.Namespace) -> None:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Run ``endo-record``; returns the process exit status."""
-    args = list(sys.argv if argv is None else argv)
-    options = build_parser().parse_args(remove_ros_args(args)[1:])
+    ours, ros_args = split_ros_args(list(sys.argv if argv is None else argv))
+    options = build_parser().parse_args(ours)
     if options.output is None:
         options.output = default_output()
     try:
@@ -239,7 +239,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         return nodes[0]
 
     try:
-        code = run_node(factory, args)
+        code = run_node(factory, ros_args)
     finally:
         if not nodes:
             recording.close()

@@ -26,7 +26,6 @@ from rclpy.duration import Duration
 from rclpy.node import Node
 from rclpy.publisher import Publisher
 from rclpy.qos import QoSProfile, ReliabilityPolicy
-from rclpy.utilities import remove_ros_args
 from rosgraph_msgs.msg import Clock
 
 from endo_io.bag import BagMessage, BagReader, message_class
@@ -349,6 +348,32 @@ class ReplayNode(Node):
             print(f"endo-replay: error: {report.error}", file=sys.stderr, flush=True)
 
 
+def split_ros_args(argv: Sequence[str]) -> tuple[list[str], list[str]]:
+    """Split a command line into (our arguments, ROS arguments).
+
+    ROS arguments are the ``--ros-args ... [--]`` blocks; they go to
+    ``rclpy.init`` (with the program name first), everything else to argparse.
+    Unlike ``rclpy.utilities.remove_ros_args``, a ``FROM:=TO`` value of our own
+    ``--remap`` option stays ours: rcl would otherwise take it for a
+    (deprecated) bare remap rule.
+    """
+    ours: list[str] = []
+    ros: list[str] = list(argv[:1])
+    inside = False
+    for arg in argv[1:]:
+        if arg == "--ros-args":
+            inside = True
+            ros.append(arg)
+        elif inside and arg == "--":
+            inside = False
+            ros.append(arg)
+        elif inside:
+            ros.append(arg)
+        else:
+            ours.append(arg)
+    return ours, ros
+
+
 def _check_options(options: argparse.Namespace) -> None:
     if not options.rate > 0:
         raise ValueError(f"--rate must be > 0, got {options.rate}")
@@ -362,8 +387,8 @@ def _check_options(options: argparse.Namespace) -> None:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Run ``endo-replay``; returns the process exit status."""
-    args = list(sys.argv if argv is None else argv)
-    options = build_parser().parse_args(remove_ros_args(args)[1:])
+    ours, ros_args = split_ros_args(list(sys.argv if argv is None else argv))
+    options = build_parser().parse_args(ours)
     try:
         _check_options(options)
         reader = BagReader(options.bag)
@@ -382,7 +407,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             nodes.append(ReplayNode(reader, plan, options))
             return nodes[0]
 
-        code = run_node(factory, args)
+        code = run_node(factory, ros_args)
         return nodes[0].exit_code if nodes else code or 1
 
 

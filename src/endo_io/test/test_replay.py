@@ -490,3 +490,20 @@ def test_cli_rejects_bad_options_before_starting_ros(tmp_path: Path, capsys):
     assert "--rate" in capsys.readouterr().err
     assert main(["endo-replay", str(bag), "--remap", "/scalar=/x"]) == 2
     assert "remap rule" in capsys.readouterr().err
+
+
+def test_ros_arguments_are_split_from_ours_and_remap_values_stay_ours():
+    from endo_io.replay_node import build_parser, split_ros_args
+
+    argv = [
+        "endo-replay", "run.mcap", "--remap", "/a:=/b", "--ros-args", "-r", "__node:=left",
+        "-p", "use_sim_time:=true", "--", "--rate", "2",
+    ]  # fmt: skip
+    ours, ros = split_ros_args(argv)
+    assert ours == ["run.mcap", "--remap", "/a:=/b", "--rate", "2"]
+    assert ros == [
+        "endo-replay", "--ros-args", "-r", "__node:=left", "-p", "use_sim_time:=true", "--",
+    ]  # fmt: skip
+    options = build_parser().parse_args(ours)
+    assert (options.remap, options.rate, options.bag) == (["/a:=/b"], 2.0, Path("run.mcap"))
+    assert split_ros_args(["endo-replay", "b.mcap"]) == (["b.mcap"], ["endo-replay"])
