@@ -319,9 +319,12 @@ def main(argv: list[str] | None = None) -> int:
     result = compare_bags(bag, output, topics)
     print(f"  {'topic':<28} {'type':<32} {'sent':>6} {'recorded':>9} {'bytes':>11}  result")
     for name, t in result.topics.items():
-        verdict = "identical" if t.identical == t.sent == t.received else "DIFFERENT"
-        if t.equal and t.padding_only:
-            verdict = f"identical ({t.padding_only} differ only by DDS 4-byte padding)"
+        if t.identical == t.sent == t.received:
+            verdict = "identical"
+        elif t.equal:
+            verdict = f"equal up to DDS 4-byte padding ({t.padding_only} padded in transit)"
+        else:
+            verdict = "DIFFERENT"
         counts = f"{t.sent:>6} {t.received:>9} {t.sent_bytes:>11}"
         print(f"  {name:<28} {t.msgtype:<32} {counts}  {verdict}")
     for name in result.extra_topics:
