@@ -107,13 +107,16 @@ def select_topics(
 
     Returns ``(selected, missing)``: ``selected`` are the bag topics to play in
     sorted order (all of them when ``requested`` is None or empty); ``missing``
-    are requested topics the bag does not have, in request order.
+    are requested topics the bag does not have, in request order. A requested
+    name without the leading ``/`` means the absolute name (bag topics are
+    absolute).
     """
     available = sorted(set(bag_topics))
     if not requested:
         return available, []
-    wanted = set(requested)
-    missing = [t for t in dict.fromkeys(requested) if t not in available]
+    absolute = ["/" + t.lstrip("/") for t in requested]
+    wanted = set(absolute)
+    missing = [t for t in dict.fromkeys(absolute) if t not in available]
     return [t for t in available if t in wanted], missing
 
 

@@ -36,6 +36,7 @@ from endo_io.replay import (
     EventWaiter,
     PlaybackSchedule,
     Player,
+    ReplayOptionError,
     ReplayReport,
     TopicTally,
     build_remaps,
@@ -158,6 +159,8 @@ def make_plan(reader: BagReader, options: argparse.Namespace) -> ReplayPlan:
     """
     warnings: list[str] = []
     selected, missing = select_topics(reader.topics, options.topics)
+    if options.topics and not selected:
+        raise ReplayOptionError(f"none of the topics {', '.join(missing)} is in the bag")
     warnings += [f"topic {t} is not in the bag" for t in missing]
     names = output_topics(selected, build_remaps(options.remap))
     overrides = (

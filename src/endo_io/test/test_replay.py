@@ -40,6 +40,7 @@ def test_select_topics_all_sorted_or_requested_with_missing_reported():
     assert select_topics(bag, None) == (["/a", "/b", "/c"], [])
     assert select_topics(bag, []) == (["/a", "/b", "/c"], [])
     assert select_topics(bag, ["/c", "/x", "/a", "/x"]) == (["/a", "/c"], ["/x"])
+    assert select_topics(bag, ["c", "y"]) == (["/c"], ["/y"])
 
 
 def test_remap_rules_parse_and_apply():
@@ -490,6 +491,8 @@ def test_cli_rejects_bad_options_before_starting_ros(tmp_path: Path, capsys):
     assert "--rate" in capsys.readouterr().err
     assert main(["endo-replay", str(bag), "--remap", "/scalar=/x"]) == 2
     assert "remap rule" in capsys.readouterr().err
+    assert main(["endo-replay", str(bag), "--topics", "/nope"]) == 2
+    assert "none of the topics /nope is in the bag" in capsys.readouterr().err
 
 
 def test_ros_arguments_are_split_from_ours_and_remap_values_stay_ours():
