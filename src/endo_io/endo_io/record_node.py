@@ -202,9 +202,8 @@ def default_output(now: float | None = None) -> Path:
 def _check_options(options: argparse.Namespace) -> None:
     if not options.all and not options.topics:
         raise RecordOptionError("give --topics TOPIC [TOPIC ...] or --all")
-    for name in options.topics:
-        if not name.startswith("/"):
-            raise RecordOptionError(f"topic {name!r} is not an absolute topic name")
+    # The recorder's namespace is "/", so a relative name means the absolute one.
+    options.topics = ["/" + name.lstrip("/") for name in options.topics]
     if options.max_messages is not None and options.max_messages < 1:
         raise RecordOptionError(f"--max-messages must be >= 1, got {options.max_messages}")
     if options.queue_depth < 1:
