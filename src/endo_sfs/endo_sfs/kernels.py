@@ -1,0 +1,579 @@
+"""Numba kernels of the fast-sweeping solvers and of the grid resampling.
+
+Every kernel works in place on *padded* grids: two layers of invalid nodes
+surround the solve grid, so that the 5-point WENO stencils never leave the
+array and no loop carries a bounds check. Invalid nodes hold ``+inf``; an
+infinite neighbour is never upwind, which is exactly the state-constraint
+boundary condition (no information enters through the mask edge).
+
+Sweeps follow Zhao (2005): four Gauss–Seidel passes with alternating
+orderings, repeated until the largest change of a full iteration is below the
+tolerance. Nodes are skipped while *locked* (Bak, McLaughlin & Renzi 2010):
+a node is unlocked only when a node within its stencil changed by more than
+the tolerance, so a warm-started solve touches each node about once.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+#: Below this cosine a surface is taken as grazing: the data term is infinite.
+_MIN_COSINE = 1e-6
+#: The per-node Newton solve (quadratically convergent) ends after a step of
+#: tan θ below this, relative: the remaining error is about its square.
+_NEWTON_STEP_TOL = 3e-4
+_NEWTON_MAX_STEPS = 60
+
+
+# --------------------------------------------------------------------------
+# Local updates
+# --------------------------------------------------------------------------
+
+
+@njit(cache=True, nogil=True)
+def godunov_eikonal_update(
+    a: float, ha: float, wa: float, b: float, hb: float, wb: float, f: float
+) -> float:
+    """Smallest t with ((t−a)⁺/ha)² + ((t−b)⁺/hb)² = f² (Godunov upwind update).
+
+    a, b: upwind neighbour values along x and y (+inf if none); ha, hb their
+    effective spacings and wa = 1/ha², wb = 1/hb² (passed in so that the
+    sweep loops divide once per update); f ≥ 0 the right-hand side of
+    |∇T| = f.
+    """
+    if a <= b:
+        p, hp, wp, q, wq = a, ha, wa, b, wb
+    else:
+        p, hp, wp, q, wq = b, hb, wb, a, wa
+    if p == np.inf:
+        return np.inf
+    t = p + hp * f
+    if t <= q:
+        return t
+    d = q - p
+    w = wp + wq
+    disc = w * f * f - wp * wq * d * d
+    if disc < 0.0:
+        disc = 0.0
+    return (wp * p + wq * q + np.sqrt(disc)) / w
+
+
+@njit(cache=True, nogil=True)
+def colocated_cosine_scalar(radiance: float, coef_a: float, coef_b: float) -> float:
+    """Scalar twin of :func:`endo_sfs.reflectance.colocated_cosine` (clamped to [0, 1])."""
+    excess = radiance - coef_b
+    disc = coef_a * coef_a - 4.0 * coef_b * excess
+    if disc < 0.0:
+        disc = 0.0
+    c = 2.0 * excess / (coef_a + np.sqrt(disc))
+    if c < 0.0:
+        return 0.0
+    if c > 1.0:
+        return 1.0
+    return c
+
+
+@njit(cache=True, nogil=True)
+def near_light_update(
+    a: float,
+    b: float,
+    wa: float,
+    wb: float,
+    lam: float,
+    log_intensity: float,
+    v_star: float,
+    coef_a: float,
+    coef_b: float,
+    f_guess: float,
+) -> tuple[float, float]:
+    """Per-node solve of the near-light Godunov equation for v = ln r.
+
+    Finds v with
+
+        wa·((v−a)⁺)² + wb·((v−b)⁺)² = λ²·F², F = tan θ,
+
+    where θ is the angle whose co-located reflectance matches the data,
+    R(cos θ) = I·e^{2v} (Lambertian: cos θ = I·e^{2v}). The left side grows
+    with v and F falls, so the root is unique on (min(a, b), v*], with
+    v* = ½·ln(A/I) the value at which the node would face the camera
+    (F = 0). When v* ≤ min(a, b) the node is a singular point (a local
+    minimum of distance) and v = v*.
+
+    The unknown is F itself: v(F) = ½·(ln R(1/√(1+F²)) − ln I) is smooth
+    down to F = 0, where v(·) has the square-root singularity that slows
+    Newton on v. Safeguarded Newton on q(F) = λF − √(left side), seeded
+    with ``f_guess`` (the node's previous F, or the last frame's). Newton
+    converges quadratically, so a step below 1e-4·(1 + F) leaves an error
+    of order 1e-8 and ends the solve. Returns (v, F).
+    """
+    m = a if a < b else b
+    if v_star <= m:
+        return v_star, 0.0
+    f_lo = 0.0
+    f_hi = np.inf
+    f = f_guess
+    if not f > 0.0:
+        # Small-slope start: v ≈ v* − κ·F² with κ = (A − 2B)/(4A), using the
+        # larger one-sided term alone.
+        kappa = (coef_a - 2.0 * coef_b) / (4.0 * coef_a)
+        w = wa if (v_star - a) * (v_star - a) * wa >= (v_star - b) * (v_star - b) * wb else wb
+        f = (-lam + np.sqrt(lam * lam + 4.0 * w * kappa * (v_star - m))) / (
+            2.0 * np.sqrt(w) * kappa
+        )
+    v = v_star
+    for _ in range(_NEWTON_MAX_STEPS):
+        c = 1.0 / np.sqrt(1.0 + f * f)
+        radiance = coef_a * c + coef_b * (1.0 - c * c)
+        v = 0.5 * (np.log(radiance) - log_intensity)
+        da = v - a
+        db = v - b
+        lhs = 0.0
+        dlhs = 0.0
+        if da > 0.0:
+            lhs += wa * da * da
+            dlhs += wa * da
+        if db > 0.0:
+            lhs += wb * db * db
+            dlhs += wb * db
+        root = np.sqrt(lhs)
+        q = lam * f - root
+        if q > 0.0:
+            f_hi = f
+        elif q < 0.0:
+            f_lo = f
+        else:
+            return v, f
+        # dv/dF = ½·R'(c)/R·dc/dF with dc/dF = −F·c³; d√L/dv = L'/(2√L).
+        dv_df = -0.5 * (coef_a - 2.0 * coef_b * c) / radiance * f * c * c * c
+        slope = lam - (dlhs / root if root > 0.0 else 0.0) * dv_df
+        step = q / slope
+        f_new = f - step
+        if abs(step) < _NEWTON_STEP_TOL * (1.0 + f) and f_new > f_lo and f_new < f_hi:
+            f = f_new
+            break
+        if not (f_new > f_lo and f_new < f_hi):
+            f_new = 0.5 * (f_lo + f_hi) if f_hi < np.inf else 2.0 * f + 1.0
+        f = f_new
+    c = 1.0 / np.sqrt(1.0 + f * f)
+    return 0.5 * (np.log(coef_a * c + coef_b * (1.0 - c * c)) - log_intensity), f
+
+
+@njit(cache=True, nogil=True)
+def weno_neighbour(u: np.ndarray, i: int, j: int, di: int, dj: int, eps: float) -> float:
+    """Third-order WENO stand-in for the upwind neighbour along one axis.
+
+    Returns min(u0 − h·D⁻u, u0 + h·D⁺u) with D± the WENO3 one-sided
+    derivatives (Jiang & Peng 2000) as used by Zhang, Zhao & Qian (2006);
+    (di, dj) is the axis unit step (h cancels). A side whose stencil reaches an
+    invalid (+inf) node falls back to the first-order neighbour.
+    """
+    um1 = u[i - di, j - dj]
+    up1 = u[i + di, j + dj]
+    first_order = um1 if um1 < up1 else up1
+    um2 = u[i - 2 * di, j - 2 * dj]
+    up2 = u[i + 2 * di, j + 2 * dj]
+    u0 = u[i, j]
+    if um2 == np.inf or um1 == np.inf or u0 == np.inf or up1 == np.inf or up2 == np.inf:
+        # Mixing a high-order side with a first-order side next to the mask
+        # edge sets up a two-node limit cycle; the whole axis drops to first
+        # order instead.
+        return first_order
+    central = up1 - 2.0 * u0 + um1
+    den = eps + central * central
+    back = u0 - 2.0 * um1 + um2
+    r = (eps + back * back) / den
+    w = 1.0 / (1.0 + 2.0 * r * r)
+    a_minus = u0 - 0.5 * ((1.0 - w) * (up1 - um1) + w * (3.0 * u0 - 4.0 * um1 + um2))
+    fwd = u0 - 2.0 * up1 + up2
+    r = (eps + fwd * fwd) / den
+    w = 1.0 / (1.0 + 2.0 * r * r)
+    a_plus = u0 + 0.5 * ((1.0 - w) * (up1 - um1) + w * (-3.0 * u0 + 4.0 * up1 - up2))
+    return a_minus if a_minus < a_plus else a_plus
+
+
+# --------------------------------------------------------------------------
+# Sweeping drivers
+# --------------------------------------------------------------------------
+
+
+@njit(cache=True, nogil=True, inline="always")
+def second_order_neighbour(
+    u: np.ndarray, i: int, j: int, di: int, dj: int, h: float, w: float
+) -> tuple[float, float, float]:
+    """Upwind neighbour value, effective spacing and 1/spacing² along one axis.
+
+    Uses the one-sided second-order difference (3u0 − 4u₋₁ + u₋₂)/2h on the
+    upwind side when its second node is not higher than its first (as in
+    second-order fast marching), i.e. the neighbour (4u₋₁ − u₋₂)/3 at spacing
+    2h/3; otherwise the first-order neighbour at spacing h (w = 1/h²).
+    """
+    um1 = u[i - di, j - dj]
+    up1 = u[i + di, j + dj]
+    if um1 <= up1:
+        n1 = um1
+        n2 = u[i - 2 * di, j - 2 * dj]
+    else:
+        n1 = up1
+        n2 = u[i + 2 * di, j + 2 * dj]
+    if n2 <= n1 and n1 != np.inf:
+        return (4.0 * n1 - n2) * (1.0 / 3.0), h * (2.0 / 3.0), w * 2.25
+    return n1, h, w
+
+
+@njit(cache=True, nogil=True)
+def _unlock_stencil(
+    locked: np.ndarray,
+    active: np.ndarray,
+    u: np.ndarray,
+    i: int,
+    j: int,
+    reach: int,
+    lowest: float,
+    causal: bool,
+) -> None:
+    """Unlock the nodes whose stencil contains (i, j) after it changed.
+
+    With a causal (upwind-only) update a node can only use a neighbour lower
+    than itself, so only nodes above ``lowest`` (the smaller of the changed
+    node's old and new values) need recomputing.
+    """
+    for k in range(1, reach + 1):
+        for ni, nj in ((i - k, j), (i + k, j), (i, j - k), (i, j + k)):
+            if active[ni, nj] and (not causal or u[ni, nj] > lowest):
+                locked[ni, nj] = 0
+
+
+@njit(cache=True, nogil=True)
+def eikonal_sweep(
+    t: np.ndarray,
+    speed: np.ndarray,
+    fixed: np.ndarray,
+    valid: np.ndarray,
+    hx: float,
+    hy: float,
+    order: int,
+    tolerance: float,
+    max_iterations: int,
+    eps: float,
+) -> tuple[int, float, int]:
+    """Fast sweeping for |∇T| = f on a padded grid, in place.
+
+    t: (ny+4, nx+4) float64, +inf at invalid nodes, source values at fixed
+    nodes, an upper bound (e.g. +inf) elsewhere. speed: (ny+4, nx+4) float64
+    the right-hand side f ≥ 0. fixed, valid: uint8 masks of the same shape.
+    order 1: first-order Godunov, T ← min(T, update) (Zhao 2005).
+    order 2: second-order one-sided upwind differences, T ← min(T, update).
+    order 3: WENO3 Godunov, T ← update (Zhang, Zhao & Qian 2006); start it
+    from the first-order solution. Returns (iterations, last max change,
+    node updates computed).
+    """
+    ny, nx = t.shape
+    active = np.zeros((ny, nx), dtype=np.uint8)
+    for i in range(2, ny - 2):
+        for j in range(2, nx - 2):
+            if valid[i, j] and not fixed[i, j]:
+                active[i, j] = 1
+    locked = 1 - active
+    reach = 1 if order == 1 else 2
+    replace = order == 3
+    wx = 1.0 / (hx * hx)
+    wy = 1.0 / (hy * hy)
+    change = np.inf
+    iterations = 0
+    updates = 0
+    for _ in range(max_iterations):
+        iterations += 1
+        change = 0.0
+        for sweep in range(4):
+            di = 1 if sweep < 2 else -1
+            dj = 1 if (sweep == 0 or sweep == 3) else -1
+            i0 = 2 if di > 0 else ny - 3
+            j0 = 2 if dj > 0 else nx - 3
+            for ii in range(ny - 4):
+                i = i0 + di * ii
+                for jj in range(nx - 4):
+                    j = j0 + dj * jj
+                    if locked[i, j]:
+                        continue
+                    locked[i, j] = 1
+                    updates += 1
+                    if order == 1:
+                        a = min(t[i, j - 1], t[i, j + 1])
+                        b = min(t[i - 1, j], t[i + 1, j])
+                        new = godunov_eikonal_update(a, hx, wx, b, hy, wy, speed[i, j])
+                    elif order == 2:
+                        a, ha, wa = second_order_neighbour(t, i, j, 0, 1, hx, wx)
+                        b, hb, wb = second_order_neighbour(t, i, j, 1, 0, hy, wy)
+                        new = godunov_eikonal_update(a, ha, wa, b, hb, wb, speed[i, j])
+                    else:
+                        a = weno_neighbour(t, i, j, 0, 1, eps)
+                        b = weno_neighbour(t, i, j, 1, 0, eps)
+                        new = godunov_eikonal_update(a, hx, wx, b, hy, wy, speed[i, j])
+                        # Away from the sources the solution has no local
+                        # minimum; where F ≈ 0 (a singular line) the WENO
+                        # extrapolation would otherwise drift downwards.
+                        floor = min(
+                            min(t[i, j - 1], t[i, j + 1]), min(t[i - 1, j], t[i + 1, j])
+                        )
+                        if new < floor:
+                            new = floor
+                    old = t[i, j]
+                    if new == np.inf or (not replace and new >= old):
+                        continue
+                    diff = abs(new - old) if old != np.inf else np.inf
+                    t[i, j] = new
+                    if diff > tolerance:
+                        _unlock_stencil(locked, active, t, i, j, reach, new, not replace)
+                        if replace:
+                            locked[i, j] = 0
+                    if diff > change:
+                        change = diff
+        if change <= tolerance:
+            break
+    return iterations, change, updates
+
+
+@njit(cache=True, nogil=True)
+def near_light_sweep(
+    v: np.ndarray,
+    guess: np.ndarray,
+    log_intensity: np.ndarray,
+    lam: np.ndarray,
+    v_star: np.ndarray,
+    valid: np.ndarray,
+    hx: float,
+    hy: float,
+    coef_a: float,
+    coef_b: float,
+    order: int,
+    tolerance: float,
+    max_iterations: int,
+    eps: float,
+) -> tuple[int, float, int]:
+    """Fast sweeping of the near-light perspective SFS equation, in place.
+
+    v: (ny+4, nx+4) float64 log-distance ln r, +inf at invalid nodes, the
+    initial guess elsewhere (v* for a cold start, the previous frame's
+    solution for a warm start). guess: same shape, F = tan θ seeding each
+    node's next Newton solve (overwritten with each new F; ≤ 0 means none);
+    seeding it from the previous frame while ``v`` starts from v* keeps the
+    sweeps causal (values only fall) yet starts each solve near its root.
+    log_intensity, lam, v_star: per-node ln I, conformal
+    factor λ and singular value v* = ½·ln(A/I).
+    order: 1 (first-order Godunov), 2 (:func:`second_order_neighbour`) or 3
+    (:func:`weno_neighbour`). The node update
+    replaces the value (the scheme is monotone in its neighbours and strictly
+    increasing in v through e^{2v}, so any start converges).
+    Returns (iterations, last max change of v, node updates computed).
+    """
+    ny, nx = v.shape
+    active = np.zeros((ny, nx), dtype=np.uint8)
+    for i in range(2, ny - 2):
+        for j in range(2, nx - 2):
+            if valid[i, j]:
+                active[i, j] = 1
+    locked = 1 - active
+    reach = 1 if order == 1 else 2
+    wx = 1.0 / (hx * hx)
+    wy = 1.0 / (hy * hy)
+    change = np.inf
+    iterations = 0
+    updates = 0
+    for _ in range(max_iterations):
+        iterations += 1
+        change = 0.0
+        for sweep in range(4):
+            di = 1 if sweep < 2 else -1
+            dj = 1 if (sweep == 0 or sweep == 3) else -1
+            i0 = 2 if di > 0 else ny - 3
+            j0 = 2 if dj > 0 else nx - 3
+            for ii in range(ny - 4):
+                i = i0 + di * ii
+                for jj in range(nx - 4):
+                    j = j0 + dj * jj
+                    if locked[i, j]:
+                        continue
+                    locked[i, j] = 1
+                    updates += 1
+                    if order == 1:
+                        a = min(v[i, j - 1], v[i, j + 1])
+                        b = min(v[i - 1, j], v[i + 1, j])
+                        wa = wx
+                        wb = wy
+                    elif order == 2:
+                        a, _, wa = second_order_neighbour(v, i, j, 0, 1, hx, wx)
+                        b, _, wb = second_order_neighbour(v, i, j, 1, 0, hy, wy)
+                    else:
+                        a = weno_neighbour(v, i, j, 0, 1, eps)
+                        b = weno_neighbour(v, i, j, 1, 0, eps)
+                        wa = wx
+                        wb = wy
+                    old = v[i, j]
+                    new, guess[i, j] = near_light_update(
+                        a, b, wa, wb, lam[i, j], log_intensity[i, j], v_star[i, j],
+                        coef_a, coef_b, guess[i, j],
+                    )
+                    diff = abs(new - old)
+                    v[i, j] = new
+                    if diff > tolerance:
+                        _unlock_stencil(
+                            locked, active, v, i, j, reach, min(new, old), order != 3
+                        )
+                        if order == 3:
+                            locked[i, j] = 0
+                    if diff > change:
+                        change = diff
+        if change <= tolerance:
+            break
+    return iterations, change, updates
+
+
+# --------------------------------------------------------------------------
+# Inputs of the sweeps, one pass over the image
+# --------------------------------------------------------------------------
+
+
+@njit(cache=True, nogil=True)
+def orthographic_inputs(
+    intensity: np.ndarray,
+    valid: np.ndarray,
+    coef_a: float,
+    coef_b: float,
+    singular_tolerance: float,
+    boundary: np.ndarray,
+    sign: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Padded arrays of :func:`eikonal_sweep` for the orthographic model.
+
+    intensity: (ny, nx) float64; valid: (ny, nx) bool (nodes with a
+    non-finite intensity are dropped). F = √(1/c² − 1) with c the co-located
+    cosine. Sources: the finite values of ``boundary`` times ``sign`` when
+    ``boundary`` is (ny, nx); otherwise (``boundary`` of size 0) the nodes
+    with c ≥ max(c) − singular_tolerance, at ``sign`` × 1.
+    Returns (t, speed, fixed, valid) padded by two nodes.
+    """
+    ny, nx = intensity.shape
+    t = np.full((ny + 4, nx + 4), np.inf)
+    speed = np.full((ny + 4, nx + 4), np.inf)
+    fixed = np.zeros((ny + 4, nx + 4), dtype=np.uint8)
+    valid_p = np.zeros((ny + 4, nx + 4), dtype=np.uint8)
+    c_max = -1.0
+    for i in range(ny):
+        for j in range(nx):
+            value = intensity[i, j]
+            if not valid[i, j] or not np.isfinite(value):
+                continue
+            c = colocated_cosine_scalar(value, coef_a, coef_b)
+            valid_p[i + 2, j + 2] = 1
+            speed[i + 2, j + 2] = np.sqrt(1.0 / (c * c) - 1.0) if c > 0.0 else np.inf
+            if c > c_max:
+                c_max = c
+    use_boundary = boundary.size > 0
+    threshold = c_max - singular_tolerance
+    for i in range(ny):
+        for j in range(nx):
+            if not valid_p[i + 2, j + 2]:
+                continue
+            if use_boundary:
+                value = boundary[i, j]
+                if np.isfinite(value):
+                    t[i + 2, j + 2] = sign * value
+                    fixed[i + 2, j + 2] = 1
+            else:
+                f = speed[i + 2, j + 2]
+                c = 1.0 / np.sqrt(1.0 + f * f)
+                if c >= threshold:
+                    t[i + 2, j + 2] = sign
+                    fixed[i + 2, j + 2] = 1
+    return t, speed, fixed, valid_p
+
+
+# --------------------------------------------------------------------------
+# Resampling between the pixel grid and the solve grid
+# --------------------------------------------------------------------------
+
+
+@njit(cache=True, nogil=True)
+def sample_strict(
+    image: np.ndarray, valid: np.ndarray, map_x: np.ndarray, map_y: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Bilinear samples of ``image`` at (map_x, map_y) pixel positions.
+
+    image: (H, W) float; valid: (H, W) bool. map_x, map_y: (h, w) float
+    column/row coordinates (pixel centres at integers). A sample is valid only
+    if all four pixels around it are valid; otherwise it is NaN.
+    Returns (values (h, w) float64, valid (h, w) bool).
+    """
+    height, width = image.shape
+    out = np.full(map_x.shape, np.nan)
+    ok = np.zeros(map_x.shape, dtype=np.bool_)
+    for r in range(map_x.shape[0]):
+        for c in range(map_x.shape[1]):
+            x = map_x[r, c]
+            y = map_y[r, c]
+            if not (x >= 0.0 and y >= 0.0 and x <= width - 1 and y <= height - 1):
+                continue
+            x0 = min(int(x), width - 2) if width > 1 else 0
+            y0 = min(int(y), height - 2) if height > 1 else 0
+            fx = x - x0
+            fy = y - y0
+            x1 = min(x0 + 1, width - 1)
+            y1 = min(y0 + 1, height - 1)
+            if not (valid[y0, x0] and valid[y0, x1] and valid[y1, x0] and valid[y1, x1]):
+                continue
+            top = image[y0, x0] * (1.0 - fx) + image[y0, x1] * fx
+            bottom = image[y1, x0] * (1.0 - fx) + image[y1, x1] * fx
+            out[r, c] = top * (1.0 - fy) + bottom * fy
+            ok[r, c] = True
+    return out, ok
+
+
+@njit(cache=True, nogil=True)
+def sample_weighted(
+    grid: np.ndarray, map_x: np.ndarray, map_y: np.ndarray, wanted: np.ndarray
+) -> np.ndarray:
+    """Bilinear samples of ``grid`` over its finite nodes only.
+
+    grid: (h, w) float64 with NaN or inf at unusable nodes. map_x, map_y:
+    (H, W) node coordinates; wanted: (H, W) bool. The weights of the finite
+    nodes among the four are renormalised, so a pixel next to the edge of
+    the solved region still gets a value; NaN where no node is finite or the
+    pixel is not wanted. Returns (H, W) float64.
+    """
+    gh, gw = grid.shape
+    out = np.full(map_x.shape, np.nan)
+    for r in range(map_x.shape[0]):
+        for c in range(map_x.shape[1]):
+            if not wanted[r, c]:
+                continue
+            x = map_x[r, c]
+            y = map_y[r, c]
+            if not (x > -1.0 and y > -1.0 and x < gw and y < gh):
+                continue
+            xf = np.floor(x)
+            yf = np.floor(y)
+            x0 = int(xf)
+            y0 = int(yf)
+            fx = x - xf
+            fy = y - yf
+            total = 0.0
+            weight = 0.0
+            for dy in range(2):
+                yy = y0 + dy
+                if yy < 0 or yy >= gh:
+                    continue
+                wy = fy if dy == 1 else 1.0 - fy
+                for dx in range(2):
+                    xx = x0 + dx
+                    if xx < 0 or xx >= gw:
+                        continue
+                    value = grid[yy, xx]
+                    if not np.isfinite(value):
+                        continue
+                    w = wy * (fx if dx == 1 else 1.0 - fx)
+                    total += w * value
+                    weight += w
+            if weight > 1e-6:
+                out[r, c] = total / weight
+    return out

@@ -1,0 +1,137 @@
+"""Perspective shape from shading with a point light at the optical centre.
+
+Model (Prados & Faugeras 2005; Oren–Nayar variant after Ahmed & Farag 2006).
+A surface point seen along the unit ray ω lies at S = r·ω; the light sits at
+the optical centre, so light and viewing directions coincide with −ω and the
+irradiance is I = R(cos θ)/r² with R the co-located reflectance
+(:func:`endo_sfs.reflectance.colocated_radiance`; albedo × light = 1).
+With v = ln r and |∇_g v| the gradient norm on the sphere of directions,
+cos θ = 1/√(1 + |∇_g v|²), hence
+
+    I·e^{2v} = R(1/√(1 + |∇_g v|²)).
+
+(In Prados–Faugeras' pixel form, with u = r/f, this is
+(I·f²/Q)·√(f²|∇v|² + (∇v·x)² + Q²) = e^{−2v} for the Lambertian R(c) = c.)
+On the stereographic chart s of :mod:`endo_sfs.grid`, |∇_g v| = |∇_s v|/λ(s),
+so the equation solved is
+
+    |∇_s v| = λ(s)·F(s, v),   F² = 1/c(I·e^{2v})² − 1,
+
+an Eikonal equation whose right side falls as v grows: the Hamiltonian is
+strictly increasing in v, which is what makes the problem well-posed without
+boundary data. The mask edge is a state constraint (no information enters),
+and singular points (c = 1) come out at v* = ½·ln(A/I) by themselves.
+
+Well-posedness in practice: where the surface's distance to the camera
+*decreases* towards the mask edge (its nearest point lies outside the view),
+the missing data are replaced by the state constraint and the error decays
+inward like exp(−2·Δv/sin² θ). Scenes whose nearest points are in view are
+recovered to discretisation accuracy.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from endo_sfs import kernels
+from endo_sfs.errors import NoValidPixelsError, SfsInputError
+from endo_sfs.orthographic import SolveInfo, pad
+from endo_sfs.reflectance import colocated_cosine, oren_nayar_coefficients
+
+#: WENO smoothness regulariser, relative to the squared node spacing.
+_WENO_EPS_REL = 0.1
+#: Largest roughness for which the co-located Oren–Nayar model is invertible
+#: (A ≥ 2B keeps R(c) monotone on [0, 1]; equality at σ ≈ 0.622 rad).
+MAX_ROUGHNESS = 0.6
+
+
+def singular_log_distance(intensity: np.ndarray, roughness: float) -> np.ndarray:
+    """v* = ½·ln(A/I): the log-distance at which a node would face the camera.
+
+    intensity: (...) float > 0. Returns (...) float64 (an upper bound of v).
+    """
+    coef_a, _ = oren_nayar_coefficients(roughness)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return 0.5 * np.log(coef_a / np.asarray(intensity, dtype=np.float64))
+
+
+def tangent_from_log_distance(
+    log_distance: np.ndarray, intensity: np.ndarray, roughness: float
+) -> np.ndarray:
+    """tan θ implied by the data at a given v: R(cos θ) = I·e^{2v}.
+
+    log_distance, intensity: (...) float. Returns (...) float64 ≥ 0, +inf at
+    grazing, NaN where v is NaN.
+    """
+    with np.errstate(over="ignore", invalid="ignore"):
+        c = colocated_cosine(intensity * np.exp(2.0 * log_distance), roughness)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.sqrt(np.maximum(1.0 / (c * c) - 1.0, 0.0))
+
+
+def solve_near_light(
+    intensity: np.ndarray,
+    valid: np.ndarray,
+    conformal_factor_sq: np.ndarray,
+    spacing: tuple[float, float],
+    roughness: float = 0.0,
+    order: int = 1,
+    tolerance: float = 1e-6,
+    max_iterations: int = 100,
+    warm_start: np.ndarray | None = None,
+) -> tuple[np.ndarray, SolveInfo]:
+    """Log-distance v = ln r per node of a stereographic solve grid.
+
+    intensity: (ny, nx) float irradiance per unit albedo × light, > 0 at valid
+    nodes. valid: (ny, nx) bool. conformal_factor_sq: (ny, nx) λ². spacing:
+    (hx, hy) chart units per node. roughness: Oren–Nayar σ in radians,
+    0 ≤ σ ≤ 0.6. order: 1 (Godunov) or 3 (WENO3 Godunov; a cold start runs
+    first order first). tolerance: stop when no node of a full iteration
+    changed v by more than this (relative distance). warm_start: (ny, nx) v
+    from the previous frame (NaN where unknown) or None.
+    Returns ((ny, nx) float64 v, NaN at invalid nodes; info).
+    """
+    if order not in (1, 2, 3):
+        raise SfsInputError(f"order must be 1, 2 or 3, got {order}")
+    if not 0.0 <= roughness <= MAX_ROUGHNESS:
+        raise SfsInputError(f"roughness must be in [0, {MAX_ROUGHNESS}] rad, got {roughness}")
+    intensity = np.asarray(intensity, dtype=np.float64)
+    valid = np.asarray(valid, dtype=bool) & np.isfinite(intensity) & (intensity > 0.0)
+    if not valid.any():
+        raise NoValidPixelsError("no node with a positive, finite irradiance")
+    coef_a, coef_b = oren_nayar_coefficients(roughness)
+    safe_intensity = np.where(valid, intensity, 1.0)
+    v_star = singular_log_distance(safe_intensity, roughness)
+    seed = np.zeros_like(v_star)
+    if warm_start is not None:
+        if warm_start.shape != intensity.shape:
+            raise SfsInputError(
+                f"warm_start has shape {warm_start.shape}, expected {intensity.shape}"
+            )
+        seed = np.nan_to_num(
+            np.minimum(tangent_from_log_distance(warm_start, safe_intensity, roughness), 1e3)
+        )
+    hx, hy = spacing
+    # The sweeps start from the supersolution v* (values only fall, so the
+    # scheme stays causal); the warm start seeds each node's Newton solve.
+    v = pad(np.where(valid, v_star, np.inf), np.inf)
+    guess = pad(seed, 0.0)
+    log_intensity_p = pad(np.log(safe_intensity), 0.0)
+    lam_p = pad(np.sqrt(np.asarray(conformal_factor_sq, dtype=np.float64)), 1.0)
+    v_star_p = pad(v_star, 0.0)
+    valid_p = pad(valid.astype(np.uint8), 0)
+    eps = _WENO_EPS_REL * hx * hy
+    updates = 0
+    if order == 3 and warm_start is None:
+        _, _, updates = kernels.near_light_sweep(
+            v, guess, log_intensity_p, lam_p, v_star_p, valid_p, hx, hy, coef_a, coef_b,
+            2, tolerance, max_iterations, eps,
+        )
+    iterations, change, more = kernels.near_light_sweep(
+        v, guess, log_intensity_p, lam_p, v_star_p, valid_p, hx, hy, coef_a, coef_b,
+        order, tolerance, max_iterations, eps,
+    )
+    info = SolveInfo(
+        int(iterations), float(change), bool(change <= tolerance), int(updates + more)
+    )
+    return np.where(valid, v[2:-2, 2:-2], np.nan), info

@@ -1,0 +1,276 @@
+"""Public API: relative depth from one linear irradiance image.
+
+``reconstruct`` is what offline tools, tests and the ``sfs`` node call.
+``solve`` does the same and also returns what the next frame needs for a
+warm start (the node-grid solution) and how the sweeps ended.
+
+Conventions:
+
+* Input: linear irradiance (after the camera response and the light map have
+  been undone by ``endo_calib``), per unit albedo × light power, so that a
+  Lambertian patch facing the light at distance r reads 1/r².
+* Output: (H, W) float32 depth along the optical axis (REP 118 layout), NaN
+  where invalid. It is relative: an albedo × light product ρ ≠ 1 scales every
+  depth by √ρ (near-light model), and nothing is renormalised per frame, so
+  the factor that ``endo_flow`` estimates to make it metric stays constant
+  while albedo and gain do.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+
+from endo_io.camera import CameraModel
+from endo_sfs.errors import (
+    CameraMismatchError,
+    NoValidPixelsError,
+    SfsInputError,
+    UnknownModelError,
+)
+from endo_sfs.grid import SolveGrid, solve_grid
+from endo_sfs.near_light import MAX_ROUGHNESS, solve_near_light
+from endo_sfs.orthographic import SolveInfo, solve_orthographic
+
+Model = Literal["near_light", "orthographic"]
+MODELS: tuple[str, ...] = ("near_light", "orthographic")
+
+#: Default stopping tolerance of the near-light sweeps: largest change of
+#: ln r in a full iteration (a relative depth change of 1e-5).
+DEFAULT_TOLERANCE = 1e-5
+DEFAULT_MAX_ITERATIONS = 60
+
+
+@dataclass(frozen=True)
+class SfsSolution:
+    """One solved frame.
+
+    depth: (H, W) float32 relative depth along the optical axis, NaN invalid.
+    node_solution: (ny, nx) float64 solution on the solve grid (ln r for the
+    near-light model, depth for the orthographic one), NaN where invalid.
+    grid: the solve grid it lives on. valid: (H, W) bool pixels that had
+    data. info: how the sweeps ended. model: the model solved.
+    """
+
+    depth: np.ndarray
+    node_solution: np.ndarray
+    grid: SolveGrid
+    valid: np.ndarray
+    info: SolveInfo
+    model: str
+
+
+def valid_pixels(
+    irradiance: np.ndarray,
+    mask: np.ndarray | None = None,
+    dark_level: float = 0.0,
+    saturation: float | None = None,
+) -> np.ndarray:
+    """Pixels usable as data: finite, above ``dark_level``, below ``saturation``.
+
+    irradiance: (H, W) float; mask: optional (H, W) bool (e.g. the circular
+    field of view). Returns (H, W) bool.
+    """
+    with np.errstate(invalid="ignore"):
+        valid = np.isfinite(irradiance) & (irradiance > dark_level)
+        if saturation is not None:
+            valid &= irradiance < saturation
+    if mask is not None:
+        valid &= mask
+    return valid
+
+
+def _check_inputs(
+    irradiance: np.ndarray, camera: CameraModel, mask: np.ndarray | None
+) -> np.ndarray:
+    image = np.asarray(irradiance)
+    if image.ndim != 2:
+        raise SfsInputError(f"irradiance must be a single-channel (H, W) image, got {image.shape}")
+    if not np.issubdtype(image.dtype, np.floating):
+        raise SfsInputError(
+            f"irradiance must be linear float (endo_calib output), got dtype {image.dtype}"
+        )
+    if image.shape != (camera.height, camera.width):
+        raise CameraMismatchError(
+            f"image is {image.shape[1]}x{image.shape[0]} but camera_info is "
+            f"{camera.width}x{camera.height}"
+        )
+    if mask is not None and np.shape(mask) != image.shape:
+        raise SfsInputError(f"mask has shape {np.shape(mask)}, expected {image.shape}")
+    return image
+
+
+def _warm_nodes(
+    warm_start: SfsSolution | np.ndarray | None, grid: SolveGrid
+) -> np.ndarray | None:
+    """The previous solution as ln r on ``grid`` (NaN where unknown)."""
+    if warm_start is None:
+        return None
+    if isinstance(warm_start, SfsSolution):
+        if warm_start.grid is grid and warm_start.model == "near_light":
+            return warm_start.node_solution
+        warm_start = warm_start.depth
+    depth = np.asarray(warm_start, dtype=np.float64)
+    if depth.shape != grid.pixel_rays.shape[:2]:
+        raise SfsInputError(
+            f"warm_start depth has shape {depth.shape}, expected {grid.pixel_rays.shape[:2]}"
+        )
+    with np.errstate(invalid="ignore", divide="ignore"):
+        log_r = np.log(depth / grid.pixel_rays[..., 2])
+    log_r_nodes, ok = grid.to_nodes(np.nan_to_num(log_r), np.isfinite(log_r))
+    return np.where(ok, log_r_nodes, np.nan)
+
+
+def solve(
+    irradiance: np.ndarray,
+    camera: CameraModel,
+    model: str = "near_light",
+    roughness: float = 0.0,
+    mask: np.ndarray | None = None,
+    solve_scale: float = 1.0,
+    tolerance: float = DEFAULT_TOLERANCE,
+    max_iterations: int = DEFAULT_MAX_ITERATIONS,
+    warm_start: SfsSolution | np.ndarray | None = None,
+    order: int = 2,
+    dark_level: float = 0.0,
+    saturation: float | None = None,
+    singular_tolerance: float = 1e-3,
+    boundary_depth: np.ndarray | None = None,
+    concave: bool = False,
+) -> SfsSolution:
+    """Shape from shading of one frame; see :func:`reconstruct` for the arguments.
+
+    Returns an :class:`SfsSolution` (its ``depth`` is what ``reconstruct``
+    returns; pass the whole solution as the next frame's ``warm_start``).
+    """
+    if model not in MODELS:
+        raise UnknownModelError(f"unknown model {model!r}; expected one of {MODELS}")
+    if not 0.0 <= roughness <= MAX_ROUGHNESS:
+        raise SfsInputError(f"roughness must be in [0, {MAX_ROUGHNESS}] rad, got {roughness}")
+    if not 0.0 < solve_scale <= 1.0:
+        raise SfsInputError(f"solve_scale must be in (0, 1], got {solve_scale}")
+    if order not in (1, 2, 3):
+        raise SfsInputError(f"order must be 1, 2 or 3, got {order}")
+    image = _check_inputs(irradiance, camera, mask)
+    valid = valid_pixels(image, mask, dark_level, saturation)
+    grid = solve_grid(camera, "stereographic" if model == "near_light" else "gnomonic", solve_scale)
+    valid &= np.all(np.isfinite(grid.pixel_rays), axis=-1)
+    if not valid.any():
+        raise NoValidPixelsError(
+            "no usable pixel: the frame is all dark, saturated, NaN or masked"
+        )
+    nodes, node_valid = grid.to_nodes(image, valid)
+    if not node_valid.any():
+        raise NoValidPixelsError("no usable pixel survives resampling to the solve grid")
+    if model == "near_light":
+        log_r, info = solve_near_light(
+            nodes, node_valid, grid.conformal_factor_sq, grid.spacing, roughness, order,
+            tolerance, max_iterations, _warm_nodes(warm_start, grid),
+        )
+        with np.errstate(invalid="ignore"):
+            depth = np.exp(grid.to_pixels(log_r, valid)) * grid.pixel_rays[..., 2]
+        node_solution = log_r
+    else:
+        boundary_nodes = None
+        if boundary_depth is not None:
+            if boundary_depth.shape != image.shape:
+                raise SfsInputError(
+                    f"boundary_depth has shape {boundary_depth.shape}, expected {image.shape}"
+                )
+            known = np.isfinite(boundary_depth)
+            values, ok = grid.to_nodes(np.nan_to_num(boundary_depth), known)
+            boundary_nodes = np.where(ok, values, np.nan)
+        node_solution, info = solve_orthographic(
+            nodes, node_valid, grid.spacing, roughness, order, singular_tolerance,
+            boundary_nodes, concave, tolerance, max_iterations,
+        )
+        depth = grid.to_pixels(node_solution, valid)
+    return SfsSolution(
+        depth=depth.astype(np.float32),
+        node_solution=node_solution,
+        grid=grid,
+        valid=valid,
+        info=info,
+        model=model,
+    )
+
+
+def reconstruct(
+    irradiance: np.ndarray,
+    camera: CameraModel,
+    model: str = "near_light",
+    roughness: float = 0.0,
+    mask: np.ndarray | None = None,
+    solve_scale: float = 1.0,
+    tolerance: float = DEFAULT_TOLERANCE,
+    max_iterations: int = DEFAULT_MAX_ITERATIONS,
+    warm_start: SfsSolution | np.ndarray | None = None,
+    order: int = 2,
+    dark_level: float = 0.0,
+    saturation: float | None = None,
+    singular_tolerance: float = 1e-3,
+    boundary_depth: np.ndarray | None = None,
+    concave: bool = False,
+) -> np.ndarray:
+    """Relative depth from one linear irradiance image by shape from shading.
+
+    Args:
+        irradiance: (H, W) float linear irradiance per unit albedo × light
+            (see the module docstring). NaN, values ≤ ``dark_level`` and
+            values ≥ ``saturation`` are not data.
+        camera: the image's camera model (same size as the image); its
+            per-pixel ray table handles distortion.
+        model: "near_light" (Prados–Faugeras perspective, light at the
+            optical centre, 1/r² fall-off) or "orthographic" (the seed
+            paper's Eikonal model).
+        roughness: Oren–Nayar σ in radians, 0 (Lambertian) to 0.6.
+        mask: optional (H, W) bool of pixels to use (e.g. the circular FOV).
+        solve_scale: solve-grid density relative to the pixels, (0, 1]; the
+            result is resampled back to (H, W).
+        tolerance: stop when a full iteration changes no node by more than
+            this (near-light: ln r, i.e. relative depth; orthographic: depth).
+        max_iterations: cap on full iterations (four sweeps each).
+        warm_start: the previous frame's :class:`SfsSolution` (cheapest) or
+            its (H, W) depth, or None. Used by the near-light model only.
+        order: 1 first-order Godunov, 2 second-order upwind, 3 WENO3 Godunov.
+        dark_level, saturation: data range, in irradiance units.
+        singular_tolerance, boundary_depth, concave: orthographic sources,
+            see :func:`endo_sfs.orthographic.solve_orthographic`;
+            ``boundary_depth`` is (H, W) relative depth, NaN where unknown.
+
+    Returns:
+        (H, W) float32 relative depth along the optical axis, NaN invalid.
+
+    Raises:
+        CameraMismatchError: the camera's size differs from the image's.
+        NoValidPixelsError: no usable pixel (all dark, saturated, NaN).
+        SfsInputError, UnknownModelError: bad arguments.
+    """
+    return solve(
+        irradiance, camera, model, roughness, mask, solve_scale, tolerance, max_iterations,
+        warm_start, order, dark_level, saturation, singular_tolerance, boundary_depth, concave,
+    ).depth
+
+
+def surface_normals(depth: np.ndarray, camera: CameraModel) -> np.ndarray:
+    """Unit surface normals of a depth map, facing the camera.
+
+    depth: (H, W) float depth along the optical axis (any unit), NaN invalid.
+    Returns (H, W, 3) float32 normals in the optical frame (n·ray < 0), NaN
+    where a neighbour is missing.
+    """
+    rays = camera.unit_rays()
+    with np.errstate(invalid="ignore", divide="ignore"):
+        points = (np.asarray(depth, dtype=np.float64) / rays[..., 2])[..., None] * rays
+    du = np.full_like(points, np.nan)
+    dv = np.full_like(points, np.nan)
+    du[:, 1:-1] = points[:, 2:] - points[:, :-2]
+    dv[1:-1] = points[2:] - points[:-2]
+    normals = np.cross(du, dv)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        normals /= np.linalg.norm(normals, axis=-1, keepdims=True)
+        flip = np.sum(normals * rays, axis=-1) > 0.0
+    normals[flip] *= -1.0
+    return normals.astype(np.float32)

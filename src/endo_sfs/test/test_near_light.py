@@ -1,0 +1,157 @@
+"""Near-light perspective SFS against analytic ground truth.
+
+Images are rendered with the model's own forward physics (light at the
+optical centre, I = R(cos θ)/r², Oren–Nayar or Lambertian) by ray geometry
+in endo_sfs.synthetic; the depth truth is analytic.
+"""
+
+from __future__ import annotations
+
+import functools
+
+import numpy as np
+import pytest
+
+from endo_sfs.evaluation import depth_error
+from endo_sfs.relative_depth import reconstruct, solve
+from endo_sfs.synthetic import (
+    SCENE_NAMES,
+    near_light_surface,
+    quantise_8bit,
+    render_near_light,
+    scene_camera,
+)
+
+SIZE = 256
+
+
+@functools.cache
+def _camera(size: int = SIZE, distortion: float = 0.0):
+    return scene_camera(size, distortion=distortion)
+
+
+@functools.cache
+def _scene(name: str, roughness: float, size: int = SIZE, distortion: float = 0.0):
+    camera = _camera(size, distortion)
+    mask = camera.fov_mask(0.48 * size)
+    return camera, mask, render_near_light(camera, near_light_surface(name), roughness)
+
+
+@pytest.mark.parametrize("roughness", [0.0, 0.3])
+@pytest.mark.parametrize("name", SCENE_NAMES)
+def test_noise_free_relative_depth_error_is_below_one_percent(name, roughness):
+    camera, mask, rendering = _scene(name, roughness)
+    depth = reconstruct(rendering.irradiance, camera, roughness=roughness, mask=mask)
+    assert depth.shape == (SIZE, SIZE) and depth.dtype == np.float32
+    error = depth_error(depth, rendering.depth, mask)
+    assert error.coverage > 0.999
+    assert error.abs_rel < 0.01
+    assert error.p95_rel < 0.01
+    # albedo × light = 1 is the convention of the renderer too: no scale left.
+    assert error.scale == pytest.approx(1.0, abs=2e-3)
+
+
+@pytest.mark.parametrize("roughness", [0.0, 0.3])
+@pytest.mark.parametrize("name", SCENE_NAMES)
+def test_8bit_noisy_relative_depth_error_is_below_three_percent(name, roughness):
+    camera, mask, rendering = _scene(name, roughness)
+    noisy = quantise_8bit(rendering.irradiance, np.random.default_rng(7), noise_dn=1.0)
+    depth = reconstruct(noisy, camera, roughness=roughness, mask=mask)
+    error = depth_error(depth, rendering.depth, mask)
+    assert error.coverage > 0.99
+    assert error.abs_rel < 0.03
+
+
+def test_wrong_roughness_gives_a_larger_error():
+    # The roughness matters: solving a σ = 0.3 image as Lambertian is worse.
+    camera, mask, rendering = _scene("bumpy", 0.3)
+    right = depth_error(reconstruct(rendering.irradiance, camera, roughness=0.3, mask=mask),
+                        rendering.depth, mask)
+    wrong = depth_error(reconstruct(rendering.irradiance, camera, roughness=0.0, mask=mask),
+                        rendering.depth, mask)
+    assert wrong.abs_rel > 5 * right.abs_rel
+
+
+@pytest.mark.parametrize("name", ["sphere", "tube"])
+def test_lens_distortion_is_handled_through_the_ray_table(name):
+    camera, mask, rendering = _scene(name, 0.3, distortion=-0.25)
+    assert np.any(camera.D)
+    handled = depth_error(
+        reconstruct(rendering.irradiance, camera, roughness=0.3, mask=mask),
+        rendering.depth, mask,
+    )
+    assert handled.abs_rel < 0.001 and handled.coverage > 0.999
+    # Ignoring the distortion (same K, no D) is several times worse.
+    pinhole = _camera(SIZE, 0.0)
+    ignored = reconstruct(rendering.irradiance, pinhole, roughness=0.3, mask=mask)
+    assert depth_error(ignored, rendering.depth, mask).abs_rel > 4 * handled.abs_rel
+
+
+def test_error_falls_with_grid_refinement_and_order():
+    # Away from the grazing silhouette (cos θ > 0.3), where the solution is
+    # smooth: first order converges like h, the second-order and WENO
+    # schemes faster and below it.
+    errors = {}
+    for size in (64, 128, 256):
+        camera, mask, rendering = _scene("sphere", 0.0, size)
+        distance = rendering.depth / camera.unit_rays()[..., 2]
+        with np.errstate(invalid="ignore"):
+            interior = mask & (rendering.irradiance * distance**2 > 0.3)
+        for order in (1, 2, 3):
+            depth = reconstruct(rendering.irradiance, camera, mask=mask, order=order,
+                                tolerance=1e-9, max_iterations=300)
+            errors[size, order] = depth_error(depth, rendering.depth, interior).abs_rel
+    for order in (1, 2, 3):
+        assert errors[64, order] > errors[128, order] > errors[256, order]
+    assert errors[64, 1] / errors[256, 1] > 3.5  # about h
+    assert errors[64, 2] / errors[256, 2] > 10.0  # about h²
+    for size in (128, 256):
+        assert errors[size, 3] < errors[size, 2] < errors[size, 1]
+
+
+def test_albedo_scales_depth_by_inverse_square_root_only():
+    camera, mask, rendering = _scene("tilted_plane", 0.0)
+    unit = reconstruct(rendering.irradiance, camera, mask=mask)
+    dimmer = reconstruct(0.25 * rendering.irradiance, camera, mask=mask)
+    # I' = ρ·I  ⇒  r' = r/√ρ exactly: a constant factor 2, no renormalisation.
+    ratio = dimmer / unit
+    assert np.nanmax(np.abs(ratio - 2.0)) < 1e-4
+
+
+def test_warm_start_reaches_the_same_depth_with_less_work():
+    camera, mask, rendering = _scene("bumpy", 0.3)
+    cold = solve(rendering.irradiance, camera, roughness=0.3, mask=mask, tolerance=1e-7)
+    # The next frame: the camera moved 1 % closer (irradiance × 1.0201).
+    moved = rendering.irradiance * 1.01**2
+    warm = solve(moved, camera, roughness=0.3, mask=mask, tolerance=1e-7, warm_start=cold)
+    fresh = solve(moved, camera, roughness=0.3, mask=mask, tolerance=1e-7)
+    assert warm.info.converged and fresh.info.converged
+    np.testing.assert_allclose(warm.depth, fresh.depth, rtol=1e-5)
+    np.testing.assert_allclose(warm.depth, cold.depth / 1.01, rtol=1e-5)
+    assert warm.info.updates <= 1.05 * fresh.info.updates
+    # A warm start given as the previous (H, W) depth works the same way.
+    from_depth = solve(moved, camera, roughness=0.3, mask=mask, tolerance=1e-7,
+                       warm_start=cold.depth)
+    np.testing.assert_allclose(from_depth.depth, fresh.depth, rtol=1e-5)
+
+
+def test_solve_scale_solves_a_coarser_grid_and_upsamples():
+    camera, mask, rendering = _scene("bumpy", 0.0)
+    full = solve(rendering.irradiance, camera, mask=mask)
+    half = solve(rendering.irradiance, camera, mask=mask, solve_scale=0.5)
+    assert half.node_solution.size < 0.3 * full.node_solution.size
+    assert half.depth.shape == (SIZE, SIZE)
+    assert depth_error(half.depth, rendering.depth, mask).abs_rel < 0.01
+
+
+def test_masked_pixels_are_nan_and_get_no_data():
+    camera, mask, rendering = _scene("sphere", 0.0)
+    image = rendering.irradiance.copy()
+    hole = np.zeros_like(mask)
+    hole[100:120, 100:120] = True
+    image[hole] = 50.0  # garbage under the mask must not matter
+    depth = reconstruct(image, camera, mask=mask & ~hole)
+    assert np.all(np.isnan(depth[~mask])) and np.all(np.isnan(depth[hole]))
+    rest = mask & ~hole
+    rest[96:124, 96:124] = False  # allow the state-constraint edge of the hole
+    assert depth_error(depth, rendering.depth, rest).abs_rel < 0.01

@@ -1,0 +1,101 @@
+"""The public API's conventions and its behaviour on bad input."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import endo_sfs
+from endo_sfs.errors import (
+    CameraMismatchError,
+    NoValidPixelsError,
+    SfsInputError,
+    UnknownModelError,
+)
+from endo_sfs.evaluation import depth_error
+from endo_sfs.relative_depth import surface_normals
+from endo_sfs.synthetic import near_light_surface, render_near_light, scene_camera
+
+SIZE = 96
+
+
+@pytest.fixture(scope="module")
+def scene():
+    camera = scene_camera(SIZE)
+    mask = camera.fov_mask(0.48 * SIZE)
+    return camera, mask, render_near_light(camera, near_light_surface("tilted_plane"))
+
+
+def test_reconstruct_is_exported_and_returns_float32_depth(scene):
+    camera, mask, rendering = scene
+    depth = endo_sfs.reconstruct(rendering.irradiance.astype(np.float32), camera, mask=mask)
+    assert depth.shape == (SIZE, SIZE) and depth.dtype == np.float32
+    assert np.all(np.isnan(depth[~mask]))
+    assert depth_error(depth, rendering.depth, mask).abs_rel < 0.01
+
+
+def test_all_dark_all_saturated_and_all_nan_frames_raise_a_named_error(scene):
+    camera, _mask, _rendering = scene
+    for frame in (np.zeros((SIZE, SIZE)), np.full((SIZE, SIZE), np.nan)):
+        with pytest.raises(NoValidPixelsError, match="all dark, saturated, NaN"):
+            endo_sfs.reconstruct(frame, camera)
+    with pytest.raises(NoValidPixelsError):
+        endo_sfs.reconstruct(np.full((SIZE, SIZE), 1.0), camera, saturation=1.0)
+
+
+def test_nan_and_saturated_pixels_are_excluded_not_fatal(scene):
+    camera, mask, rendering = scene
+    image = rendering.irradiance.copy()
+    image[40:44, 40:44] = np.nan
+    image[60:62, 30:34] = 9.0
+    depth = endo_sfs.reconstruct(image, camera, mask=mask, saturation=5.0)
+    assert np.all(np.isnan(depth[40:44, 40:44])) and np.all(np.isnan(depth[60:62, 30:34]))
+    assert np.isfinite(depth[mask]).mean() > 0.98
+
+
+def test_camera_of_a_different_size_is_rejected(scene):
+    camera, _, rendering = scene
+    with pytest.raises(CameraMismatchError, match="camera_info is 96x96"):
+        endo_sfs.reconstruct(rendering.irradiance[:, :80], camera)
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "error"),
+    [
+        ({"model": "photometric_stereo"}, UnknownModelError),
+        ({"roughness": 0.9}, SfsInputError),
+        ({"solve_scale": 0.0}, SfsInputError),
+        ({"order": 4}, SfsInputError),
+        ({"mask": np.ones((3, 3), bool)}, SfsInputError),
+    ],
+)
+def test_bad_arguments_raise_named_errors(scene, kwargs, error):
+    camera, _, rendering = scene
+    with pytest.raises(error):
+        endo_sfs.reconstruct(rendering.irradiance, camera, **kwargs)
+
+
+def test_non_float_and_colour_images_are_rejected(scene):
+    camera, _, _ = scene
+    with pytest.raises(SfsInputError, match="linear float"):
+        endo_sfs.reconstruct(np.ones((SIZE, SIZE), np.uint8), camera)
+    with pytest.raises(SfsInputError, match="single-channel"):
+        endo_sfs.reconstruct(np.ones((SIZE, SIZE, 3)), camera)
+
+
+def test_errors_derive_from_the_project_base_class():
+    from endo_io.errors import Endo3dError
+
+    for error in (CameraMismatchError, NoValidPixelsError, SfsInputError, UnknownModelError):
+        assert issubclass(error, Endo3dError)
+
+
+def test_surface_normals_of_the_tilted_plane_match_its_normal(scene):
+    camera, mask, rendering = scene
+    normals = surface_normals(rendering.depth, camera)
+    plane = near_light_surface("tilted_plane")
+    expected = np.asarray(plane.normal) / np.linalg.norm(plane.normal)
+    inner = mask & np.all(np.isfinite(normals), axis=-1)
+    assert inner.sum() > 0.9 * mask.sum()
+    np.testing.assert_allclose(normals[inner], np.broadcast_to(expected, normals[inner].shape),
+                               atol=1e-4)
