@@ -14,7 +14,10 @@ setup(
     zip_safe=True,
     maintainer="endo3d developers",
     maintainer_email="dev@endo3d.org",
-    description="Message/numpy conversions, camera model, QoS presets and rosbag2-compatible MCAP replay and record for endo3d.",
+    description=(
+        "Message/numpy conversions, camera model, QoS presets and rosbag2-compatible "
+        "MCAP replay and record for endo3d."
+    ),
     license="Apache-2.0",
     tests_require=["pytest"],
     entry_points={
