@@ -1,1 +1,2 @@
-"""Message/numpy conversions, camera model, QoS presets and rosbag2-compatible MCAP replay and record for endo3d."""
+"""endo3d message I/O: message/numpy conversions, camera model, QoS presets,
+rosbag2-compatible MCAP reading and writing, replay and record."""

@@ -66,7 +66,8 @@ def run_node(factory: Callable[[], Node], args: Sequence[str] | None = None) -> 
     """Create a node with ``factory`` and spin it until SIGINT or SIGTERM.
 
     ``args`` are the ROS arguments (``--ros-args ...``); ``sys.argv`` by default.
-    Returns the process exit code.
+    Returns the process exit code: the node's ``exit_code`` attribute when it
+    has one (a replay that hit a damaged bag sets it), else 0.
     """
     # rclpy's default signal handlers cover SIGINT and SIGTERM: both shut the
     # context down, spin() returns, and the node's close() still runs below.
@@ -86,6 +87,33 @@ def run_node(factory: Callable[[], Node], args: Sequence[str] | None = None) -> 
             if callable(close):
                 close()
             node.destroy_node()
-        if rclpy.ok():
-            rclpy.shutdown()
-    return 0
+        # try_shutdown: SIGINT or the node itself may have shut the context
+        # down already, and a later rclpy.init() in this process must work.
+        rclpy.try_shutdown()
+    return int(getattr(node, "exit_code", 0) or 0)
+
+
+def split_ros_args(argv: Sequence[str]) -> tuple[list[str], list[str]]:
+    """Split a command line into (our arguments, ROS arguments).
+
+    ROS arguments are the ``--ros-args ... [--]`` blocks; they go to
+    ``rclpy.init`` (with the program name first), everything else to argparse.
+    Unlike ``rclpy.utilities.remove_ros_args``, a ``FROM:=TO`` value of our own
+    ``--remap`` option stays ours: rcl would otherwise take it for a
+    (deprecated) bare remap rule.
+    """
+    ours: list[str] = []
+    ros: list[str] = list(argv[:1])
+    inside = False
+    for arg in argv[1:]:
+        if arg == "--ros-args":
+            inside = True
+            ros.append(arg)
+        elif inside and arg == "--":
+            inside = False
+            ros.append(arg)
+        elif inside:
+            ros.append(arg)
+        else:
+            ours.append(arg)
+    return ours, ros

@@ -30,7 +30,7 @@ from rclpy.node import Node
 from endo_io.bag import BagWriter, message_class
 from endo_io.bag.qos_yaml import qos_profiles_to_yaml
 from endo_io.errors import BagError, Endo3dError
-from endo_io.process import run_node
+from endo_io.process import run_node, split_ros_args
 from endo_io.record import (
     DEFAULT_QUEUE_DEPTH,
     Recording,
@@ -40,7 +40,6 @@ from endo_io.record import (
     seconds_to_ns,
     topics_to_record,
 )
-from endo_io.replay_node import split_ros_args
 
 COMPRESSIONS = ("zstd", "lz4", "none")
 
@@ -242,7 +241,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     finally:
         if not nodes:
             recording.close()
-    return nodes[0].exit_code or code
+    return code
 
 
 if __name__ == "__main__":

@@ -30,7 +30,7 @@ from rosgraph_msgs.msg import Clock
 
 from endo_io.bag import BagMessage, BagReader, message_class
 from endo_io.errors import Endo3dError
-from endo_io.process import run_node
+from endo_io.process import run_node, split_ros_args
 from endo_io.qos import create_reliable_publisher
 from endo_io.replay import (
     EventWaiter,
@@ -351,32 +351,6 @@ class ReplayNode(Node):
             print(f"endo-replay: error: {report.error}", file=sys.stderr, flush=True)
 
 
-def split_ros_args(argv: Sequence[str]) -> tuple[list[str], list[str]]:
-    """Split a command line into (our arguments, ROS arguments).
-
-    ROS arguments are the ``--ros-args ... [--]`` blocks; they go to
-    ``rclpy.init`` (with the program name first), everything else to argparse.
-    Unlike ``rclpy.utilities.remove_ros_args``, a ``FROM:=TO`` value of our own
-    ``--remap`` option stays ours: rcl would otherwise take it for a
-    (deprecated) bare remap rule.
-    """
-    ours: list[str] = []
-    ros: list[str] = list(argv[:1])
-    inside = False
-    for arg in argv[1:]:
-        if arg == "--ros-args":
-            inside = True
-            ros.append(arg)
-        elif inside and arg == "--":
-            inside = False
-            ros.append(arg)
-        elif inside:
-            ros.append(arg)
-        else:
-            ours.append(arg)
-    return ours, ros
-
-
 def _check_options(options: argparse.Namespace) -> None:
     if not options.rate > 0:
         raise ValueError(f"--rate must be > 0, got {options.rate}")
@@ -411,7 +385,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             return nodes[0]
 
         code = run_node(factory, ros_args)
-        return nodes[0].exit_code if nodes else code or 1
+        return code if nodes else 1
 
 
 if __name__ == "__main__":
