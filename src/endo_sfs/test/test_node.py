@@ -1,0 +1,136 @@
+"""The sfs node over DDS: pairing, output, parameters and bad input."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pytest
+import rclpy
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from sensor_msgs.msg import CameraInfo, Image
+
+from endo_io.image import array_to_image, image_to_array
+from endo_io.qos import SENSOR_DATA_QOS, reliable_qos
+from endo_io.stamp import ns_to_stamp, stamp_to_ns
+from endo_sfs.evaluation import depth_error
+from endo_sfs.node import PARAMETERS, SfsNode
+from endo_sfs.relative_depth import solve
+from endo_sfs.synthetic import near_light_surface, render_near_light, scene_camera
+
+pytestmark = pytest.mark.ros
+
+SIZE = 64
+
+
+@pytest.fixture
+def graph():
+    """An sfs node and a test node publishing its inputs and collecting its outputs."""
+    rclpy.init()  # domain from ROS_DOMAIN_ID in the environment
+    sfs = SfsNode(parameter_overrides=[Parameter("publish_normals", value=True)])
+    peer = Node("sfs_test_peer")
+    received: dict[str, list[Image]] = {"depth": [], "normals": []}
+    peer.create_subscription(Image, "depth_relative", received["depth"].append, reliable_qos(50))
+    peer.create_subscription(Image, "normals", received["normals"].append, reliable_qos(50))
+    images = peer.create_publisher(Image, "image_corrected", SENSOR_DATA_QOS)
+    infos = peer.create_publisher(CameraInfo, "camera_info", SENSOR_DATA_QOS)
+    executor = SingleThreadedExecutor()
+    executor.add_node(sfs)
+    executor.add_node(peer)
+
+    def spin_until(condition, timeout=10.0):
+        deadline = time.monotonic() + timeout
+        while not condition() and time.monotonic() < deadline:
+            executor.spin_once(timeout_sec=0.05)
+        return condition()
+
+    deadline = time.monotonic() + 10.0
+    while (images.get_subscription_count() == 0 or infos.get_subscription_count() == 0
+           or sfs.depth_publisher.get_subscription_count() == 0) and time.monotonic() < deadline:
+        executor.spin_once(timeout_sec=0.05)
+    yield sfs, images, infos, received, spin_until
+    executor.shutdown()
+    sfs.destroy_node()
+    peer.destroy_node()
+    rclpy.shutdown()
+
+
+def _frame(stamp_ns, image, camera, encoding="32FC1"):
+    msg = array_to_image(image, encoding, stamp_ns, "endoscope_optical_frame")
+    info = camera.to_camera_info(stamp_ns)
+    info.header.frame_id = "endoscope_optical_frame"
+    return msg, info
+
+
+def test_parameters_are_declared_with_descriptions_and_ranges(graph):
+    sfs, *_ = graph
+    for name, (_, descriptor) in PARAMETERS.items():
+        assert sfs.has_parameter(name)
+        assert descriptor.description
+        if isinstance(PARAMETERS[name][0], float):
+            assert descriptor.floating_point_range
+        elif isinstance(PARAMETERS[name][0], int) and not isinstance(PARAMETERS[name][0], bool):
+            assert descriptor.integer_range
+    assert not sfs.set_parameters([Parameter("roughness", value=2.0)])[0].successful
+    assert not sfs.set_parameters([Parameter("model", value="stereo")])[0].successful
+    assert sfs.set_parameters([Parameter("roughness", value=0.3)])[0].successful
+
+
+def test_matched_frames_give_the_library_depth_and_bad_frames_do_not_stop_the_node(graph):
+    sfs, images, infos, received, spin_until = graph
+    camera = scene_camera(SIZE)
+    rendering = render_near_light(camera, near_light_surface("tilted_plane"))
+    image = rendering.irradiance.astype(np.float32)
+    stamp = 1_763_800_000_000_000_000
+
+    # camera_info first, image second: still paired by stamp.
+    msg, info = _frame(stamp, image, camera)
+    infos.publish(info)
+    images.publish(msg)
+    assert spin_until(lambda: len(received["depth"]) == 1)
+    out = received["depth"][0]
+    assert out.encoding == "32FC1" and stamp_to_ns(out.header.stamp) == stamp
+    assert out.header.frame_id == "endoscope_optical_frame"
+    depth = image_to_array(out)
+    np.testing.assert_array_equal(depth, solve(image, camera).depth)
+    assert depth_error(depth, rendering.depth).abs_rel < 0.02
+    assert spin_until(lambda: len(received["normals"]) == 1)
+    assert received["normals"][0].encoding == "32FC3"
+
+    # An image whose camera_info never comes produces nothing.
+    lonely, _ = _frame(stamp + 1, image, camera)
+    images.publish(lonely)
+
+    # All dark and all NaN frames: an all-NaN depth, counted as dropped.
+    for k, bad in enumerate((np.zeros_like(image), np.full_like(image, np.nan))):
+        msg, info = _frame(stamp + 10 + k, bad, camera)
+        images.publish(msg)
+        infos.publish(info)
+        assert spin_until(lambda n=k: len(received["depth"]) == 2 + n)
+        assert np.all(np.isnan(image_to_array(received["depth"][-1])))
+    assert sfs.health.dropped["NoValidPixelsError"] == 2
+
+    # camera_info of another size, and a wrong encoding: dropped, nothing out.
+    msg, _ = _frame(stamp + 20, image, camera)
+    _, wrong_info = _frame(stamp + 20, image, scene_camera(SIZE // 2))
+    images.publish(msg)
+    infos.publish(wrong_info)
+    msg, info = _frame(stamp + 30, (image * 255).astype(np.uint8), camera, "mono8")
+    images.publish(msg)
+    infos.publish(info)
+    assert spin_until(
+        lambda: sfs.health.dropped["CameraMismatchError"] == 1
+        and sfs.health.dropped["SfsInputError"] == 1
+    )
+    assert len(received["depth"]) == 3
+
+    # The node is still up and solves the next good frame.
+    msg, info = _frame(stamp + 40, image, camera)
+    images.publish(msg)
+    infos.publish(info)
+    assert spin_until(lambda: len(received["depth"]) == 4)
+    np.testing.assert_allclose(image_to_array(received["depth"][-1]), depth, rtol=1e-4)
+    assert stamp_to_ns(received["depth"][-1].header.stamp) == stamp + 40
+    assert ns_to_stamp(stamp + 40) == received["depth"][-1].header.stamp
