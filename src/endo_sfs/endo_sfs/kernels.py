@@ -10,7 +10,10 @@ Sweeps follow Zhao (2005): four Gauss–Seidel passes with alternating
 orderings, repeated until the largest change of a full iteration is below the
 tolerance. Nodes are skipped while *locked* (Bak, McLaughlin & Renzi 2010):
 a node is unlocked only when a node within its stencil changed by more than
-the tolerance, so a warm-started solve touches each node about once.
+the tolerance (and, for the causal upwind schemes, only if that node may be
+upwind of it). All kernels use numpy's error model: no Python exception
+checks on divisions inside the loops; an infinite or NaN result is handled
+by the bracketing logic instead.
 """
 
 from __future__ import annotations
@@ -31,7 +34,7 @@ _NEWTON_MAX_STEPS = 60
 # --------------------------------------------------------------------------
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, error_model="numpy")
 def godunov_eikonal_update(
     a: float, ha: float, wa: float, b: float, hb: float, wb: float, f: float
 ) -> float:
@@ -59,7 +62,7 @@ def godunov_eikonal_update(
     return (wp * p + wq * q + np.sqrt(disc)) / w
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, error_model="numpy")
 def colocated_cosine_scalar(radiance: float, coef_a: float, coef_b: float) -> float:
     """Scalar twin of :func:`endo_sfs.reflectance.colocated_cosine` (clamped to [0, 1])."""
     excess = radiance - coef_b
@@ -74,7 +77,7 @@ def colocated_cosine_scalar(radiance: float, coef_a: float, coef_b: float) -> fl
     return c
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, error_model="numpy")
 def near_light_update(
     a: float,
     b: float,
@@ -159,7 +162,7 @@ def near_light_update(
     return 0.5 * (np.log(coef_a * c + coef_b * (1.0 - c * c)) - log_intensity), f
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, error_model="numpy")
 def weno_neighbour(u: np.ndarray, i: int, j: int, di: int, dj: int, eps: float) -> float:
     """Third-order WENO stand-in for the upwind neighbour along one axis.
 
@@ -197,7 +200,7 @@ def weno_neighbour(u: np.ndarray, i: int, j: int, di: int, dj: int, eps: float) 
 # --------------------------------------------------------------------------
 
 
-@njit(cache=True, nogil=True, inline="always")
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
 def second_order_neighbour(
     u: np.ndarray, i: int, j: int, di: int, dj: int, h: float, w: float
 ) -> tuple[float, float, float]:
@@ -221,7 +224,7 @@ def second_order_neighbour(
     return n1, h, w
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, error_model="numpy")
 def _unlock_stencil(
     locked: np.ndarray,
     active: np.ndarray,
@@ -244,7 +247,7 @@ def _unlock_stencil(
                 locked[ni, nj] = 0
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, error_model="numpy")
 def eikonal_sweep(
     t: np.ndarray,
     speed: np.ndarray,
@@ -334,7 +337,7 @@ def eikonal_sweep(
     return iterations, change, updates
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, error_model="numpy")
 def near_light_sweep(
     v: np.ndarray,
     guess: np.ndarray,
@@ -434,7 +437,7 @@ def near_light_sweep(
 # --------------------------------------------------------------------------
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, error_model="numpy")
 def orthographic_inputs(
     intensity: np.ndarray,
     valid: np.ndarray,
@@ -494,7 +497,7 @@ def orthographic_inputs(
 # --------------------------------------------------------------------------
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, error_model="numpy")
 def sample_strict(
     image: np.ndarray, valid: np.ndarray, map_x: np.ndarray, map_y: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -529,7 +532,7 @@ def sample_strict(
     return out, ok
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, error_model="numpy")
 def sample_weighted(
     grid: np.ndarray, map_x: np.ndarray, map_y: np.ndarray, wanted: np.ndarray
 ) -> np.ndarray:
