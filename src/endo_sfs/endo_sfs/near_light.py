@@ -55,6 +55,41 @@ def singular_log_distance(intensity: np.ndarray, roughness: float) -> np.ndarray
         return 0.5 * np.log(coef_a / np.asarray(intensity, dtype=np.float64))
 
 
+#: Lift of a warm start above the previous frame's solution (in ln r), on top
+#: of the frame's median change of v*: local motion up to this much per frame
+#: keeps the start above the new solution.
+WARM_START_MARGIN = 0.005
+
+
+def warm_start_values(
+    previous: np.ndarray,
+    v_star: np.ndarray,
+    valid: np.ndarray,
+    intensity: np.ndarray,
+    previous_intensity: np.ndarray | None,
+) -> np.ndarray:
+    """Start values from the previous frame's v, lifted above the new solution.
+
+    A start below the solution somewhere still converges, but slowly (too-low
+    nodes hold each other down and rise by about h·F per iteration), so the
+    previous solution is shifted by the frame's global change of v*,
+    −½·median(ln(I/I_prev)) (the camera moving towards or away from the
+    surface), plus :data:`WARM_START_MARGIN` for local motion, and capped by
+    v*. previous, v_star, intensity, previous_intensity: (ny, nx); valid:
+    (ny, nx) bool. Returns (ny, nx) float64.
+    """
+    known = valid & np.isfinite(previous)
+    if not known.any():
+        return v_star
+    shift = 0.0
+    if previous_intensity is not None:
+        both = known & np.isfinite(previous_intensity) & (previous_intensity > 0.0)
+        if both.any():
+            shift = -0.5 * float(np.median(np.log(intensity[both] / previous_intensity[both])))
+    lifted = np.where(known, previous + shift + WARM_START_MARGIN, v_star)
+    return np.minimum(lifted, v_star)
+
+
 def tangent_from_log_distance(
     log_distance: np.ndarray, intensity: np.ndarray, roughness: float
 ) -> np.ndarray:
@@ -79,6 +114,7 @@ def solve_near_light(
     tolerance: float = 1e-6,
     max_iterations: int = 100,
     warm_start: np.ndarray | None = None,
+    warm_start_intensity: np.ndarray | None = None,
 ) -> tuple[np.ndarray, SolveInfo]:
     """Log-distance v = ln r per node of a stereographic solve grid.
 
@@ -88,7 +124,9 @@ def solve_near_light(
     0 ≤ σ ≤ 0.6. order: 1 (Godunov) or 3 (WENO3 Godunov; a cold start runs
     first order first). tolerance: stop when no node of a full iteration
     changed v by more than this (relative distance). warm_start: (ny, nx) v
-    from the previous frame (NaN where unknown) or None.
+    from the previous frame (NaN where unknown) or None; warm_start_intensity:
+    that frame's (ny, nx) node irradiance, if known (see
+    :func:`warm_start_values`).
     Returns ((ny, nx) float64 v, NaN at invalid nodes; info).
     """
     if order not in (1, 2, 3):
@@ -102,19 +140,24 @@ def solve_near_light(
     coef_a, coef_b = oren_nayar_coefficients(roughness)
     safe_intensity = np.where(valid, intensity, 1.0)
     v_star = singular_log_distance(safe_intensity, roughness)
+    start = v_star
     seed = np.zeros_like(v_star)
     if warm_start is not None:
         if warm_start.shape != intensity.shape:
             raise SfsInputError(
                 f"warm_start has shape {warm_start.shape}, expected {intensity.shape}"
             )
+        start = warm_start_values(
+            warm_start, v_star, valid, safe_intensity, warm_start_intensity
+        )
         seed = np.nan_to_num(
-            np.minimum(tangent_from_log_distance(warm_start, safe_intensity, roughness), 1e3)
+            np.minimum(tangent_from_log_distance(start, safe_intensity, roughness), 1e3)
         )
     hx, hy = spacing
-    # The sweeps start from the supersolution v* (values only fall, so the
-    # scheme stays causal); the warm start seeds each node's Newton solve.
-    v = pad(np.where(valid, v_star, np.inf), np.inf)
+    # The sweeps must start above the solution (values then only fall and the
+    # scheme stays causal): from v* cold, or from the previous frame lifted
+    # by the frame's global change of v* plus a margin.
+    v = pad(np.where(valid, start, np.inf), np.inf)
     guess = pad(seed, 0.0)
     log_intensity_p = pad(np.log(safe_intensity), 0.0)
     lam_p = pad(np.sqrt(np.asarray(conformal_factor_sq, dtype=np.float64)), 1.0)

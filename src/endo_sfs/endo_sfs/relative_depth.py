@@ -50,12 +50,14 @@ class SfsSolution:
     depth: (H, W) float32 relative depth along the optical axis, NaN invalid.
     node_solution: (ny, nx) float64 solution on the solve grid (ln r for the
     near-light model, depth for the orthographic one), NaN where invalid.
+    node_irradiance: (ny, nx) float64 the data resampled to the grid.
     grid: the solve grid it lives on. valid: (H, W) bool pixels that had
     data. info: how the sweeps ended. model: the model solved.
     """
 
     depth: np.ndarray
     node_solution: np.ndarray
+    node_irradiance: np.ndarray
     grid: SolveGrid
     valid: np.ndarray
     info: SolveInfo
@@ -104,13 +106,13 @@ def _check_inputs(
 
 def _warm_nodes(
     warm_start: SfsSolution | np.ndarray | None, grid: SolveGrid
-) -> np.ndarray | None:
-    """The previous solution as ln r on ``grid`` (NaN where unknown)."""
+) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """The previous solution as ln r on ``grid`` (NaN where unknown), and its data if known."""
     if warm_start is None:
-        return None
+        return None, None
     if isinstance(warm_start, SfsSolution):
         if warm_start.grid is grid and warm_start.model == "near_light":
-            return warm_start.node_solution
+            return warm_start.node_solution, warm_start.node_irradiance
         warm_start = warm_start.depth
     depth = np.asarray(warm_start, dtype=np.float64)
     if depth.shape != grid.pixel_rays.shape[:2]:
@@ -120,7 +122,7 @@ def _warm_nodes(
     with np.errstate(invalid="ignore", divide="ignore"):
         log_r = np.log(depth / grid.pixel_rays[..., 2])
     log_r_nodes, ok = grid.to_nodes(np.nan_to_num(log_r), np.isfinite(log_r))
-    return np.where(ok, log_r_nodes, np.nan)
+    return np.where(ok, log_r_nodes, np.nan), None
 
 
 def solve(
@@ -165,9 +167,10 @@ def solve(
     if not node_valid.any():
         raise NoValidPixelsError("no usable pixel survives resampling to the solve grid")
     if model == "near_light":
+        warm_log_r, warm_irradiance = _warm_nodes(warm_start, grid)
         log_r, info = solve_near_light(
             nodes, node_valid, grid.conformal_factor_sq, grid.spacing, roughness, order,
-            tolerance, max_iterations, _warm_nodes(warm_start, grid),
+            tolerance, max_iterations, warm_log_r, warm_irradiance,
         )
         with np.errstate(invalid="ignore"):
             depth = np.exp(grid.to_pixels(log_r, valid)) * grid.pixel_rays[..., 2]
@@ -190,6 +193,7 @@ def solve(
     return SfsSolution(
         depth=depth.astype(np.float32),
         node_solution=node_solution,
+        node_irradiance=nodes,
         grid=grid,
         valid=valid,
         info=info,

@@ -1,0 +1,206 @@
+"""Benchmark of endo_sfs: near-light ms/frame and the orthographic solver vs scikit-fmm.
+
+Run by hand (``make bench`` runs every bench_*.py):
+
+    .venv/bin/python bench/bench_sfs.py [--frames 30] [--repeats 15]
+
+Part 1, near-light: a camera moving inside a tube (the scene of the
+accuracy tests: nearest wall point in view), σ = 0.3, 320×240 and 640×480,
+90° horizontal field of view with a circular mask. Each frame is solved
+warm-started from the previous frame's solution, exactly as the sfs node
+does; wall time per frame (median, 90th percentile) of the whole
+``endo_sfs.solve`` call (masking, resampling to the solve grid, sweeping,
+resampling back), at solve_scale 1 and 0.5, plus the cold-start time and the
+AbsRel against the rendered ground truth.
+
+Part 2, orthographic Eikonal vs scikit-fmm on the same 512² orthographic
+sphere image, interleaved in one run: endo_sfs.orthographic (fast sweeping,
+orders 1, 2 and 3 = WENO3) against ``skfmm.travel_time`` (orders 1 and 2).
+Both get the same image; each computes its speed F = √(1/c² − 1) and its
+sources (the brightest pixels) itself, and both are timed from the image to
+the depth. scikit-fmm's bare ``travel_time`` call is timed as well. Errors
+are mean and max |z − z*| relative to the depth range.
+"""
+
+from __future__ import annotations
+
+import argparse
+import platform
+import subprocess
+import time
+
+import numpy as np
+import skfmm
+
+from endo_io.camera import CameraModel
+from endo_sfs.evaluation import depth_error
+from endo_sfs.orthographic import eikonal_speed, solve_orthographic
+from endo_sfs.reflectance import colocated_cosine, colocated_radiance
+from endo_sfs.relative_depth import solve
+from endo_sfs.synthetic import TubeInterior, render_near_light
+
+
+def machine() -> str:
+    try:
+        text = subprocess.run(["lscpu"], capture_output=True, text=True, check=True).stdout
+        model = next(line.split(":", 1)[1].strip() for line in text.splitlines()
+                     if line.startswith("Model name"))
+    except (OSError, subprocess.CalledProcessError, StopIteration):
+        model = platform.processor() or "unknown"
+    load = open("/proc/loadavg").read().split()[:3]  # noqa: PTH123, SIM115
+    return f"{model}, load average {' '.join(load)}"
+
+
+# ------------------------------------------------------------------ near-light
+
+
+def tube_frames(camera: CameraModel, frames: int, roughness: float):
+    """Renderings of a camera advancing 0.2 % of the tube radius per frame and turning slowly."""
+    out = []
+    for k in range(frames):
+        beta = 1.1 + 0.002 * k
+        axis = (0.0, -np.sin(beta), np.cos(beta))
+        # The camera moves along the axis: in camera coordinates the axis point moves back.
+        point = np.array([0.0, -0.6 + 0.0005 * k, 0.0]) - 0.002 * k * np.asarray(axis)
+        out.append(render_near_light(camera, TubeInterior(tuple(point), axis, 1.0), roughness))
+    return out
+
+
+def bench_near_light(frames: int) -> list[str]:
+    rows = []
+    roughness = 0.3
+    for width, height in ((320, 240), (640, 480)):
+        focal = (width / 2) / np.tan(np.radians(45.0))
+        camera = CameraModel.pinhole(width, height, focal, focal, (width - 1) / 2,
+                                     (height - 1) / 2)
+        mask = camera.fov_mask(0.5 * width)
+        sequence = tube_frames(camera, frames, roughness)
+        for scale in (1.0, 0.5):
+            solve(sequence[0].irradiance, camera, roughness=roughness, mask=mask,
+                  solve_scale=scale)  # grid and kernels cached
+            previous = None
+            warm_times, cold_times, errors, updates = [], [], [], []
+            for rendering in sequence:
+                start = time.perf_counter()
+                solution = solve(rendering.irradiance, camera, roughness=roughness, mask=mask,
+                                 solve_scale=scale, warm_start=previous)
+                warm_times.append(time.perf_counter() - start)
+                if previous is not None:
+                    updates.append(solution.info.updates / np.isfinite(
+                        solution.node_solution).sum())
+                previous = solution
+                start = time.perf_counter()
+                solve(rendering.irradiance, camera, roughness=roughness, mask=mask,
+                      solve_scale=scale)
+                cold_times.append(time.perf_counter() - start)
+                errors.append(depth_error(solution.depth, rendering.depth, mask).abs_rel)
+            warm = np.array(warm_times[1:]) * 1e3
+            cold = np.array(cold_times) * 1e3
+            nodes = np.isfinite(previous.node_solution).sum()
+            rows.append(
+                f"| {width}×{height} | {scale:g} | {nodes} | {np.median(warm):.1f} | "
+                f"{np.percentile(warm, 90):.1f} | {np.median(cold):.1f} | "
+                f"{np.mean(updates):.2f} | {100 * np.mean(errors):.3f} % |"
+            )
+            print(rows[-1], flush=True)
+    return rows
+
+
+# ------------------------------------------------------------------ orthographic
+
+
+def sphere_image(size: int):
+    focal = size / 2.0
+    centre = (size - 1) / 2.0 + 0.3
+    v, u = np.mgrid[0:size, 0:size].astype(np.float64)
+    x, y = (u - centre) / focal, (v - centre + 0.5) / focal
+    radius = 0.9
+    rho2 = x * x + y * y
+    valid = rho2 < (0.85 * radius) ** 2
+    root = np.sqrt(np.maximum(radius * radius - rho2, 0.0))
+    truth = np.where(valid, 1.0 + radius - root, np.nan)
+    image = np.where(valid, colocated_radiance(root / radius, 0.0), np.nan)
+    return image, valid, truth, 1.0 / focal
+
+
+def bench_orthographic(repeats: int) -> list[str]:
+    size = 512
+    image, valid, truth, h = sphere_image(size)
+    depth_range = np.nanmax(truth) - np.nanmin(truth)
+    singular_tolerance = 1e-4
+
+    def ours(order: int):
+        return lambda: solve_orthographic(image, valid, (h, h), 0.0, order=order,
+                                          singular_tolerance=singular_tolerance)[0]
+
+    def skfmm_inputs():
+        speed = eikonal_speed(np.where(valid, image, 0.0), 0.0)
+        c = colocated_cosine(image, 0.0)
+        sources = valid & (c >= np.nanmax(c) - singular_tolerance)
+        phi = np.ma.MaskedArray(np.where(sources, -1.0, 1.0), ~valid)
+        return phi, 1.0 / np.maximum(speed, 1e-12), sources
+
+    def theirs(order: int):
+        def run():
+            phi, velocity, sources = skfmm_inputs()
+            travel = skfmm.travel_time(phi, velocity, dx=h, order=order)
+            depth = 1.0 + np.ma.filled(travel, np.nan)
+            depth[sources] = 1.0
+            return depth
+        return run
+
+    phi, velocity, _ = skfmm_inputs()
+
+    def theirs_bare(order: int):
+        return lambda: skfmm.travel_time(phi, velocity, dx=h, order=order)
+
+    methods = {
+        "endo_sfs fast sweeping, order 1": ours(1),
+        "endo_sfs fast sweeping, order 2": ours(2),
+        "endo_sfs fast sweeping, WENO3": ours(3),
+        "scikit-fmm travel_time, order 1": theirs(1),
+        "scikit-fmm travel_time, order 2": theirs(2),
+        "scikit-fmm bare travel_time call, order 2": theirs_bare(2),
+    }
+    times: dict[str, list[float]] = {name: [] for name in methods}
+    results = {name: fn() for name, fn in methods.items()}  # warm-up, results
+    for _ in range(repeats):  # interleaved, so load changes hit every method
+        for name, fn in methods.items():
+            start = time.perf_counter()
+            fn()
+            times[name].append(time.perf_counter() - start)
+    rows = []
+    for name in methods:
+        result = results[name]
+        if "bare" in name:
+            mean = maximum = float("nan")
+        else:
+            error = np.abs(np.asarray(result) - truth)[valid & np.isfinite(result)]
+            mean, maximum = error.mean() / depth_range, error.max() / depth_range
+        t = np.array(times[name]) * 1e3
+        rows.append(f"| {name} | {np.median(t):.1f} | {np.percentile(t, 90):.1f} | "
+                    f"{100 * mean:.4f} % | {100 * maximum:.4f} % |")
+        print(rows[-1], flush=True)
+    return rows
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--frames", type=int, default=30)
+    parser.add_argument("--repeats", type=int, default=15)
+    args = parser.parse_args()
+    print(f"machine: {machine()}")
+    print("\nnear_light, σ = 0.3, tube sequence, warm-started (ms per frame, wall clock)")
+    print("| image | solve_scale | nodes | warm median | warm p90 | cold median | "
+          "updates/node | AbsRel |")
+    print("|---|---|---|---|---|---|---|---|")
+    bench_near_light(args.frames)
+    print("\northographic sphere 512², same image (ms, wall clock)")
+    print("| method | median | p90 | mean error / range | max error / range |")
+    print("|---|---|---|---|---|")
+    bench_orthographic(args.repeats)
+    print(f"machine after: {machine()}")
+
+
+if __name__ == "__main__":
+    main()
