@@ -1,0 +1,66 @@
+"""Acceptance: endo-handeye on the simulator's hand–eye bag, against its ground truth.
+
+The bag (``bags/handeye.mcap``, written by ``endo-sim render handeye``) holds
+rendered checkerboard images, camera_info and tracker poses with 0.25 mm /
+0.1° RMS noise, dropouts and a latency; ``handeye.ground_truth.yaml`` beside
+it holds the true T_marker_camera and latency. Done means: translation error
+≤ 1 mm, rotation error ≤ 0.5°, time-offset error ≤ 2 ms, residuals reported.
+
+``ENDO_HANDEYE_BAG`` points the test at another bag with its ground truth.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+from scipy.spatial.transform import Rotation
+
+from endo_tracker_bridge.handeye_cli import main
+from endo_tracker_bridge.handeye_file import HandEyeCalibration
+
+REPO = Path(__file__).resolve().parents[3]
+BAG = Path(os.environ.get("ENDO_HANDEYE_BAG", REPO / "bags" / "handeye.mcap"))
+TRUTH = BAG.with_name(BAG.stem + ".ground_truth.yaml")
+
+
+@pytest.mark.skipif(not BAG.exists(), reason=f"{BAG} not committed yet (endo_sim)")
+def test_handeye_on_the_simulated_bag(tmp_path, capsys):
+    truth = yaml.safe_load(TRUTH.read_text())
+    tracker = truth["tracker"]
+    board = truth["scene"]["checkerboard"]
+    columns, rows = board["inner_corners"]
+    output = tmp_path / "handeye.yaml"
+    arguments = [str(BAG), "-o", str(output), "--board", f"{columns}x{rows}"]
+    arguments += ["--square-mm", str(board["square_m"] * 1e3), "--pose-unit", tracker["units"]]
+    arguments += ["--max-views", "300"]
+    assert main(arguments) == 0
+    print(capsys.readouterr().out)
+
+    calibration = HandEyeCalibration.load(output)
+    X_true = np.asarray(tracker["T_marker_camera"], dtype=np.float64)
+    delta = np.linalg.inv(X_true) @ calibration.T_marker_camera
+    translation_error_mm = 1e3 * float(np.linalg.norm(delta[:3, 3]))
+    rotation_error_deg = math.degrees(Rotation.from_matrix(delta[:3, :3]).magnitude())
+    offset_error_ms = (calibration.time_offset_ns * 1e-9 - tracker["latency_s"]) * 1e3
+    print(
+        f"hand-eye error {translation_error_mm:.3f} mm, {rotation_error_deg:.3f} deg; "
+        f"time offset error {offset_error_ms:+.3f} ms; residuals {calibration.residuals}"
+    )
+    assert translation_error_mm <= 1.0
+    assert rotation_error_deg <= 0.5
+    assert abs(offset_error_ms) <= 2.0
+
+    # residuals are reported and agree with the simulated tracker's noise
+    residuals = calibration.residuals
+    noise_mm = tracker["position_noise_rms_m"] * 1e3
+    assert 0.3 * noise_mm < residuals["translation_rms_mm"] < 2.0 * noise_mm
+    assert 0.3 * tracker["rotation_noise_rms_deg"] < residuals["rotation_rms_deg"]
+    assert residuals["rotation_rms_deg"] < 2.0 * tracker["rotation_noise_rms_deg"]
+    assert math.isfinite(residuals["reprojection_rms_px"])
+    assert set(calibration.details["closed_form"]) == {"tsai", "park", "daniilidis"}
+    assert calibration.views_used >= 20
