@@ -27,7 +27,7 @@ biases its mean.
 from __future__ import annotations
 
 from collections.abc import Iterable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -49,6 +49,7 @@ from endo_calib.response import (
     InverseResponse,
     PiecewiseLinearResponse,
     fit_forward_response,
+    fit_shoulder,
 )
 
 if TYPE_CHECKING:
@@ -517,7 +518,7 @@ def _fit_channel(
         e /= scale
         knots = _knots(e[s_valid], knot_count)
         forward = fit_forward_response(
-            e[s_valid], s_means[s_valid], s_weight[s_valid], knots, smoothness
+            e[s_valid], s_means[s_valid], s_weight[s_valid], knots, smoothness, top_code=top
         )
         m = _update_light(forward, s_means, s_weight, s_coeff, m, s_ok, steps=2)
         g = forward.inverse_response(bit_depth)
@@ -536,9 +537,14 @@ def _fit_channel(
     onset = _saturation_onset(
         e.ravel(), groups.n_high.ravel(), groups.n_total.ravel(), float(forward.knots[-1])
     )
+    anchor = None
     if onset is not None:
-        forward = forward.with_top_knot(onset, saturation_value - 0.5)
-        g = forward.inverse_response(bit_depth)
+        anchor = (onset, saturation_value - 0.5)
+        forward = forward.with_top_knot(*anchor)
+    shoulder = fit_shoulder(e[valid], means[valid], top, anchor)
+    if shoulder is not None:
+        forward = replace(forward, shoulder=shoulder)
+    g = forward.inverse_response(bit_depth)
     resid = (means - forward(e))[valid]
     rms = float(np.sqrt(np.mean(resid * resid))) if resid.size else float("nan")
     jac = forward.slope(e) * coeff

@@ -17,7 +17,7 @@ exact inverse of the fitted forward curve.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import scipy.linalg
@@ -28,6 +28,8 @@ from endo_calib.errors import CalibrationError, FitError
 
 #: Quantile of the fitted irradiances taken as the bottom of the data.
 LOW_DATA_QUANTILE = 0.001
+#: Windows below the top raw value (fractions of the range) tried for the shoulder fit.
+SHOULDER_WINDOWS = (0.02, 0.03, 0.05)
 #: Bit depths a raw image may have (values stored in uint8 or uint16).
 SUPPORTED_BIT_DEPTHS = (8, 10, 12, 14, 16)
 
@@ -119,6 +121,84 @@ class InverseResponse:
         return np.interp(np.asarray(irradiance, dtype=np.float64), lut, grid[keep])
 
 
+@dataclass(frozen=True)
+class Shoulder:
+    """The top of a response: E(v) = E_s − A·(top − v)^β.
+
+    saturation_irradiance: E_s, where the response reaches the top raw value.
+    scale: A > 0. exponent: β in [0.2, 2]; 1 is a straight end (a gamma
+    camera), β < 1 the ever-flatter shoulder of an S-shaped or knee response,
+    whose last raw values span a large stretch of irradiance.
+    """
+
+    saturation_irradiance: float
+    scale: float
+    exponent: float
+
+    def inverse(self, raw: NDArray[np.float64], top_code: float) -> NDArray[np.float64]:
+        """E at raw values (≤ top_code; above it E_s)."""
+        u = np.clip(top_code - np.asarray(raw, dtype=np.float64), 0.0, None)
+        return self.saturation_irradiance - self.scale * u**self.exponent
+
+
+def fit_shoulder(
+    irradiance: NDArray[np.float64],
+    raw: NDArray[np.float64],
+    top_code: float,
+    anchor: tuple[float, float] | None = None,
+    min_points: int = 500,
+) -> Shoulder | None:
+    """Fit :class:`Shoulder` to the (irradiance, mean raw value) samples near the top.
+
+    Where the response meets its top raw value cannot be observed (every
+    irradiance beyond the threshold of the last code reads the same), so it is
+    extrapolated, and the shape of the last few codes decides how far. The fit
+    minimises raw-value residuals v − (top − ((E_s − E)/A)^(1/β)) over samples
+    within a window below the top, the narrowest of ``SHOULDER_WINDOWS`` (as
+    fractions of the range) that holds ``min_points`` samples: one exponent
+    describes only the last few codes of a curve; ``anchor`` (E*, v*), the
+    saturation onset, enters with a large weight.
+
+    irradiance, raw: (N,) samples. Returns None when too few samples are near
+    the top (the caller then continues the curve in a straight line).
+    """
+    e_all = np.asarray(irradiance, dtype=np.float64).ravel()
+    v_all = np.asarray(raw, dtype=np.float64).ravel()
+    for fraction in SHOULDER_WINDOWS:
+        near = v_all >= top_code * (1.0 - fraction)
+        if near.sum() >= min_points:
+            break
+    else:
+        return None
+    e, v = e_all[near], v_all[near]
+    weight = np.ones_like(e)
+    if anchor is not None:
+        e = np.append(e, anchor[0])
+        v = np.append(v, anchor[1])
+        weight = np.append(weight, max(100.0, 0.02 * e.size))
+    e_top = float(np.max(e))
+    root_w = np.sqrt(weight)
+
+    def residuals(params: NDArray[np.float64]) -> NDArray[np.float64]:
+        e_sat, log_scale, beta = params
+        gap = np.clip(e_sat - e, 1e-15, None)
+        return root_w * (v - (top_code - (gap / np.exp(log_scale)) ** (1.0 / beta)))
+
+    best = None
+    for beta in (0.4, 0.6, 0.8, 1.0):
+        e_sat = 1.03 * e_top
+        start = np.array([e_sat, np.log((e_sat - e_top) / 0.5**beta), beta])
+        result = scipy.optimize.least_squares(
+            residuals, start, bounds=([e_top * (1 + 1e-9), -50.0, 0.2], [2.0 * e_top, 50.0, 2.0])
+        )
+        if best is None or result.cost < best.cost:
+            best = result
+    if best is None or not best.success:
+        return None
+    e_sat, log_scale, beta = (float(x) for x in best.x)
+    return Shoulder(e_sat, float(np.exp(log_scale)), beta)
+
+
 @dataclass(frozen=True, eq=False)
 class PiecewiseLinearResponse:
     """A monotone forward response ``f``: raw value (DN) against irradiance.
@@ -127,11 +207,16 @@ class PiecewiseLinearResponse:
     values: (n+1,) float64 raw values at the knots, non-decreasing, values[0] = 0.
     data_low: the lowest irradiance the curve was fitted to (0: unknown). Below
         it the inverse follows a power law (see :meth:`inverse`).
+    top_code: the largest raw value, 2^bits − 1 (0: unknown).
+    shoulder: the fitted top of the curve, used between the last knot and
+        ``top_code`` (None: a straight continuation).
     """
 
     knots: NDArray[np.float64]
     values: NDArray[np.float64]
     data_low: float = 0.0
+    top_code: float = 0.0
+    shoulder: Shoulder | None = None
 
     def __call__(self, irradiance: ArrayLike) -> NDArray[np.float64]:
         """f(E): (...) irradiance (same units as the knots) to (...) float64 raw values."""
@@ -186,33 +271,26 @@ class PiecewiseLinearResponse:
     def _extrapolate_top(self, raw: NDArray[np.float64]) -> NDArray[np.float64]:
         """Irradiance above the last knot for raw values beyond its value.
 
-        A quadratic through the knots of the top 15% of the irradiance range
-        follows the bend of a compressive top; it is bounded between one and
-        two times the straight-line extrapolation with the mean slope of those
-        knots, so that noise in the top knots cannot throw it far off.
+        With a fitted :class:`Shoulder` the curve continues along it (shifted to
+        join the last knot); otherwise along a straight line with the mean
+        slope of the top 15% of the irradiance range.
         """
         k, y = self.knots, self.values
-        e_top, v_top = k[-1], y[-1]
+        e_top, v_top = float(k[-1]), float(y[-1])
+        if self.shoulder is not None and self.top_code > v_top:
+            return (
+                e_top
+                + self.shoulder.inverse(raw, self.top_code)
+                - self.shoulder.inverse(np.asarray(v_top), self.top_code)
+            )
         sel = k >= 0.85 * e_top
         if sel.sum() < 4:
             sel = np.zeros_like(sel)
             sel[-min(4, k.size) :] = True
-        x = k[sel] - e_top
-        dv = np.maximum(raw - v_top, 0.0)
-        mean_slope = float(np.polyfit(x, y[sel], 1)[0])
+        mean_slope = float(np.polyfit(k[sel], y[sel], 1)[0])
         if not mean_slope > 0.0:
             mean_slope = float((y[-1] - y[0]) / (k[-1] - k[0]))
-        linear = dv / mean_slope
-        a, b, _ = np.polyfit(x, y[sel] - v_top, 2)
-        disc = b * b + 4.0 * a * dv
-        with np.errstate(invalid="ignore", divide="ignore"):
-            root = np.where(
-                (disc >= 0.0) & (a != 0.0),
-                (-b + np.sqrt(np.maximum(disc, 0.0))) / (2.0 * a),
-                np.nan,
-            )
-        root = np.where(np.isfinite(root) & (root >= 0.0), root, 2.0 * linear)
-        return e_top + np.clip(root, linear, 2.0 * linear)
+        return e_top + np.maximum(raw - v_top, 0.0) / mean_slope
 
     def with_top_knot(self, irradiance: float, raw: float) -> PiecewiseLinearResponse:
         """This curve with one more knot (irradiance, raw) beyond its last one.
@@ -222,8 +300,8 @@ class PiecewiseLinearResponse:
         """
         if irradiance <= self.knots[-1] or raw <= self.values[-1]:
             return self
-        return PiecewiseLinearResponse(
-            np.append(self.knots, irradiance), np.append(self.values, raw), self.data_low
+        return replace(
+            self, knots=np.append(self.knots, irradiance), values=np.append(self.values, raw)
         )
 
     def inverse_response(
@@ -264,6 +342,7 @@ def fit_forward_response(
     knots: NDArray[np.float64],
     smoothness: float = 1e-4,
     min_slope_fraction: float = 1e-3,
+    top_code: float = 0.0,
 ) -> PiecewiseLinearResponse:
     """Weighted least-squares fit of a monotone piecewise-linear response.
 
@@ -277,6 +356,8 @@ def fit_forward_response(
     knots: (n+1,) strictly increasing irradiances with knots[0] = 0.
     min_slope_fraction: lower bound of every segment's slope, as a fraction of
     the mean slope max(v)/max(E), which makes f strictly increasing.
+    top_code: the largest raw value (2^bits − 1), for the shoulder above the
+    data (0: unknown, a straight continuation is used).
     Returns the fitted :class:`PiecewiseLinearResponse` (``data_low``: the
     ``LOW_DATA_QUANTILE`` quantile of E, robust to a few stray dark samples).
     """
@@ -323,4 +404,6 @@ def fit_forward_response(
     floor = min_slope_fraction * mean_slope * h
     shifted, _ = scipy.optimize.nnls(chol.T, target - chol.T @ floor, maxiter=50 * n)
     values = np.concatenate([[0.0], np.cumsum(shifted + floor)])
-    return PiecewiseLinearResponse(knots, values, float(np.quantile(e, LOW_DATA_QUANTILE)))
+    return PiecewiseLinearResponse(
+        knots, values, float(np.quantile(e, LOW_DATA_QUANTILE)), float(top_code)
+    )
