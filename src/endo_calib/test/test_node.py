@@ -1,0 +1,158 @@
+"""The photometric_correction node in-process over DDS (loopback, this run's domain).
+
+A raw frame goes in on image_raw; image_corrected must hold exactly what
+PhotometricCalibration.correct gives. Setting calibration_file reloads the
+calibration without a restart; a bad file is rejected and changes nothing; a
+node without a usable calibration publishes nothing and keeps running.
+"""
+
+import time
+
+import numpy as np
+import pytest
+import rclpy
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.parameter import Parameter
+from sensor_msgs.msg import Image
+
+from endo_calib.calibration import ChannelCalibration, PhotometricCalibration
+from endo_calib.light_map import normalised_grid
+from endo_calib.node import PhotometricCorrectionNode
+from endo_calib.response import InverseResponse
+from endo_io.image import array_to_image, image_to_array
+from endo_io.qos import SENSOR_DATA_QOS, reliable_qos
+
+pytestmark = pytest.mark.ros
+NS = "/calib_node_test"
+W, H = 64, 48
+
+
+def _write_calibration(path, exponent, colour=False):
+    x, y = normalised_grid(W, H)
+    xx, yy = np.meshgrid(x, y)
+    fov = xx**2 + yy**2 < 0.9
+    names = ("red", "green", "blue") if colour else ("mono",)
+    channels = []
+    for c, name in enumerate(names):
+        light = np.where(fov, np.exp(-(xx**2 + yy**2) * (1 + 0.3 * c)), 0.0)
+        lut = (np.arange(256) / 255.0) ** (exponent + 0.1 * c)
+        channels.append(ChannelCalibration(name, InverseResponse(lut, 8), light, None))
+    return PhotometricCalibration(channels, fov, None, "pixels").save(path)
+
+
+@pytest.fixture
+def ros():
+    context = rclpy.Context()
+    rclpy.init(context=context)
+    executor = SingleThreadedExecutor(context=context)
+    yield context, executor
+    executor.shutdown()
+    rclpy.shutdown(context=context)
+
+
+def _start(ros, parameters):
+    context, executor = ros
+    node = PhotometricCorrectionNode(context=context, namespace=NS, parameter_overrides=parameters)
+    probe = rclpy.create_node("calib_probe", namespace=NS, context=context)
+    received: list[Image] = []
+    probe.create_subscription(Image, "image_corrected", received.append, reliable_qos(10))
+    publisher = probe.create_publisher(Image, "image_raw", SENSOR_DATA_QOS)
+    executor.add_node(node)
+    executor.add_node(probe)
+    deadline = time.monotonic() + 10.0
+    while (
+        publisher.get_subscription_count() == 0
+        or probe.count_publishers(f"{NS}/image_corrected") == 0
+    ):
+        executor.spin_once(timeout_sec=0.05)
+        assert time.monotonic() < deadline, "node and probe did not discover each other"
+    return node, publisher, received
+
+
+def _exchange(executor, publisher, received, msg, expect=True, timeout=5.0):
+    before = len(received)
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        publisher.publish(msg)
+        end = time.monotonic() + 0.2
+        while time.monotonic() < end:
+            executor.spin_once(timeout_sec=0.02)
+            if len(received) > before:
+                return received[-1]
+        if not expect and time.monotonic() > deadline - timeout + 1.0:
+            return None
+    return None
+
+
+def test_corrects_frames_and_reloads_on_parameter_change(ros, tmp_path):
+    _, executor = ros
+    first = _write_calibration(tmp_path / "first.yaml", 2.2)
+    second = _write_calibration(tmp_path / "second.yaml", 1.0)
+    node, publisher, received = _start(ros, [Parameter("calibration_file", value=str(first))])
+    raw = np.random.default_rng(0).integers(0, 256, (H, W), dtype=np.uint8)
+    msg = array_to_image(raw, "mono8", 123_456_789, "endoscope_optical_frame")
+
+    out = _exchange(executor, publisher, received, msg)
+    assert out is not None, "no image_corrected received"
+    assert out.encoding == "32FC1" and out.header.frame_id == "endoscope_optical_frame"
+    assert out.header.stamp.nanosec == 123_456_789
+    expected = PhotometricCalibration.load(first).correct(raw)
+    np.testing.assert_array_equal(np.isnan(image_to_array(out)), np.isnan(expected))
+    np.testing.assert_allclose(image_to_array(out), expected, rtol=1e-6)
+
+    result = node.set_parameters([Parameter("calibration_file", value=str(second))])[0]
+    assert result.successful
+    out = _exchange(executor, publisher, received, msg)
+    np.testing.assert_allclose(
+        image_to_array(out), PhotometricCalibration.load(second).correct(raw), rtol=1e-6
+    )
+
+    # a missing file is rejected with its reason; the second calibration stays
+    result = node.set_parameters([Parameter("calibration_file", value=str(tmp_path / "x.yaml"))])[0]
+    assert not result.successful and "not found" in result.reason
+    assert node.get_parameter("calibration_file").value == str(second)
+    out = _exchange(executor, publisher, received, msg)
+    np.testing.assert_allclose(
+        image_to_array(out), PhotometricCalibration.load(second).correct(raw), rtol=1e-6
+    )
+    # a frame of another aspect ratio is dropped, counted, and the node lives on
+    dropped = sum(node.health.dropped.values())
+    wrong = array_to_image(np.zeros((H, H), np.uint8), "mono8", 1)
+    assert _exchange(executor, publisher, received, wrong, expect=False, timeout=1.5) is None
+    assert node.health.dropped["CalibrationMismatchError"] >= 1
+    assert sum(node.health.dropped.values()) > dropped
+
+
+def test_colour_channels_binning_and_rgb_output(ros, tmp_path):
+    _, executor = ros
+    path = _write_calibration(tmp_path / "rgb.yaml", 2.2, colour=True)
+    node, publisher, received = _start(
+        ros, [Parameter("calibration_file", value=str(path)), Parameter("channel", value="red")]
+    )
+    cal = PhotometricCalibration.load(path)
+    rgb = np.random.default_rng(1).integers(0, 250, (H // 2, W // 2, 3), dtype=np.uint8)
+    bgr = np.ascontiguousarray(rgb[:, :, ::-1])
+    out = _exchange(executor, publisher, received, array_to_image(bgr, "bgr8", 5))
+    assert (
+        out is not None and out.encoding == "32FC1" and (out.height, out.width) == (H // 2, W // 2)
+    )
+    np.testing.assert_allclose(image_to_array(out), cal.correct(rgb)[:, :, 0], rtol=1e-6)
+    assert node.set_parameters([Parameter("channel", value="rgb")])[0].successful
+    out = _exchange(executor, publisher, received, array_to_image(bgr, "bgr8", 6))
+    assert out.encoding == "32FC3"
+    data = np.frombuffer(bytes(out.data), np.float32).reshape(H // 2, W // 2, 3)
+    np.testing.assert_allclose(data, cal.correct(rgb), rtol=1e-6)
+    assert not node.set_parameters([Parameter("channel", value="purple")])[0].successful
+
+
+def test_without_a_calibration_nothing_is_published(ros, tmp_path):
+    _, executor = ros
+    node, publisher, received = _start(
+        ros, [Parameter("calibration_file", value=str(tmp_path / "missing.yaml"))]
+    )
+    msg = array_to_image(np.zeros((H, W), np.uint8), "mono8", 1)
+    assert _exchange(executor, publisher, received, msg, expect=False, timeout=1.5) is None
+    assert node.health.dropped["CalibrationNotLoadedError"] >= 1
+    path = _write_calibration(tmp_path / "late.yaml", 2.2)
+    assert node.set_parameters([Parameter("calibration_file", value=str(path))])[0].successful
+    assert _exchange(executor, publisher, received, msg) is not None
