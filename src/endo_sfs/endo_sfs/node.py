@@ -119,6 +119,12 @@ PARAMETERS: dict[str, tuple[object, ParameterDescriptor]] = {
         "point (0: whole image; NaN pixels are excluded anyway)",
         floating_point_range=_float_range(0.0, 1e5),
     )),
+    "smoothing": (0.0, ParameterDescriptor(
+        type=ParameterType.PARAMETER_DOUBLE,
+        description="Gaussian σ in pixels applied to the valid irradiance before solving "
+        "(noise near c ≈ 1 biases the slope; ~1 px helps 8-bit input)",
+        floating_point_range=_float_range(0.0, 10.0),
+    )),
     "publish_normals": (False, ParameterDescriptor(
         type=ParameterType.PARAMETER_BOOL,
         description="also publish unit surface normals on 'normals' (32FC3, optical frame)",
@@ -274,6 +280,7 @@ class SfsNode(Node):
                 warm_start=warm,
                 order=int(self._value("order")),  # type: ignore[arg-type]
                 dark_level=float(self._value("dark_level")),  # type: ignore[arg-type]
+                smoothing=float(self._value("smoothing")),  # type: ignore[arg-type]
             )
         except NoValidPixelsError:
             # Nothing to reconstruct: say so downstream with an all-NaN depth,

@@ -21,6 +21,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Literal
 
+import cv2
 import numpy as np
 
 from endo_io.camera import CameraModel
@@ -84,6 +85,25 @@ def valid_pixels(
     return valid
 
 
+def smooth_irradiance(irradiance: np.ndarray, valid: np.ndarray, sigma: float) -> np.ndarray:
+    """Gaussian low-pass of the valid pixels only (normalised convolution).
+
+    irradiance: (H, W) float; valid: (H, W) bool; sigma: pixels (0: none).
+    Invalid pixels neither contribute nor change. Returns (H, W) float64.
+    Near c ≈ 1 the slope √(1/c² − 1) amplifies noise and rectifies it into
+    a bias; σ ≈ 1 px cuts 8-bit noise about 3.5× for an O(σ²) blur of the
+    shading.
+    """
+    if sigma <= 0.0:
+        return np.asarray(irradiance, dtype=np.float64)
+    weight = valid.astype(np.float64)
+    data = np.where(valid, irradiance, 0.0).astype(np.float64)
+    blurred = cv2.GaussianBlur(data, (0, 0), sigma, borderType=cv2.BORDER_CONSTANT)
+    norm = cv2.GaussianBlur(weight, (0, 0), sigma, borderType=cv2.BORDER_CONSTANT)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(valid, blurred / norm, irradiance)
+
+
 def _check_inputs(
     irradiance: np.ndarray, camera: CameraModel, mask: np.ndarray | None
 ) -> np.ndarray:
@@ -141,6 +161,7 @@ def solve(
     singular_tolerance: float = 1e-3,
     boundary_depth: np.ndarray | None = None,
     concave: bool = False,
+    smoothing: float = 0.0,
 ) -> SfsSolution:
     """Shape from shading of one frame; see :func:`reconstruct` for the arguments.
 
@@ -163,7 +184,9 @@ def solve(
         raise NoValidPixelsError(
             "no usable pixel: the frame is all dark, saturated, NaN or masked"
         )
-    nodes, node_valid = grid.to_nodes(image, valid)
+    if smoothing < 0.0:
+        raise SfsInputError(f"smoothing must be >= 0 pixels, got {smoothing}")
+    nodes, node_valid = grid.to_nodes(smooth_irradiance(image, valid, smoothing), valid)
     if not node_valid.any():
         raise NoValidPixelsError("no usable pixel survives resampling to the solve grid")
     if model == "near_light":
@@ -217,6 +240,7 @@ def reconstruct(
     singular_tolerance: float = 1e-3,
     boundary_depth: np.ndarray | None = None,
     concave: bool = False,
+    smoothing: float = 0.0,
 ) -> np.ndarray:
     """Relative depth from one linear irradiance image by shape from shading.
 
@@ -243,6 +267,8 @@ def reconstruct(
         singular_tolerance, boundary_depth, concave: orthographic sources,
             see :func:`endo_sfs.orthographic.solve_orthographic`;
             ``boundary_depth`` is (H, W) relative depth, NaN where unknown.
+        smoothing: Gaussian σ in pixels applied to the valid irradiance
+            before solving (:func:`smooth_irradiance`); 0 for none.
 
     Returns:
         (H, W) float32 relative depth along the optical axis, NaN invalid.
@@ -255,6 +281,7 @@ def reconstruct(
     return solve(
         irradiance, camera, model, roughness, mask, solve_scale, tolerance, max_iterations,
         warm_start, order, dark_level, saturation, singular_tolerance, boundary_depth, concave,
+        smoothing,
     ).depth
 
 

@@ -70,6 +70,17 @@ def test_8bit_noisy_relative_depth_error_is_below_three_percent(name, roughness)
     assert depth_error(depth, scene.height).abs_rel < 0.03
 
 
+def test_smoothing_cuts_the_noise_bias_near_singular_points():
+    _, scene, rendering = _scene("sphere", 0.3)
+    noisy = quantise_8bit(rendering.irradiance, np.random.default_rng(4), noise_dn=1.0, peak=1.0)
+    raw = _height_error(_solve("sphere", 0.3, noisy, singular_tolerance=1e-3), scene)[0]
+    smoothed = _height_error(
+        _solve("sphere", 0.3, noisy, singular_tolerance=1e-3, smoothing=1.0), scene
+    )[0]
+    assert smoothed < 0.01 < raw
+    assert smoothed < 0.3 * raw
+
+
 def test_first_order_converges_like_h_and_weno_beats_it_on_the_sphere():
     errors = {}
     for size in (64, 128, 256):
