@@ -1,0 +1,83 @@
+"""Benchmark: PhotometricCalibration.correct per frame (endo_calib).
+
+Times the correction of a 640x480 mono8 frame and a 1920x1080 rgb8 frame
+(LUT lookup + multiplication by the precomputed 1/L), with and without a
+preallocated output array, and a 640x480 12-bit mono16 frame. Prints a
+Markdown table for docs/benchmarks.md. Run: .venv/bin/python bench/bench_calib.py
+"""
+
+from __future__ import annotations
+
+import platform
+import subprocess
+import time
+
+import numpy as np
+
+from endo_calib.calibration import ChannelCalibration, PhotometricCalibration
+from endo_calib.light_map import fit_light_model, normalised_grid
+from endo_calib.response import InverseResponse
+
+
+def calibration(width: int, height: int, bits: int, colour: bool) -> PhotometricCalibration:
+    x, y = normalised_grid(width, height)
+    xx, yy = np.meshgrid(x, y)
+    fov = xx**2 + yy**2 < 1.2
+    channels = []
+    for c, name in enumerate(("red", "green", "blue") if colour else ("mono",)):
+        light = np.where(fov, np.exp(-(xx**2 + yy**2) * (1 + 0.2 * c)), 0.0)
+        lut = (np.arange(1 << bits) / ((1 << bits) - 1)) ** 2.2
+        model = fit_light_model(light, fov.astype(float), 8)
+        channels.append(ChannelCalibration(name, InverseResponse(lut, bits), light, model))
+    return PhotometricCalibration(channels, fov)
+
+
+def time_ms(fn, repeats: int = 200) -> tuple[float, float]:
+    for _ in range(5):
+        fn()
+    samples = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        samples.append((time.perf_counter() - t0) * 1e3)
+    return float(np.median(samples)), float(np.percentile(samples, 90))
+
+
+def cpu_model() -> str:
+    try:
+        out = subprocess.run(["lscpu"], capture_output=True, text=True, check=True).stdout
+        for line in out.splitlines():
+            if line.startswith("Model name"):
+                return line.split(":", 1)[1].strip()
+    except (OSError, subprocess.CalledProcessError):
+        pass
+    return platform.processor() or "unknown"
+
+
+def main() -> None:
+    rng = np.random.default_rng(0)
+    cases = [
+        ("640x480 mono8", 640, 480, 8, False, 300),
+        ("1920x1080 rgb8", 1920, 1080, 8, True, 100),
+        ("640x480 mono16 (12-bit)", 640, 480, 12, False, 200),
+    ]
+    rows = []
+    for name, w, h, bits, colour, repeats in cases:
+        cal = calibration(w, h, bits, colour)
+        shape = (h, w, 3) if colour else (h, w)
+        dtype = np.uint8 if bits == 8 else np.uint16
+        raw = rng.integers(0, 1 << bits, shape).astype(dtype)
+        out = np.empty(shape, np.float32)
+        cal.correct(raw)  # builds the per-size tables once
+        fresh = time_ms(lambda cal=cal, raw=raw: cal.correct(raw), repeats)
+        reused = time_ms(lambda cal=cal, raw=raw, out=out: cal.correct(raw, out=out), repeats)
+        rows.append((name, fresh, reused))
+    print(f"machine: {cpu_model()}, {len(__import__('os').sched_getaffinity(0))} cores")
+    print("| frame | correct(raw) median / p90 ms | correct(raw, out=buf) median / p90 ms |")
+    print("|---|---|---|")
+    for name, fresh, reused in rows:
+        print(f"| {name} | {fresh[0]:.2f} / {fresh[1]:.2f} | {reused[0]:.2f} / {reused[1]:.2f} |")
+
+
+if __name__ == "__main__":
+    main()
