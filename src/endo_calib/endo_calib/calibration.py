@@ -231,8 +231,9 @@ class PhotometricCalibration:
             raise CalibrationMismatchError(f"raw frame must be uint8 or uint16, got {image.dtype}")
         height, width = image.shape[:2]
         tables = self._corrector(width, height)
+        result: NDArray[np.float32]
         if tables.lut_cv is not None:
-            result = cv2.LUT(image, tables.lut_cv, dst=out)
+            result = np.asarray(cv2.LUT(image, tables.lut_cv, dst=out), dtype=np.float32)
         elif n_channels == 1:
             result = np.take(tables.luts[0], image, out=out)
         else:

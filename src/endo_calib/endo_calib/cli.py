@@ -25,7 +25,7 @@ import sys
 import time
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import cv2
 import numpy as np
@@ -50,11 +50,12 @@ def read_raw_image(path: Path) -> NDArray[np.integer]:
     """Read an 8/16-bit PNG/TIFF as (H, W) or (H, W, 3) RGB; ManifestError when unreadable."""
     if not path.is_file():
         raise ManifestError(f"image {path} not found")
-    image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if image is None:
+    decoded = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if decoded is None:
         raise ManifestError(f"image {path} cannot be decoded")
-    if image.dtype not in (np.uint8, np.uint16):
-        raise ManifestError(f"image {path} is {image.dtype}, raw 8- or 16-bit values are needed")
+    if decoded.dtype not in (np.uint8, np.uint16):
+        raise ManifestError(f"image {path} is {decoded.dtype}, raw 8- or 16-bit values are needed")
+    image = cast("NDArray[np.integer]", decoded)
     if image.ndim == 3:
         image = to_raw_frame(image, "bgra8" if image.shape[2] == 4 else "bgr8")
     return np.ascontiguousarray(image)

@@ -61,7 +61,7 @@ class LightModel:
         for (i, j), c in zip(self.exponents, self.coefficients, strict=True):
             grid[i, j] = c
         # legval2d over an outer grid: rows follow y (second index), columns x.
-        return legendre.leggrid2d(x, y, grid).T
+        return np.asarray(legendre.leggrid2d(x, y, grid).T, dtype=np.float64)
 
 
 def block_average(
