@@ -165,14 +165,15 @@ def solve_near_light(
     valid_p = pad(valid.astype(np.uint8), 0)
     eps = _WENO_EPS_REL * hx * hy
     updates = 0
+    table = kernels.log_radiance_table(coef_a, coef_b)
     if order == 3 and warm_start is None:
         _, _, updates = kernels.near_light_sweep(
             v, guess, log_intensity_p, lam_p, v_star_p, valid_p, hx, hy, coef_a, coef_b,
-            2, tolerance, max_iterations, eps,
+            2, tolerance, max_iterations, eps, table,
         )
     iterations, change, more = kernels.near_light_sweep(
         v, guess, log_intensity_p, lam_p, v_star_p, valid_p, hx, hy, coef_a, coef_b,
-        order, tolerance, max_iterations, eps,
+        order, tolerance, max_iterations, eps, table,
     )
     info = SolveInfo(
         int(iterations), float(change), bool(change <= tolerance), int(updates + more)

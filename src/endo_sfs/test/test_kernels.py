@@ -32,6 +32,7 @@ def test_near_light_update_solves_its_discrete_equation(sigma):
         c = colocated_cosine(intensity * np.exp(2.0 * v), sigma)
         return np.sqrt(lhs) - lam * np.sqrt(1.0 / c**2 - 1.0)
 
+    table = kernels.log_radiance_table(coef_a, coef_b)
     singular = 0
     for _ in range(200):
         a, b = rng.uniform(0.0, 0.05, 2)
@@ -40,19 +41,37 @@ def test_near_light_update_solves_its_discrete_equation(sigma):
         intensity = rng.uniform(0.3, 1.0)
         v_star = 0.5 * np.log(coef_a / intensity)
         v, tan_theta = kernels.near_light_update(
-            a, b, wa, wb, lam, np.log(intensity), v_star, coef_a, coef_b, 0.0
+            a, b, wa, wb, lam, np.log(intensity), v_star, coef_a, coef_b, 0.0, table
         )
         if v_star <= min(a, b):
             assert v == v_star and tan_theta == 0.0
             singular += 1
             continue
         c = 1.0 / np.sqrt(1.0 + tan_theta**2)
-        assert colocated_radiance(c, sigma) == pytest.approx(intensity * np.exp(2 * v), rel=1e-12)
+        assert colocated_radiance(c, sigma) == pytest.approx(intensity * np.exp(2 * v), rel=1e-9)
         args = (a, b, wa, wb, lam, intensity)
         exact = brentq(residual, min(a, b) + 1e-12, v_star - 1e-15, args=args, xtol=1e-14)
         # ln r to 1e-6: a relative depth error of 1e-6.
         assert v == pytest.approx(exact, abs=1e-6)
     assert 0 < singular < 200
+
+
+@pytest.mark.parametrize("sigma", [0.0, 0.3])
+def test_log_radiance_table_matches_the_closed_form(sigma):
+    coef_a, coef_b = oren_nayar_coefficients(sigma)
+    table = kernels.log_radiance_table(coef_a, coef_b)
+    for f in np.concatenate([np.linspace(0.0, 15.99, 997), [16.0, 20.0, 300.0]]):
+        c = 1.0 / np.sqrt(1.0 + f * f)
+        expected = 0.5 * np.log(colocated_radiance(c, sigma))
+        value, slope = kernels._log_radiance(f, table, coef_a, coef_b)
+        assert value == pytest.approx(expected, abs=1e-10)
+        step = 1e-6
+        c_plus = 1.0 / np.sqrt(1.0 + (f + step) ** 2)
+        c_minus = 1.0 / np.sqrt(1.0 + max(f - step, 0.0) ** 2)
+        numeric = 0.5 * (np.log(colocated_radiance(c_plus, sigma))
+                         - np.log(colocated_radiance(c_minus, sigma))) / (
+            f + step - max(f - step, 0.0))
+        assert slope == pytest.approx(numeric, rel=1e-5, abs=1e-6)
 
 
 def test_weno_neighbour_is_exact_on_quadratics_and_falls_back_at_edges():
