@@ -135,6 +135,8 @@ def near_light_update(
     b: float,
     wa: float,
     wb: float,
+    sa: float,
+    sb: float,
     lam: float,
     log_intensity: float,
     v_star: float,
@@ -149,6 +151,8 @@ def near_light_update(
 
         wa·((v−a)⁺)² + wb·((v−b)⁺)² = λ²·F², F = tan θ,
 
+    (sa = √wa, sb = √wb, passed in so that a one-sided update needs no square
+    root),
     where θ is the angle whose co-located reflectance matches the data,
     R(cos θ) = I·e^{2v} (Lambertian: cos θ = I·e^{2v}). The left side grows
     with v and F falls, so the root is unique on (min(a, b), v*], with
@@ -185,15 +189,19 @@ def near_light_update(
         v = g - half_log_intensity
         da = v - a
         db = v - b
-        lhs = 0.0
-        dlhs = 0.0
-        if da > 0.0:
-            lhs += wa * da * da
-            dlhs += wa * da
-        if db > 0.0:
-            lhs += wb * db * db
-            dlhs += wb * db
-        root = np.sqrt(lhs)
+        # √(left side) and its derivative in v; one-sided without a root.
+        if da > 0.0 and db > 0.0:
+            root = np.sqrt(wa * da * da + wb * db * db)
+            droot = (wa * da + wb * db) / root
+        elif da > 0.0:
+            root = sa * da
+            droot = sa
+        elif db > 0.0:
+            root = sb * db
+            droot = sb
+        else:
+            root = 0.0
+            droot = 0.0
         q = lam * f - root
         if q > 0.0:
             f_hi = f
@@ -201,8 +209,7 @@ def near_light_update(
             f_lo = f
         else:
             return v, f
-        # d√L/dv = L'/(2√L); dv/dF from the table.
-        slope = lam - (dlhs / root if root > 0.0 else 0.0) * dv_df
+        slope = lam - droot * dv_df
         step = q / slope
         f_new = f - step
         if abs(step) < _NEWTON_STEP_TOL * (1.0 + f) and f_new > f_lo and f_new < f_hi:
@@ -431,8 +438,10 @@ def near_light_sweep(
                 active[i, j] = 1
     locked = 1 - active
     reach = 1 if order == 1 else 2
-    wx = 1.0 / (hx * hx)
-    wy = 1.0 / (hy * hy)
+    sx = 1.0 / hx
+    sy = 1.0 / hy
+    wx = sx * sx
+    wy = sy * sy
     change = np.inf
     iterations = 0
     updates = 0
@@ -457,17 +466,23 @@ def near_light_sweep(
                         b = min(v[i - 1, j], v[i + 1, j])
                         wa = wx
                         wb = wy
+                        sa = sx
+                        sb = sy
                     elif order == 2:
                         a, _, wa = second_order_neighbour(v, i, j, 0, 1, hx, wx)
                         b, _, wb = second_order_neighbour(v, i, j, 1, 0, hy, wy)
+                        sa = sx * 1.5 if wa > wx else sx
+                        sb = sy * 1.5 if wb > wy else sy
                     else:
                         a = weno_neighbour(v, i, j, 0, 1, eps)
                         b = weno_neighbour(v, i, j, 1, 0, eps)
                         wa = wx
                         wb = wy
+                        sa = sx
+                        sb = sy
                     old = v[i, j]
                     new, guess[i, j] = near_light_update(
-                        a, b, wa, wb, lam[i, j], log_intensity[i, j], v_star[i, j],
+                        a, b, wa, wb, sa, sb, lam[i, j], log_intensity[i, j], v_star[i, j],
                         coef_a, coef_b, guess[i, j], table,
                     )
                     diff = abs(new - old)

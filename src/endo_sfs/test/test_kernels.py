@@ -41,7 +41,8 @@ def test_near_light_update_solves_its_discrete_equation(sigma):
         intensity = rng.uniform(0.3, 1.0)
         v_star = 0.5 * np.log(coef_a / intensity)
         v, tan_theta = kernels.near_light_update(
-            a, b, wa, wb, lam, np.log(intensity), v_star, coef_a, coef_b, 0.0, table
+            a, b, wa, wb, np.sqrt(wa), np.sqrt(wb), lam, np.log(intensity), v_star, coef_a,
+            coef_b, 0.0, table,
         )
         if v_star <= min(a, b):
             assert v == v_star and tan_theta == 0.0
