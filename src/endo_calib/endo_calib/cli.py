@@ -44,6 +44,8 @@ from endo_io.errors import Endo3dError
 DEFAULT_IMAGE_TOPIC = "/endoscope/image_raw"
 DEFAULT_LEVEL_TOPIC = "/calibration/gray_level"
 DEFAULT_INFO_TOPIC = "/endoscope/camera_info"
+#: A level message logged this long after an image still applies to it (ns).
+LEVEL_TOLERANCE_NS = 5_000_000
 
 
 def read_raw_image(path: Path) -> NDArray[np.integer]:
@@ -124,39 +126,53 @@ def accumulate_bag(
     level_topic: str,
     info_topic: str,
     settle_frames: int = 0,
+    level_tolerance_ns: int = LEVEL_TOLERANCE_NS,
 ) -> CameraModel | None:
     """Stream a gray-card bag into ``accumulator``; returns the bag's camera model if it has one.
 
-    Each image is paired with the latest gray level published before it; images
-    before the first level, and the first ``settle_frames`` after each change,
-    are skipped.
+    Each image takes the gray level of the last level message logged no later
+    than ``level_tolerance_ns`` after it: a recorder may log the level of a new
+    card a moment after (or, at the same time stamp, just after) the card's
+    first frame. Images before the first level, and the first
+    ``settle_frames`` after each change, are skipped.
     """
     from endo_io.bag import BagReader, deserialize
     from endo_io.image import image_to_array
 
     camera: CameraModel | None = None
-    level: float | None = None
-    since_change = 0
     with BagReader(path) as bag:
         if image_topic not in bag.topics:
             raise ManifestError(f"bag {path} has no topic {image_topic}")
         if level_topic not in bag.topics:
             raise InsufficientLevelsError(f"bag {path} has no gray-level topic {level_topic}")
-        for message in bag.messages(topics=[image_topic, level_topic, info_topic]):
+        # First pass: the (small) gray-level stream.
+        level_times: list[int] = []
+        level_values: list[float] = []
+        for message in bag.messages(topics=[level_topic]):
+            level_times.append(message.log_time_ns)
+            level_values.append(float(deserialize(message).data))
+        times = np.asarray(level_times, dtype=np.int64)
+        current: float | None = None
+        since_change = 0
+        for message in bag.messages(topics=[image_topic, info_topic]):
             msg = deserialize(message)
-            if message.topic == level_topic:
-                value = float(msg.data)
-                if value != level:
-                    level, since_change = value, 0
-            elif message.topic == info_topic:
+            if message.topic == info_topic:
                 if camera is None:
                     camera = CameraModel.from_camera_info(msg)
-            elif level is not None and level > 0.0:
-                since_change += 1
-                if since_change <= settle_frames:
-                    continue
-                frame = to_raw_frame(image_to_array(msg), msg.encoding)
-                accumulator.add(frame, level, pose)
+                continue
+            index = (
+                int(np.searchsorted(times, message.log_time_ns + level_tolerance_ns, "right")) - 1
+            )
+            if index < 0:
+                continue
+            level = level_values[index]
+            if level != current:
+                current, since_change = level, 0
+            since_change += 1
+            if level <= 0.0 or since_change <= settle_frames:
+                continue
+            frame = to_raw_frame(image_to_array(msg), msg.encoding)
+            accumulator.add(frame, level, pose)
     return camera
 
 

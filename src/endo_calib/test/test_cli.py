@@ -85,13 +85,16 @@ def test_bag_input_pairs_images_with_the_gray_level(tmp_path, small_card, synth)
         bag.write_message("/endoscope/camera_info", small_card.camera.to_camera_info(t), t)
         # frames before the first gray level are ignored
         junk = np.full((72, 96), 255, np.uint8)
-        bag.write_message("/endoscope/image_raw", array_to_image(junk, "mono8", t), t)
+        bag.write_message(
+            "/endoscope/image_raw", array_to_image(junk, "mono8", t - 10**8), t - 10**8
+        )
         for rho in (0.2, 0.4, 0.6, 0.8):
-            t += 10_000_000
-            bag.write_message("/calibration/gray_level", Float32(data=rho), t)
             for frame in small_card.frames(rho, 4, rng):
+                # as endo_sim records: the level of each frame at the frame's
+                # own log time, written just after it
                 t += 33_000_000
                 bag.write_message("/endoscope/image_raw", array_to_image(frame, "mono8", t), t)
+                bag.write_message("/calibration/gray_level", Float32(data=rho), t)
     out = tmp_path / "photometric.yaml"
     assert main(["--bag", str(path), "-o", str(out)]) == 0
     cal = PhotometricCalibration.load(out)
