@@ -25,6 +25,7 @@ from __future__ import annotations
 import sys
 import time
 from array import array as byte_array
+from typing import Any
 
 import numpy as np
 from rcl_interfaces.msg import (
@@ -176,8 +177,8 @@ def warm_up_kernels() -> float:
 class SfsNode(Node):
     """Shape from shading of every matched (image_corrected, camera_info) pair."""
 
-    def __init__(self, node_name: str = "sfs", **kwargs: object) -> None:
-        super().__init__(node_name, **kwargs)  # type: ignore[arg-type]
+    def __init__(self, node_name: str = "sfs", **kwargs: Any) -> None:
+        super().__init__(node_name, **kwargs)
         for name, (default, descriptor) in PARAMETERS.items():
             self.declare_parameter(name, default, descriptor)
         model = str(self.get_parameter("model").value)
@@ -206,11 +207,11 @@ class SfsNode(Node):
 
     # ------------------------------------------------------------------ parameters
 
-    def _value(self, name: str) -> object:
+    def _value(self, name: str) -> Any:
         return self.get_parameter(name).value
 
     def _tolerance_ns(self) -> int:
-        return round(float(self._value("stamp_tolerance")) * NS_PER_S)  # type: ignore[arg-type]
+        return round(float(self._value("stamp_tolerance")) * NS_PER_S)
 
     def _on_parameters(self, parameters: list[Parameter]) -> SetParametersResult:
         for parameter in parameters:
@@ -246,7 +247,7 @@ class SfsNode(Node):
         return self._camera
 
     def _mask(self, camera: CameraModel) -> np.ndarray | None:
-        radius = float(self._value("fov_radius"))  # type: ignore[arg-type]
+        radius = float(self._value("fov_radius"))
         if radius <= 0.0:
             return None
         if self._fov_mask is None or self._fov_mask[0] != radius or (
@@ -272,15 +273,15 @@ class SfsNode(Node):
                 irradiance,
                 camera,
                 model=model,
-                roughness=float(self._value("roughness")),  # type: ignore[arg-type]
+                roughness=float(self._value("roughness")),
                 mask=self._mask(camera),
-                solve_scale=float(self._value("solve_scale")),  # type: ignore[arg-type]
-                tolerance=float(self._value("tolerance")),  # type: ignore[arg-type]
-                max_iterations=int(self._value("max_iterations")),  # type: ignore[arg-type]
+                solve_scale=float(self._value("solve_scale")),
+                tolerance=float(self._value("tolerance")),
+                max_iterations=int(self._value("max_iterations")),
                 warm_start=warm,
-                order=int(self._value("order")),  # type: ignore[arg-type]
-                dark_level=float(self._value("dark_level")),  # type: ignore[arg-type]
-                smoothing=float(self._value("smoothing")),  # type: ignore[arg-type]
+                order=int(self._value("order")),
+                dark_level=float(self._value("dark_level")),
+                smoothing=float(self._value("smoothing")),
             )
         except NoValidPixelsError:
             # Nothing to reconstruct: say so downstream with an all-NaN depth,

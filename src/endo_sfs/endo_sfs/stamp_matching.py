@@ -13,7 +13,7 @@ from __future__ import annotations
 
 from collections import OrderedDict
 from dataclasses import dataclass
-from typing import Generic, TypeVar
+from typing import Any, Generic, TypeVar
 
 A = TypeVar("A")
 B = TypeVar("B")
@@ -74,7 +74,7 @@ class StampMatcher(Generic[A, B]):
         """Unmatched messages held of (first, second) stream."""
         return len(self._first), len(self._second)
 
-    def _closest(self, queue: OrderedDict[int, object], stamp_ns: int) -> int | None:
+    def _closest(self, queue: OrderedDict[int, Any], stamp_ns: int) -> int | None:
         if stamp_ns in queue:
             return stamp_ns
         if self.tolerance_ns == 0 or not queue:
