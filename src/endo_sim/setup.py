@@ -14,10 +14,14 @@ setup(
     zip_safe=True,
     maintainer="endo3d developers",
     maintainer_email="dev@endo3d.org",
-    description="Endoscope simulator with physically based photometry, tracker simulation and ground truth.",
+    description=(
+        "Endoscope simulator with physically based photometry, tracker simulation and ground truth."
+    ),
     license="Apache-2.0",
     tests_require=["pytest"],
     entry_points={
-        "console_scripts": [],
+        "console_scripts": [
+            "endo-sim = endo_sim.cli:main",
+        ],
     },
 )

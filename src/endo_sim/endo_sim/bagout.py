@@ -1,0 +1,294 @@
+"""Write a simulated recording as a rosbag2 MCAP bag plus its ground-truth files.
+
+Topics (every message stamped on the simulated clock, never the wall clock,
+so the same seed gives byte-identical files):
+
+=============================  ===========================  ==========================
+topic                          type                         frame / content
+=============================  ===========================  ==========================
+/endoscope/image_raw           sensor_msgs/msg/Image        endoscope_optical_frame;
+                                                            mono8, mono16 (12 bit), rgb8
+/endoscope/camera_info         sensor_msgs/msg/CameraInfo   endoscope_optical_frame
+/ground_truth/depth            sensor_msgs/msg/Image        32FC1 metres along z, NaN
+                                                            outside the FOV (REP 118)
+/ground_truth/camera_pose      geometry_msgs/msg/PoseStamped  endoscope_optical_frame
+                                                            in ``world``
+/tracker/pose                  geometry_msgs/msg/PoseStamped  marker in ``tracker``, m or
+                                                            mm; stamp = sample + latency
+/calibration/gray_level        std_msgs/msg/Float32         card reflectance (gray card
+                                                            sequence only)
+=============================  ===========================  ==========================
+
+Messages are written in log-time order; a message's log time is its stamp
+(the tracker's is its latency-shifted stamp, i.e. when it would arrive).
+
+Ground-truth files beside ``<stem>.mcap``: ``<stem>.ground_truth.yaml``,
+``<stem>.camera.yaml`` (ROS camera_calibration format),
+``<stem>.inverse_response.npy`` ((2^bits,) float64 g(v), g(max) = 1) and
+``<stem>.light_map.npy`` ((H, W) float64 L(x)).
+"""
+
+from __future__ import annotations
+
+import heapq
+import math
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+from rosbags.typesys import Stores, get_typestore
+from std_msgs.msg import Float32
+
+from endo_io.bag import BagWriter, qos_profiles_to_yaml, serialize
+from endo_io.image import array_to_image
+from endo_io.pose import matrix_to_pose
+from endo_io.qos import reliable_qos
+from endo_sim.errors import SimulationParameterError
+from endo_sim.sequences import Sequence
+from endo_sim.tracker import simulate_tracker
+from endo_sim.trajectory import NS_PER_S
+
+IMAGE_TOPIC = "/endoscope/image_raw"
+CAMERA_INFO_TOPIC = "/endoscope/camera_info"
+DEPTH_TOPIC = "/ground_truth/depth"
+CAMERA_POSE_TOPIC = "/ground_truth/camera_pose"
+TRACKER_TOPIC = "/tracker/pose"
+GRAY_LEVEL_TOPIC = "/calibration/gray_level"
+WORLD_FRAME = "world"
+TRACKER_FRAME = "tracker"
+
+_TOPIC_TYPES = {
+    IMAGE_TOPIC: "sensor_msgs/msg/Image",
+    CAMERA_INFO_TOPIC: "sensor_msgs/msg/CameraInfo",
+    DEPTH_TOPIC: "sensor_msgs/msg/Image",
+    CAMERA_POSE_TOPIC: "geometry_msgs/msg/PoseStamped",
+    TRACKER_TOPIC: "geometry_msgs/msg/PoseStamped",
+    GRAY_LEVEL_TOPIC: "std_msgs/msg/Float32",
+}
+
+
+@dataclass(frozen=True)
+class TimedMessage:
+    """One message of the recording: log time (ns), topic, ROS message."""
+
+    log_time_ns: int
+    topic: str
+    message: Any
+
+
+def image_noise_rng(seed: int) -> np.random.Generator:
+    """The generator of the sensor noise of a recording with ``seed``."""
+    return np.random.default_rng([int(seed), 1])
+
+
+def tracker_rng(seed: int) -> np.random.Generator:
+    """The generator of the tracker's noise and dropouts of a recording with ``seed``."""
+    return np.random.default_rng([int(seed), 2])
+
+
+def frame_messages(sequence: Sequence, k: int, frame: Any, stamp_ns: int) -> list[TimedMessage]:
+    """The messages published with frame ``k`` (already rendered) at ``stamp_ns``."""
+    camera = sequence.camera
+    frame_id = camera.frame_id
+    pose = sequence.trajectory.pose_at(int(sequence.frame_times_ns[k]))
+    out = [
+        TimedMessage(
+            stamp_ns, IMAGE_TOPIC, array_to_image(frame.image, frame.encoding, stamp_ns, frame_id)
+        ),
+        TimedMessage(stamp_ns, CAMERA_INFO_TOPIC, camera.to_camera_info(stamp_ns)),
+    ]
+    if k % sequence.config.depth_every == 0:
+        out.append(
+            TimedMessage(
+                stamp_ns, DEPTH_TOPIC, array_to_image(frame.depth, "32FC1", stamp_ns, frame_id)
+            )
+        )
+    out.append(
+        TimedMessage(stamp_ns, CAMERA_POSE_TOPIC, matrix_to_pose(pose, stamp_ns, WORLD_FRAME))
+    )
+    if sequence.gray_levels is not None:
+        out.append(
+            TimedMessage(stamp_ns, GRAY_LEVEL_TOPIC, Float32(data=float(sequence.gray_levels[k])))
+        )
+    return out
+
+
+def _frame_stream(sequence: Sequence) -> Iterator[tuple[int, int, TimedMessage]]:
+    rng = image_noise_rng(sequence.config.seed)
+    start = sequence.config.start_ns
+    for k, t_ns in enumerate(sequence.frame_times_ns):
+        pose = sequence.trajectory.pose_at(int(t_ns))
+        frame = sequence.renderer.render(sequence.scene_of_frame(k), pose, rng)
+        for order, message in enumerate(frame_messages(sequence, k, frame, start + int(t_ns))):
+            yield message.log_time_ns, order, message
+
+
+def _tracker_stream(sequence: Sequence) -> Iterator[tuple[int, int, TimedMessage]]:
+    model = sequence.config.tracker
+    samples = simulate_tracker(model, sequence.trajectory, tracker_rng(sequence.config.seed))
+    start = sequence.config.start_ns
+    scale = model.unit_scale
+    for stamp, pose, visible in zip(samples.stamp_ns, samples.poses, samples.visible, strict=True):
+        if not visible:
+            continue
+        published = pose.copy()
+        published[:3, 3] *= scale
+        stamp_ns = start + int(stamp)
+        # After the frame messages of the same instant (order 10).
+        yield (
+            stamp_ns,
+            10,
+            TimedMessage(
+                stamp_ns, TRACKER_TOPIC, matrix_to_pose(published, stamp_ns, TRACKER_FRAME)
+            ),
+        )
+
+
+def recording_messages(sequence: Sequence) -> Iterator[TimedMessage]:
+    """Every message of the recording in log-time order (frames rendered lazily)."""
+    merged = heapq.merge(_frame_stream(sequence), _tracker_stream(sequence), key=lambda m: m[:2])
+    for _log_time, _order, message in merged:
+        yield message
+
+
+_TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
+
+
+def canonical_cdr(message: Any, msgtype: str) -> bytes:
+    """CDR bytes of ``message`` with every alignment padding byte zero.
+
+    rclpy's serialiser leaves CDR alignment padding (e.g. the bytes between
+    ``Image.is_bigendian`` and ``Image.step``) uninitialised, so the same
+    message can serialise to different bytes from run to run. Decoding those
+    bytes and encoding them again with rosbags' pure-Python CDR codec, which
+    writes zero padding, makes equal messages equal bytes: same seed, same bag.
+    """
+    decoded = _TYPESTORE.deserialize_cdr(serialize(message), msgtype)
+    return bytes(_TYPESTORE.serialize_cdr(decoded, msgtype))
+
+
+@dataclass(frozen=True)
+class BagSummary:
+    """What was written: paths, message counts per topic, and the bag's size."""
+
+    bag_path: Path
+    ground_truth_paths: tuple[Path, ...]
+    message_counts: dict[str, int]
+    bag_bytes: int
+
+
+def write_bag(sequence: Sequence, path: str | Path, compression: str = "zstd") -> BagSummary:
+    """Render and write the recording to ``path`` (a new ``*.mcap``) and its ground truth."""
+    path = Path(path)
+    if path.suffix != ".mcap":
+        raise SimulationParameterError(f"{path}: the bag must be a single .mcap file")
+    topics = [IMAGE_TOPIC, CAMERA_INFO_TOPIC, DEPTH_TOPIC, CAMERA_POSE_TOPIC, TRACKER_TOPIC]
+    if sequence.gray_levels is not None:
+        topics.append(GRAY_LEVEL_TOPIC)
+    qos = qos_profiles_to_yaml([reliable_qos(10)])
+    counts = dict.fromkeys(topics, 0)
+    with BagWriter(path, compression=compression) as bag:
+        for topic in topics:
+            bag.add_topic(topic, _TOPIC_TYPES[topic], qos)
+        for message in recording_messages(sequence):
+            data = canonical_cdr(message.message, _TOPIC_TYPES[message.topic])
+            bag.write(message.topic, data, message.log_time_ns)
+            counts[message.topic] += 1
+    truth = write_ground_truth(sequence, path, counts)
+    return BagSummary(path, truth, counts, path.stat().st_size)
+
+
+def _matrix(value: np.ndarray) -> list[list[float]]:
+    return [[float(x) for x in row] for row in np.asarray(value)]
+
+
+def ground_truth_document(sequence: Sequence, stem: str, counts: dict[str, int]) -> dict[str, Any]:
+    """The content of ``<stem>.ground_truth.yaml`` as plain data."""
+    config = sequence.config
+    p = config.photometry
+    tracker = config.tracker
+    camera = sequence.camera
+    return {
+        "format": "endo_sim ground truth 1",
+        "bag": f"{stem}.mcap",
+        "scene": sequence.ground_truth,
+        "recording": {
+            "start_ns": int(config.start_ns),
+            "duration_s": sequence.duration_ns / NS_PER_S,
+            "fps": float(config.fps),
+            "frames": len(sequence.frame_times_ns),
+            "depth_every": int(config.depth_every),
+            "message_counts": dict(counts),
+        },
+        "camera": {
+            "model_yaml": f"{stem}.camera.yaml",
+            "width": camera.width,
+            "height": camera.height,
+            "K": _matrix(camera.K),
+            "D": [float(x) for x in camera.D],
+            "distortion_model": camera.distortion_model,
+            "fov_radius_px": float(config.fov_radius),
+            "frame_id": camera.frame_id,
+        },
+        "photometry": {
+            "roughness_rad": float(p.roughness),
+            "full_scale_distance_m": float(p.full_scale_distance_m),
+            "exposure_m2": float(p.exposure),
+            "light_offset_m": [float(x) for x in p.light_offset_m],
+            "spot_exponent": float(p.spot_exponent),
+            "vignetting_exponent": float(p.vignetting_exponent),
+            "noise": bool(p.noise),
+            "full_well_electrons": float(p.full_well_electrons),
+            "read_noise_electrons": float(p.read_noise_electrons),
+            "bit_depth": int(p.bit_depth),
+            "specular_strength": float(p.specular_strength),
+            "specular_shininess": float(p.specular_shininess),
+            "channels": int(config.channels),
+            "light_map_npy": f"{stem}.light_map.npy",
+            "light_map_formula": "cos(theta)^(spot_exponent + vignetting_exponent)",
+        },
+        "response": {
+            **p.response.parameters(),
+            "inverse_response_npy": f"{stem}.inverse_response.npy",
+        },
+        "tracker": {
+            "topic": TRACKER_TOPIC,
+            "frame_id": TRACKER_FRAME,
+            "units": tracker.units,
+            "rate_hz": float(tracker.rate_hz),
+            "latency_s": float(tracker.latency_s),
+            "position_noise_rms_m": float(tracker.position_noise_rms_m),
+            "rotation_noise_rms_deg": math.degrees(tracker.rotation_noise_rms_rad),
+            "dropout_rate_hz": float(tracker.dropout_rate_hz),
+            "dropout_mean_s": float(tracker.dropout_mean_s),
+            "first_sample_s": float(tracker.phase_s),
+            "T_marker_camera": _matrix(tracker.T_marker_camera),
+            "T_tracker_world": _matrix(tracker.T_tracker_world),
+            "model": "T_tracker_marker(t) = T_tracker_world @ T_world_camera(t) "
+            "@ inv(T_marker_camera); stamp = t + latency; metres unless units == mm",
+        },
+    }
+
+
+def write_ground_truth(
+    sequence: Sequence, bag_path: Path, counts: dict[str, int]
+) -> tuple[Path, ...]:
+    """Write the ground-truth files beside ``bag_path``; returns their paths."""
+    stem = bag_path.name[: -len(".mcap")]
+    folder = bag_path.parent
+    camera_yaml = folder / f"{stem}.camera.yaml"
+    sequence.camera.save_yaml(camera_yaml)
+    inverse = folder / f"{stem}.inverse_response.npy"
+    np.save(
+        inverse,
+        sequence.config.photometry.response.inverse_lut(sequence.config.photometry.bit_depth),
+    )
+    light = folder / f"{stem}.light_map.npy"
+    np.save(light, sequence.renderer.light_map)
+    document = folder / f"{stem}.ground_truth.yaml"
+    text = yaml.safe_dump(ground_truth_document(sequence, stem, counts), sort_keys=False, width=100)
+    document.write_text(text)
+    return (document, camera_yaml, inverse, light)
