@@ -19,7 +19,6 @@ the previous calibration stays in use.
 from __future__ import annotations
 
 import sys
-from array import array as byte_array
 
 import numpy as np
 from numpy.typing import NDArray
@@ -32,7 +31,6 @@ from endo_calib.calibration import PhotometricCalibration
 from endo_calib.errors import CalibrationError, CalibrationFileError
 from endo_calib.raw_image import to_raw_frame
 from endo_io.diagnostics import InputHealth
-from endo_io.errors import ImageEncodingError
 from endo_io.image import array_to_image, image_to_array
 from endo_io.process import run_node
 from endo_io.qos import SENSOR_DATA_QOS, create_reliable_publisher
@@ -65,22 +63,6 @@ def select_channel(
     if channel not in names:
         raise CalibrationError(f"channel {channel!r} is not in the calibration's channels {names}")
     return np.ascontiguousarray(corrected[:, :, names.index(channel)])
-
-
-def _float_image(array: NDArray[np.float32], encoding: str, stamp_ns: int, frame_id: str) -> Image:
-    """Image message of a float32 array; 32FC3 is built here while endo_io lacks it."""
-    try:
-        return array_to_image(array, encoding, stamp_ns, frame_id)
-    except ImageEncodingError:
-        if encoding != "32FC3":
-            raise
-    msg = array_to_image(np.ascontiguousarray(array[:, :, 0]), "32FC1", stamp_ns, frame_id)
-    packed = np.ascontiguousarray(array, dtype=np.float32)
-    msg.encoding = "32FC3"
-    msg.step = packed.shape[1] * 12
-    msg.data = byte_array("B", packed.tobytes())
-    msg.is_bigendian = int(sys.byteorder == "big")
-    return msg
 
 
 class PhotometricCorrectionNode(Node):
@@ -186,7 +168,7 @@ class PhotometricCorrectionNode(Node):
         output = select_channel(calibration, corrected, self.channel)
         encoding = "32FC3" if output.ndim == 3 else "32FC1"
         self.publisher.publish(
-            _float_image(output, encoding, stamp_to_ns(msg.header.stamp), msg.header.frame_id)
+            array_to_image(output, encoding, stamp_to_ns(msg.header.stamp), msg.header.frame_id)
         )
 
 

@@ -9,6 +9,7 @@ encoding      dtype       channels   array shape
 ``mono16``    uint16      1          (H, W)
 ``16UC1``     uint16      1          (H, W)
 ``32FC1``     float32     1          (H, W)  REP 118 depth, metres
+``32FC3``     float32     3          (H, W, 3)  colour irradiance, normals
 ``rgb8``      uint8       3          (H, W, 3)
 ``bgr8``      uint8       3          (H, W, 3)
 ``rgba8``     uint8       4          (H, W, 4)
@@ -55,6 +56,7 @@ PIXEL_FORMATS: dict[str, PixelFormat] = {
     "mono16": PixelFormat(np.dtype(np.uint16), 1),
     "16UC1": PixelFormat(np.dtype(np.uint16), 1),
     "32FC1": PixelFormat(np.dtype(np.float32), 1),
+    "32FC3": PixelFormat(np.dtype(np.float32), 3),
     "rgb8": PixelFormat(np.dtype(np.uint8), 3),
     "bgr8": PixelFormat(np.dtype(np.uint8), 3),
     "rgba8": PixelFormat(np.dtype(np.uint8), 4),

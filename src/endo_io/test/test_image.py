@@ -19,6 +19,7 @@ SHAPES = {
     "mono16": (np.uint16, None),
     "16UC1": (np.uint16, None),
     "32FC1": (np.float32, None),
+    "32FC3": (np.float32, 3),
     "rgb8": (np.uint8, 3),
     "bgr8": (np.uint8, 3),
     "rgba8": (np.uint8, 4),
