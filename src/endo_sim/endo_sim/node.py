@@ -68,7 +68,7 @@ class SimulatorNode(Node):
         )
         self._publish_depth = bool(self.get_parameter("publish_depth").value)
         self._time_scale = float(self.get_parameter("time_scale").value)
-        self._publishers = {
+        self._outputs = {
             IMAGE_TOPIC: create_reliable_publisher(self, Image, IMAGE_TOPIC),
             CAMERA_INFO_TOPIC: create_reliable_publisher(self, CameraInfo, CAMERA_INFO_TOPIC),
             DEPTH_TOPIC: create_reliable_publisher(self, Image, DEPTH_TOPIC),
@@ -76,7 +76,7 @@ class SimulatorNode(Node):
             TRACKER_TOPIC: create_reliable_publisher(self, PoseStamped, TRACKER_TOPIC),
         }
         if sequence.gray_levels is not None:
-            self._publishers[GRAY_LEVEL_TOPIC] = create_reliable_publisher(
+            self._outputs[GRAY_LEVEL_TOPIC] = create_reliable_publisher(
                 self, Float32, GRAY_LEVEL_TOPIC
             )
         self.frames = InputHealth(self, "rendered frames")
@@ -127,7 +127,7 @@ class SimulatorNode(Node):
         for message in frame_messages(sequence, k, frame, stamp_ns):
             if message.topic == DEPTH_TOPIC and not self._publish_depth:
                 continue
-            self._publishers[message.topic].publish(message.message)
+            self._outputs[message.topic].publish(message.message)
 
     def _on_tracker(self) -> None:
         model = self.sequence.config.tracker
@@ -144,7 +144,7 @@ class SimulatorNode(Node):
         camera_pose = self.sequence.trajectory.pose_at(sample_ns)
         marker = model.add_noise(model.true_marker_poses(camera_pose[None]), self._tracker_rng)[0]
         marker[:3, 3] *= model.unit_scale
-        self._publishers[TRACKER_TOPIC].publish(matrix_to_pose(marker, now, TRACKER_FRAME))
+        self._outputs[TRACKER_TOPIC].publish(matrix_to_pose(marker, now, TRACKER_FRAME))
 
     def close(self) -> None:
         """Stop the render thread (called by run_node on shutdown)."""
