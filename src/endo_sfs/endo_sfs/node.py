@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import sys
 import time
-from array import array as byte_array
 from typing import Any
 
 import numpy as np
@@ -143,17 +142,6 @@ PARAMETERS: dict[str, tuple[object, ParameterDescriptor]] = {
         read_only=True,
     )),
 }
-
-
-def _normals_image(normals: np.ndarray, stamp_ns: int, frame_id: str) -> Image:
-    """32FC3 Image of (H, W, 3) float32 normals (endo_io's converter covers 32FC1 only)."""
-    packed = np.ascontiguousarray(normals, dtype=np.float32)
-    msg = array_to_image(np.ascontiguousarray(packed[:, :, 0]), "32FC1", stamp_ns, frame_id)
-    msg.encoding = "32FC3"
-    msg.step = packed.shape[1] * 12
-    msg.data = byte_array("B", packed.tobytes())
-    msg.is_bigendian = int(sys.byteorder == "big")
-    return msg
 
 
 def warm_up_kernels() -> float:
@@ -295,7 +283,7 @@ class SfsNode(Node):
         self.depth_publisher.publish(array_to_image(solution.depth, "32FC1", stamp_ns, frame_id))
         if bool(self._value("publish_normals")):
             normals = surface_normals(solution.depth, camera)
-            self.normals_publisher.publish(_normals_image(normals, stamp_ns, frame_id))
+            self.normals_publisher.publish(array_to_image(normals, "32FC3", stamp_ns, frame_id))
         self.health.set_value("solve_ms", f"{elapsed_ms:.1f}")
         self.health.set_value("iterations", solution.info.iterations)
         self.health.set_value("converged", solution.info.converged)

@@ -98,6 +98,11 @@ def test_matched_frames_give_the_library_depth_and_bad_frames_do_not_stop_the_no
     assert depth_error(depth, rendering.depth).abs_rel < 0.02
     assert spin_until(lambda: len(received["normals"]) == 1)
     assert received["normals"][0].encoding == "32FC3"
+    normals = image_to_array(received["normals"][0])
+    plane = np.asarray(near_light_surface("tilted_plane").normal)
+    inner = np.all(np.isfinite(normals), axis=-1)
+    assert inner.mean() > 0.9
+    assert np.median(normals[inner] @ (plane / np.linalg.norm(plane))) > 0.999
 
     # An image whose camera_info never comes produces nothing.
     lonely, _ = _frame(stamp + 1, image, camera)
