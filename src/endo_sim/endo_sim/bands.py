@@ -28,6 +28,17 @@ def _executor() -> ThreadPoolExecutor:
     return _pool
 
 
+def set_workers(count: int) -> None:
+    """Use ``count`` worker threads from now on (benchmarks compare 1 and 2)."""
+    global WORKERS, _pool
+    if count < 1:
+        raise ValueError(f"need at least one worker, got {count}")
+    if _pool is not None:
+        _pool.shutdown()
+        _pool = None
+    WORKERS = int(count)
+
+
 def run_in_bands(kernel: Callable[..., Any], rows: int, *args: Any) -> None:
     """Call ``kernel(*args, row_start, row_stop)`` over ``rows`` rows split in bands.
 

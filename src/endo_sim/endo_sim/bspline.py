@@ -57,44 +57,51 @@ def curve_value(control: np.ndarray, spacing: float, x: float) -> tuple[float, f
     return value, slope
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, inline="always")
+def _row(control: np.ndarray, r: int, c: int, b: tuple, d: tuple) -> tuple[float, float]:
+    """Weighted sums of four consecutive control values of row r (value, slope)."""
+    c0 = control[r, c]
+    c1 = control[r, c + 1]
+    c2 = control[r, c + 2]
+    c3 = control[r, c + 3]
+    return (
+        b[0] * c0 + b[1] * c1 + b[2] * c2 + b[3] * c3,
+        d[0] * c0 + d[1] * c1 + d[2] * c2 + d[3] * c3,
+    )
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
 def surface_value(
-    control: np.ndarray, spacing: float, x: float, y: float
+    control: np.ndarray, inv_spacing: float, x: float, y: float
 ) -> tuple[float, float, float]:
     """Value and gradient of a periodic bicubic B-spline height field at (x, y).
 
-    control: (My, Mx) float64 control heights, row index along y; spacing:
-    knot spacing in both axes. Returns (h, dh/dx, dh/dy).
+    control: (My + 3, Mx + 3) wrapped control heights from :func:`wrap_grid`
+    (row index along y); inv_spacing: 1 / knot spacing (both axes).
+    Returns (h, dh/dx, dh/dy).
     """
-    my = control.shape[0]
-    mx = control.shape[1]
-    ux = x / spacing
-    uy = y / spacing
+    my = control.shape[0] - 3
+    mx = control.shape[1] - 3
+    ux = x * inv_spacing
+    uy = y * inv_spacing
+    ux -= mx * math.floor(ux * (1.0 / mx))
+    uy -= my * math.floor(uy * (1.0 / my))
     jx = math.floor(ux)
     jy = math.floor(uy)
     bx0, bx1, bx2, bx3, dx0, dx1, dx2, dx3 = _basis(ux - jx)
     by0, by1, by2, by3, dy0, dy1, dy2, dy3 = _basis(uy - jy)
-    ix = int(jx) % mx
-    iy = int(jy) % my
+    ix = min(int(jx), mx - 1)
+    iy = min(int(jy), my - 1)
     bx = (bx0, bx1, bx2, bx3)
     dx = (dx0, dx1, dx2, dx3)
-    by = (by0, by1, by2, by3)
-    dy = (dy0, dy1, dy2, dy3)
-    value = 0.0
-    grad_x = 0.0
-    grad_y = 0.0
-    for a in range(4):
-        row = (iy - 1 + a) % my
-        row_value = 0.0
-        row_slope = 0.0
-        for b in range(4):
-            c = control[row, (ix - 1 + b) % mx]
-            row_value += bx[b] * c
-            row_slope += dx[b] * c
-        value += by[a] * row_value
-        grad_x += by[a] * row_slope
-        grad_y += dy[a] * row_value
-    return value, grad_x / spacing, grad_y / spacing
+    v0, s0 = _row(control, iy, ix, bx, dx)
+    v1, s1 = _row(control, iy + 1, ix, bx, dx)
+    v2, s2 = _row(control, iy + 2, ix, bx, dx)
+    v3, s3 = _row(control, iy + 3, ix, bx, dx)
+    value = by0 * v0 + by1 * v1 + by2 * v2 + by3 * v3
+    grad_x = by0 * s0 + by1 * s1 + by2 * s2 + by3 * s3
+    grad_y = dy0 * v0 + dy1 * v1 + dy2 * v2 + dy3 * v3
+    return value, grad_x * inv_spacing, grad_y * inv_spacing
 
 
 @nb.njit(cache=True, nogil=True, inline="always")
@@ -151,6 +158,17 @@ def wrap_pair(first: np.ndarray, second: np.ndarray) -> np.ndarray:
     m = first.shape[0]
     index = (np.arange(m + 3) - 1) % m
     return np.ascontiguousarray(np.stack([first[index], second[index]], axis=-1), dtype=np.float64)
+
+
+def wrap_grid(control: np.ndarray) -> np.ndarray:
+    """Pad a periodic (My, Mx) control grid to the (My + 3, Mx + 3) one :func:`surface_value` reads.
+
+    Row/column k holds control index (k − 1) mod M.
+    """
+    my, mx = control.shape
+    rows = (np.arange(my + 3) - 1) % my
+    cols = (np.arange(mx + 3) - 1) % mx
+    return np.ascontiguousarray(control[np.ix_(rows, cols)], dtype=np.float64)
 
 
 def random_control(

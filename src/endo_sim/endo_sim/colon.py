@@ -47,6 +47,7 @@ from endo_sim.bands import run_in_bands
 from endo_sim.bspline import curve_pair, random_control, wrap_pair
 from endo_sim.errors import SimulationParameterError
 from endo_sim.surface import SurfaceHits
+from endo_sim.surface import no_hit as _no_hit
 from endo_sim.texture import Texture
 
 #: Grid steps (pixels, powers of two) of the sparse levels: the coarsest is
@@ -350,7 +351,7 @@ def _world_ray(rotation: np.ndarray, r: np.ndarray) -> tuple[float, float, float
     )
 
 
-@nb.njit(cache=True, nogil=True)
+@nb.njit(cache=True, nogil=True, inline="always")
 def _trace_from_grid(
     o: np.ndarray,
     d: tuple[float, float, float],
@@ -479,13 +480,14 @@ def _trace_pixels(
     for i in range(row_start, row_stop):
         for j in range(width):
             if not mask[i, j]:
-                out_distance[i, j] = math.nan
+                _no_hit(out_distance, out_normal, out_uv, i, j)
                 continue
             d = _world_ray(rotation, rays[i, j])
             t, gx, gy, gz = _trace_from_grid(origin, d, i, j, grid, grid_step, prm, bend)
-            out_distance[i, j] = t
             if t != t:
+                _no_hit(out_distance, out_normal, out_uv, i, j)
                 continue
+            out_distance[i, j] = t
             norm = math.sqrt(gx * gx + gy * gy + gz * gz)
             gx /= norm
             gy /= norm
@@ -612,6 +614,7 @@ class ColonScene:
         prm[_HALF_HESSIAN] = 0.5 * 1.5 * largest_hessian
         #: Packed parameter vector read by the numba kernels.
         self.parameters = prm
+        self._needed_cache: tuple[np.ndarray, list[np.ndarray]] | None = None
 
     @property
     def length_m(self) -> float:
@@ -638,6 +641,19 @@ class ColonScene:
         _field_at(self.parameters, self.bend, points, out)
         return out
 
+    def _needed_grids(self, mask: np.ndarray) -> list[np.ndarray]:
+        """Per level, the grid points within one cell of a masked pixel (cached per mask)."""
+        cached = self._needed_cache
+        if cached is not None and cached[0] is mask:
+            return cached[1]
+        mask_u8 = mask.astype(np.uint8)
+        grids = []
+        for step in LEVEL_STEPS:
+            near = cv2.dilate(mask_u8, np.ones((2 * step + 1, 2 * step + 1), np.uint8))
+            grids.append(np.ascontiguousarray(near[::step, ::step] > 0))
+        self._needed_cache = (mask, grids)
+        return grids
+
     def trace_geometry(
         self, pose: np.ndarray, rays: np.ndarray, mask: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -650,33 +666,19 @@ class ColonScene:
         height, width = mask.shape
         origin = np.ascontiguousarray(pose[:3, 3], dtype=np.float64)
         rotation = np.ascontiguousarray(pose[:3, :3], dtype=np.float64)
-        mask_u8 = mask.astype(np.uint8)
         grid = np.zeros((0, 0))
         grid_step = 0
-        for step in LEVEL_STEPS:
-            # A grid point is needed when a masked pixel lies within one cell of it.
-            near = cv2.dilate(mask_u8, np.ones((2 * step + 1, 2 * step + 1), np.uint8))
-            needed = np.ascontiguousarray(near[::step, ::step] > 0)
+        for step, needed in zip(LEVEL_STEPS, self._needed_grids(mask), strict=True):
             level = np.empty(needed.shape)
             run_in_bands(
-                _trace_grid,
-                needed.shape[0],
-                origin,
-                rotation,
-                rays,
-                needed,
-                step,
-                grid,
-                grid_step,
-                self.parameters,
-                self.bend,
-                level,
-            )
+                _trace_grid, needed.shape[0], origin, rotation, rays, needed, step, grid,
+                grid_step, self.parameters, self.bend, level,
+            )  # fmt: skip
             grid = level
             grid_step = step
         distance = np.empty((height, width))
-        normal = np.zeros((height, width, 3))
-        uv = np.zeros((height, width, 2))
+        normal = np.empty((height, width, 3))
+        uv = np.empty((height, width, 2))
         run_in_bands(
             _trace_pixels,
             height,

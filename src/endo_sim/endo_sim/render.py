@@ -240,7 +240,7 @@ class Renderer:
         """Noise-free linear irradiance (H, W, C) float64 of the hits (0 where none)."""
         p = self.photometry
         albedo = np.ascontiguousarray(hits.albedo, dtype=np.float64)
-        out = np.empty(albedo.shape)
+        out = np.empty(albedo.shape)  # every element is written below
         specular = p.specular_strength * hits.specular_weight
         if p.colocated:
             run_in_bands(

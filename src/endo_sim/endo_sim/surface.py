@@ -9,9 +9,11 @@ otherwise, which is what lets one renderer serve every scene.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Protocol
 
+import numba as nb
 import numpy as np
 
 
@@ -33,6 +35,17 @@ class SurfaceHits:
     normal: np.ndarray
     albedo: np.ndarray
     specular_weight: float
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def no_hit(distance: np.ndarray, normal: np.ndarray, uv: np.ndarray, i: int, j: int) -> None:
+    """Mark pixel (i, j) of a ray caster's outputs as "no hit": NaN distance, zeros."""
+    distance[i, j] = math.nan
+    normal[i, j, 0] = 0.0
+    normal[i, j, 1] = 0.0
+    normal[i, j, 2] = 0.0
+    uv[i, j, 0] = 0.0
+    uv[i, j, 1] = 0.0
 
 
 class Scene(Protocol):

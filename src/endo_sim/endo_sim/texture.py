@@ -103,17 +103,20 @@ def sample_texture(
         for j in range(valid.shape[1]):
             if not valid[i, j]:
                 continue
-            # Texel centres at (k + 0.5)·texel.
+            # Texel centres at (k + 0.5)·texel; wrap in floating point (an
+            # integer modulo is a slow division in this per-pixel loop).
             y = uv[i, j, 0] * scale_u - 0.5
             x = uv[i, j, 1] * scale_v - 0.5
+            y -= rows * math.floor(y * (1.0 / rows))
+            x -= cols * math.floor(x * (1.0 / cols))
             fy = math.floor(y)
             fx = math.floor(x)
             wy = y - fy
             wx = x - fx
-            r0 = int(fy) % rows
-            c0 = int(fx) % cols
-            r1 = (r0 + 1) % rows
-            c1 = (c0 + 1) % cols
+            r0 = min(int(fy), rows - 1)
+            c0 = min(int(fx), cols - 1)
+            r1 = r0 + 1 if r0 + 1 < rows else 0
+            c1 = c0 + 1 if c0 + 1 < cols else 0
             for c in range(channels):
                 top = albedo[r0, c0, c] * (1.0 - wx) + albedo[r0, c1, c] * wx
                 bottom = albedo[r1, c0, c] * (1.0 - wx) + albedo[r1, c1, c] * wx
