@@ -24,6 +24,7 @@ from scipy.spatial.transform import Rotation
 
 from endo_io.camera import CameraModel
 from endo_tracker_bridge.composition import invert_transform
+from endo_tracker_bridge.conventions import LengthUnit
 from endo_tracker_bridge.handeye import (
     Checkerboard,
     OffsetSearch,
@@ -108,11 +109,14 @@ def bench_synthetic():
         )
 
 
-def bench_bag(bag: Path, board: Checkerboard):
+def bench_bag(bag: Path):
     truth_path = bag.with_name(bag.stem + ".ground_truth.yaml")
     truth = yaml.safe_load(truth_path.read_text())
+    spec = truth["scene"]["checkerboard"]
+    board = Checkerboard(*spec["inner_corners"], spec["square_m"])
     start = time.perf_counter()
-    observations = read_observations(bag, board)
+    unit = LengthUnit.parse(truth["tracker"]["units"])
+    observations = read_observations(bag, board, pose_unit=unit)
     detect_s = time.perf_counter() - start
     start = time.perf_counter()
     result = calibrate_hand_eye(
@@ -123,9 +127,9 @@ def bench_bag(bag: Path, board: Checkerboard):
         observations.camera,
     )
     solve_s = time.perf_counter() - start
-    X_true = np.asarray(truth["T_marker_camera"], dtype=np.float64).reshape(4, 4)
+    X_true = np.asarray(truth["tracker"]["T_marker_camera"], dtype=np.float64).reshape(4, 4)
     t_err, r_err = _errors(X_true, result.T_marker_camera)
-    latency_s = float(truth.get("tracker_latency_s", truth.get("latency_s", 0.0)))
+    latency_s = float(truth["tracker"]["latency_s"])
     print(f"## {bag.name}")
     print(
         f"images {observations.images}, board found in {len(observations.views)}; "
@@ -149,7 +153,7 @@ def main():
     bench_synthetic()
     bag = ROOT / "bags" / "handeye.mcap"
     if bag.exists():
-        bench_bag(bag, Checkerboard(8, 5, 0.004))
+        bench_bag(bag)
 
 
 if __name__ == "__main__":
