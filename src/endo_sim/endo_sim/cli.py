@@ -20,6 +20,7 @@ from pathlib import Path
 
 from endo_io.errors import Endo3dError
 from endo_sim.errors import SimulationParameterError
+from endo_sim.graycard import DEFAULT_CARD_DISTANCE_M
 from endo_sim.photometry import Photometry
 from endo_sim.response import CameraResponse
 from endo_sim.sequences import SCENES, SimulationConfig, build_sequence
@@ -174,7 +175,10 @@ def _add_common(parser: argparse.ArgumentParser) -> None:
         "--frames-per-level", type=int, default=10, help="gray card frames per card (10)"
     )
     s.add_argument(
-        "--card-distance", type=float, default=0.035, help="gray card distance, m (0.035)"
+        "--card-distance",
+        type=float,
+        default=DEFAULT_CARD_DISTANCE_M,
+        help=f"gray card distance, m ({DEFAULT_CARD_DISTANCE_M}: the 0.8 card just saturates)",
     )
     s.add_argument("--stations", type=int, default=15, help="hand-eye stations (15)")
     s.add_argument("--dwell", type=float, default=0.8, help="hand-eye dwell per station, s (0.8)")

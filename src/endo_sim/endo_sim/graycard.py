@@ -19,8 +19,11 @@ from endo_sim.render import Renderer
 
 #: The seven card reflectances (20 % to 80 %), as a calibration set offers them.
 GRAY_LEVELS = (0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8)
-#: Default card distance from the optical centre along the axis (metres).
-DEFAULT_CARD_DISTANCE_M = 0.035
+#: Default card distance from the optical centre along the axis (metres): with
+#: the default exposure (white reaches full scale at 3 cm) the brightest card
+#: (0.8) reaches 0.8·(0.03/0.0265)² = 1.025 of full scale at the centre, i.e.
+#: it just saturates there, as the calibration protocol asks (docs/calibration.md).
+DEFAULT_CARD_DISTANCE_M = 0.0265
 
 
 def gray_card_scene(

@@ -57,7 +57,7 @@ class Photometry:
     bit_depth: 8 (mono8/rgb8) or 12 (mono16 holding 0..4095).
     specular_strength: k_s of the Blinn–Phong lobe (2.0: a mirror-like
         highlight on wet mucosa saturates at any working distance).
-    specular_shininess: m of the lobe (60: highlights a few degrees wide).
+    specular_shininess: m of the lobe (120: highlights a few degrees wide).
     """
 
     roughness: float = 0.3
@@ -71,7 +71,7 @@ class Photometry:
     read_noise_electrons: float = 3.0
     bit_depth: int = 8
     specular_strength: float = 2.0
-    specular_shininess: float = 60.0
+    specular_shininess: float = 120.0
 
     def __post_init__(self) -> None:
         checks = [

@@ -76,7 +76,13 @@ def _shade_colocated(
     row_start: int,
     row_stop: int,
 ) -> None:
-    """E = exposure·L·(ρ·R_ON(c) + specular·c^m)/t² with c = −n·ray, into out (H, W, C)."""
+    """E = exposure·L·(ρ·R_ON(c) + specular·c^m)/t² with c = −n·ray, into out (H, W, C).
+
+    c^m is skipped where it is below e^-36 (1e-16), i.e. for c < e^(-36/m):
+    the lobe is then zero to double precision and the power is the costliest
+    operation of the kernel.
+    """
+    lobe_floor = math.exp(-36.0 / shininess)
     last = table.shape[0] - 1
     for i in range(row_start, row_stop):
         for j in range(distance.shape[1]):
@@ -95,7 +101,7 @@ def _shade_colocated(
             k = min(int(x), last - 1)
             f = x - k
             diffuse = table[k] * (1.0 - f) + table[k + 1] * f
-            gloss = specular * cos**shininess if specular > 0.0 else 0.0
+            gloss = specular * cos**shininess if specular > 0.0 and cos > lobe_floor else 0.0
             scale = exposure * light_map[i, j] / (t * t)
             for c in range(out.shape[2]):
                 out[i, j, c] = scale * (albedo[i, j, c] * diffuse + gloss)

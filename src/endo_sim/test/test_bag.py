@@ -116,7 +116,7 @@ def test_graycard_bag_levels_and_12_bit(tmp_path: Path) -> None:
     centre = [float(i[30:42, 42:54].mean()) for i in images]
     assert all(b > a for a, b in zip(centre[::2], centre[2::2], strict=False))  # brighter cards
     depth = image_to_array(messages["/ground_truth/depth"][0][1])
-    assert depth[36, 48] == pytest.approx(0.035, abs=1e-6)
+    assert depth[36, 48] == pytest.approx(0.0265, abs=1e-6)
 
 
 def test_cli_render_rgb_and_refuses_to_overwrite(tmp_path: Path, capsys) -> None:
