@@ -169,13 +169,13 @@ def build_sequence(config: SimulationConfig) -> Sequence:
             )
             scene: Scene = ColonScene(geometry, texture, seed)
             trajectory: Trajectory = ColonTrajectory(scene, seed, duration_ns)
-            truth["colon_geometry"] = {k: float(v) for k, v in vars(geometry).items()}
+            truth["colon_geometry"] = dict(vars(geometry))
         else:
             ageometry = AbdomenGeometry()
             texture = tissue_texture(seed, (0.2, 0.2), channels=config.channels)
             scene = AbdomenScene(ageometry, texture, seed)
             trajectory = AbdomenTrajectory(ageometry.curvature_radius_m, seed, duration_ns)
-            truth["abdomen_geometry"] = {k: float(v) for k, v in vars(ageometry).items()}
+            truth["abdomen_geometry"] = dict(vars(ageometry))
         frames = _frame_times(config.fps, count)
 
         def fixed_scene(_k: int, scene: Scene = scene) -> Scene:
