@@ -28,7 +28,7 @@ BAG = Path(os.environ.get("ENDO_HANDEYE_BAG", REPO / "bags" / "handeye.mcap"))
 TRUTH = BAG.with_name(BAG.stem + ".ground_truth.yaml")
 
 
-@pytest.mark.skipif(not BAG.exists(), reason=f"{BAG} not committed yet (endo_sim)")
+@pytest.mark.skipif(not BAG.exists(), reason=f"{BAG} not found (endo-sim render handeye writes it)")
 def test_handeye_on_the_simulated_bag(tmp_path, capsys):
     truth = yaml.safe_load(TRUTH.read_text())
     tracker = truth["tracker"]
