@@ -666,7 +666,7 @@ class ColonScene:
         height, width = mask.shape
         origin = np.ascontiguousarray(pose[:3, 3], dtype=np.float64)
         rotation = np.ascontiguousarray(pose[:3, :3], dtype=np.float64)
-        grid = np.zeros((0, 0))
+        grid: np.ndarray = np.zeros((0, 0))
         grid_step = 0
         for step, needed in zip(LEVEL_STEPS, self._needed_grids(mask), strict=True):
             level = np.empty(needed.shape)

@@ -35,7 +35,8 @@ def centred_board(
     cols, rows = inner_corners
     pose = np.eye(4)
     pose[:3, 3] = (-0.5 * (cols + 1) * square_m, -0.5 * (rows + 1) * square_m, 0.0)
-    return CheckerboardScene(pose, tuple(inner_corners), square_m, channels=channels)
+    corners = (int(inner_corners[0]), int(inner_corners[1]))
+    return CheckerboardScene(pose, corners, square_m, channels=channels)
 
 
 def _look_at(position: np.ndarray, target: np.ndarray, roll: float) -> np.ndarray:

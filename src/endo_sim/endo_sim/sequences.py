@@ -11,7 +11,6 @@ show the same thing.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -128,9 +127,10 @@ class SimulationConfig:
 class Sequence:
     """A planned recording (see the module docstring).
 
-    frame_times_ns: (N,) int64 since the start; scene_of_frame(k) gives the
-    scene of frame k; gray_levels: (N,) card reflectance per frame or None;
-    ground_truth: scene-specific entries for the ground-truth YAML.
+    frame_times_ns: (N,) int64 since the start; scenes: the scenes shown;
+    scene_index: (N,) int, which scene each frame shows; gray_levels: (N,)
+    card reflectance per frame or None; ground_truth: scene-specific entries
+    for the ground-truth YAML.
     """
 
     config: SimulationConfig
@@ -138,9 +138,14 @@ class Sequence:
     renderer: Renderer
     trajectory: Trajectory
     frame_times_ns: np.ndarray
-    scene_of_frame: Callable[[int], Scene]
+    scenes: list[Scene]
+    scene_index: np.ndarray
     gray_levels: np.ndarray | None
     ground_truth: dict[str, Any]
+
+    def scene_of_frame(self, k: int) -> Scene:
+        """The scene frame ``k`` shows."""
+        return self.scenes[int(self.scene_index[k])]
 
     @property
     def duration_ns(self) -> int:
@@ -159,6 +164,8 @@ def build_sequence(config: SimulationConfig) -> Sequence:
     seed = config.seed
     truth: dict[str, Any] = {"scene": config.scene, "seed": seed}
     gray_levels = None
+    scenes: list[Scene]
+    trajectory: Trajectory
     if config.scene in ("colon", "abdomen"):
         count = max(1, math.floor(config.duration_s * config.fps + 1e-9))
         duration_ns = round(count * NS_PER_S / config.fps)
@@ -167,37 +174,30 @@ def build_sequence(config: SimulationConfig) -> Sequence:
             texture = tissue_texture(
                 seed, (0.2, 2.0 * math.pi * geometry.radius_m), channels=config.channels
             )
-            scene: Scene = ColonScene(geometry, texture, seed)
-            trajectory: Trajectory = ColonTrajectory(scene, seed, duration_ns)
+            colon = ColonScene(geometry, texture, seed)
+            scenes = [colon]
+            trajectory = ColonTrajectory(colon, seed, duration_ns)
             truth["colon_geometry"] = dict(vars(geometry))
         else:
             ageometry = AbdomenGeometry()
             texture = tissue_texture(seed, (0.2, 0.2), channels=config.channels)
-            scene = AbdomenScene(ageometry, texture, seed)
+            scenes = [AbdomenScene(ageometry, texture, seed)]
             trajectory = AbdomenTrajectory(ageometry.curvature_radius_m, seed, duration_ns)
             truth["abdomen_geometry"] = dict(vars(ageometry))
         frames = _frame_times(config.fps, count)
-
-        def fixed_scene(_k: int, scene: Scene = scene) -> Scene:
-            return scene
-
-        scene_of_frame = fixed_scene
+        scene_index = np.zeros(count, dtype=np.int64)
     elif config.scene == "graycard":
         count = len(GRAY_LEVELS) * config.frames_per_level
         duration_ns = round(count * NS_PER_S / config.fps)
         # The camera stays at the world origin: camera frame = world frame.
         trajectory = StationTrajectory(np.eye(4)[None], duration_ns, 1)
-        cards = [
+        scenes = [
             gray_card_scene(rho, config.card_distance_m, channels=config.channels)
             for rho in GRAY_LEVELS
         ]
-        gray_levels = np.repeat(np.array(GRAY_LEVELS), config.frames_per_level)
+        scene_index = np.repeat(np.arange(len(GRAY_LEVELS)), config.frames_per_level)
+        gray_levels = np.array(GRAY_LEVELS)[scene_index]
         frames = _frame_times(config.fps, count)
-
-        def card_scene(k: int, cards: list[Scene] = cards) -> Scene:  # type: ignore[assignment]
-            return cards[k // config.frames_per_level]
-
-        scene_of_frame = card_scene
         truth["gray_card"] = {
             "reflectances": [float(r) for r in GRAY_LEVELS],
             "frames_per_level": config.frames_per_level,
@@ -208,14 +208,12 @@ def build_sequence(config: SimulationConfig) -> Sequence:
     else:
         board = centred_board(DEFAULT_INNER_CORNERS, DEFAULT_SQUARE_M, config.channels)
         stations = handeye_stations(board, camera, seed, config.stations, config.fov_radius)
-        trajectory = handeye_trajectory(stations, config.dwell_s, config.move_s)
+        moves = handeye_trajectory(stations, config.dwell_s, config.move_s)
+        trajectory = moves
         count = max(1, math.floor(trajectory.duration_ns * config.fps / NS_PER_S + 1e-9))
         frames = _frame_times(config.fps, count)
-
-        def board_scene(_k: int, board: Scene = board) -> Scene:
-            return board
-
-        scene_of_frame = board_scene
+        scenes = [board]
+        scene_index = np.zeros(count, dtype=np.int64)
         truth["checkerboard"] = {
             "inner_corners": list(board.inner_corners),
             "square_m": float(board.square_m),
@@ -227,8 +225,8 @@ def build_sequence(config: SimulationConfig) -> Sequence:
         }
         truth["stations"] = {
             "T_world_camera": stations.tolist(),
-            "dwell_intervals_s": (trajectory.station_times_ns() / NS_PER_S).tolist(),
+            "dwell_intervals_s": (moves.station_times_ns() / NS_PER_S).tolist(),
         }
     return Sequence(
-        config, camera, renderer, trajectory, frames, scene_of_frame, gray_levels, truth
+        config, camera, renderer, trajectory, frames, scenes, scene_index, gray_levels, truth
     )

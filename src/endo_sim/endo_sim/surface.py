@@ -51,7 +51,10 @@ def no_hit(distance: np.ndarray, normal: np.ndarray, uv: np.ndarray, i: int, j: 
 class Scene(Protocol):
     """Anything the renderer can draw."""
 
-    name: str
+    @property
+    def name(self) -> str:
+        """Short name of the scene (``colon``, ``graycard``, ...)."""
+        ...
 
     def trace(self, pose: np.ndarray, rays: np.ndarray, mask: np.ndarray) -> SurfaceHits:
         """First hits of ``rays``.
