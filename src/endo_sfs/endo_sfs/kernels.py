@@ -23,9 +23,9 @@ from numba import njit
 
 #: Below this cosine a surface is taken as grazing: the data term is infinite.
 _MIN_COSINE = 1e-6
-#: The per-node Newton solve (quadratically convergent) ends after a step of
-#: tan θ below this, relative: the remaining error is about its square.
-_NEWTON_STEP_TOL = 3e-4
+#: The per-node Newton solve ends once its residual bounds the error of
+#: tan θ below this (relative); one last Newton step then refines it.
+_NEWTON_RESIDUAL_TOL = 1e-4
 _NEWTON_MAX_STEPS = 60
 
 
@@ -87,33 +87,47 @@ _TABLE_STEP = TABLE_MAX_SLOPE / TABLE_INTERVALS
 _TABLE_INV_STEP = TABLE_INTERVALS / TABLE_MAX_SLOPE
 
 
+#: Layout of the ``reflectance`` array the near-light kernels take.
+REFLECTANCE_A, REFLECTANCE_B, REFLECTANCE_SPECULAR, REFLECTANCE_SHININESS = 0, 1, 2, 3
+
+
 @njit(cache=True, nogil=True, error_model="numpy")
-def _log_radiance_direct(f: float, coef_a: float, coef_b: float) -> tuple[float, float]:
-    """g(F) = ½·ln R(c), c = 1/√(1+F²), and g'(F) = −½·R'(c)/R·F·c³."""
+def _log_radiance_direct(f: float, reflectance: np.ndarray) -> tuple[float, float]:
+    """g(F) = ½·ln R(c), c = 1/√(1+F²), and g'(F) = −½·R'(c)/R·F·c³.
+
+    R(c) = A·c + B·(1 − c²) + k·c^m with reflectance = (A, B, k, m).
+    """
+    coef_a = reflectance[REFLECTANCE_A]
+    coef_b = reflectance[REFLECTANCE_B]
+    specular = reflectance[REFLECTANCE_SPECULAR]
+    shininess = reflectance[REFLECTANCE_SHININESS]
     c = 1.0 / np.sqrt(1.0 + f * f)
     radiance = coef_a * c + coef_b * (1.0 - c * c)
-    return 0.5 * np.log(radiance), -0.5 * (coef_a - 2.0 * coef_b * c) / radiance * f * c * c * c
+    slope = coef_a - 2.0 * coef_b * c
+    if specular > 0.0:
+        lobe = specular * c ** (shininess - 1.0)
+        radiance += lobe * c
+        slope += shininess * lobe
+    return 0.5 * np.log(radiance), -0.5 * slope / radiance * f * c * c * c
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def log_radiance_table(coef_a: float, coef_b: float) -> np.ndarray:
+def log_radiance_table(reflectance: np.ndarray) -> np.ndarray:
     """(TABLE_INTERVALS + 1, 2) float64: g(F_k) and g'(F_k)·step at F_k = k·step."""
     table = np.empty((TABLE_INTERVALS + 1, 2))
     for k in range(TABLE_INTERVALS + 1):
-        g, dg = _log_radiance_direct(k * _TABLE_STEP, coef_a, coef_b)
+        g, dg = _log_radiance_direct(k * _TABLE_STEP, reflectance)
         table[k, 0] = g
         table[k, 1] = dg * _TABLE_STEP
     return table
 
 
 @njit(cache=True, nogil=True, error_model="numpy", inline="always")
-def _log_radiance(
-    f: float, table: np.ndarray, coef_a: float, coef_b: float
-) -> tuple[float, float]:
+def _log_radiance(f: float, table: np.ndarray, reflectance: np.ndarray) -> tuple[float, float]:
     """g(F) and g'(F) from the table (cubic Hermite), directly beyond its range."""
     x = f * _TABLE_INV_STEP
     if not x < TABLE_INTERVALS:
-        return _log_radiance_direct(f, coef_a, coef_b)
+        return _log_radiance_direct(f, reflectance)
     k = int(x)
     t = x - k
     g0 = table[k, 0]
@@ -140,8 +154,7 @@ def near_light_update(
     lam: float,
     log_intensity: float,
     v_star: float,
-    coef_a: float,
-    coef_b: float,
+    reflectance: np.ndarray,
     f_guess: float,
     table: np.ndarray,
 ) -> tuple[float, float]:
@@ -164,9 +177,10 @@ def near_light_update(
     down to F = 0, where v(·) has the square-root singularity that slows
     Newton on v. Safeguarded Newton on q(F) = λF − √(left side), seeded
     with ``f_guess`` (the node's previous F, or the last frame's); v(F) comes
-    from ``table`` (:func:`log_radiance_table` of the same A, B). Newton
-    converges quadratically, so a small step ends the solve
-    (``_NEWTON_STEP_TOL``). Returns (v, F).
+    from ``table`` (:func:`log_radiance_table` of the same ``reflectance``,
+    (A, B, k, m) of R(c) = A·c + B·(1 − c²) + k·c^m). Newton
+    stops once the residual guarantees |F − F*| < 1e-4·(1 + F)
+    (``_NEWTON_RESIDUAL_TOL``) and takes one more Newton step. Returns (v, F).
     """
     m = a if a < b else b
     if v_star <= m:
@@ -175,9 +189,13 @@ def near_light_update(
     f_hi = np.inf
     f = f_guess
     if not f > 0.0:
-        # Small-slope start: v ≈ v* − κ·F² with κ = (A − 2B)/(4A), using the
+        # Small-slope start: v ≈ v* − κ·F² with κ = R'(1)/(4·R(1)), using the
         # larger one-sided term alone.
-        kappa = (coef_a - 2.0 * coef_b) / (4.0 * coef_a)
+        coef_a = reflectance[REFLECTANCE_A]
+        coef_b = reflectance[REFLECTANCE_B]
+        specular = reflectance[REFLECTANCE_SPECULAR]
+        shininess = reflectance[REFLECTANCE_SHININESS]
+        kappa = (coef_a - 2.0 * coef_b + specular * shininess) / (4.0 * (coef_a + specular))
         w = wa if (v_star - a) * (v_star - a) * wa >= (v_star - b) * (v_star - b) * wb else wb
         f = (-lam + np.sqrt(lam * lam + 4.0 * w * kappa * (v_star - m))) / (
             2.0 * np.sqrt(w) * kappa
@@ -185,7 +203,7 @@ def near_light_update(
     half_log_intensity = 0.5 * log_intensity
     v = v_star
     for _ in range(_NEWTON_MAX_STEPS):
-        g, dv_df = _log_radiance(f, table, coef_a, coef_b)
+        g, dv_df = _log_radiance(f, table, reflectance)
         v = g - half_log_intensity
         da = v - a
         db = v - b
@@ -212,13 +230,16 @@ def near_light_update(
         slope = lam - droot * dv_df
         step = q / slope
         f_new = f - step
-        if abs(step) < _NEWTON_STEP_TOL * (1.0 + f) and f_new > f_lo and f_new < f_hi:
-            f = f_new
+        # q rises with slope ≥ λ, so |F − F*| ≤ |q|/λ: a guaranteed bound (a
+        # step-size test can stop on the wrong side of the kink of √L).
+        if abs(q) < lam * _NEWTON_RESIDUAL_TOL * (1.0 + f):
+            if f_new > f_lo and f_new < f_hi:
+                f = f_new
             break
         if not (f_new > f_lo and f_new < f_hi):
             f_new = 0.5 * (f_lo + f_hi) if f_hi < np.inf else 2.0 * f + 1.0
         f = f_new
-    return _log_radiance(f, table, coef_a, coef_b)[0] - half_log_intensity, f
+    return _log_radiance(f, table, reflectance)[0] - half_log_intensity, f
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
@@ -406,8 +427,7 @@ def near_light_sweep(
     valid: np.ndarray,
     hx: float,
     hy: float,
-    coef_a: float,
-    coef_b: float,
+    reflectance: np.ndarray,
     order: int,
     tolerance: float,
     max_iterations: int,
@@ -425,7 +445,8 @@ def near_light_sweep(
     log_intensity, lam, v_star: per-node ln I, conformal
     factor λ and singular value v* = ½·ln(A/I).
     order: 1 (first-order Godunov), 2 (:func:`second_order_neighbour`) or 3
-    (:func:`weno_neighbour`). table: :func:`log_radiance_table` of (A, B). The node update
+    (:func:`weno_neighbour`). reflectance: (A, B, k, m) of the co-located
+    R(c) = A·c + B·(1 − c²) + k·c^m; table: its :func:`log_radiance_table`. The node update
     replaces the value (the scheme is monotone in its neighbours and strictly
     increasing in v through e^{2v}, so any start converges).
     Returns (iterations, last max change of v, node updates computed).
@@ -483,7 +504,7 @@ def near_light_sweep(
                     old = v[i, j]
                     new, guess[i, j] = near_light_update(
                         a, b, wa, wb, sa, sb, lam[i, j], log_intensity[i, j], v_star[i, j],
-                        coef_a, coef_b, guess[i, j], table,
+                        reflectance, guess[i, j], table,
                     )
                     diff = abs(new - old)
                     v[i, j] = new

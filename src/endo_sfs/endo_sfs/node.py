@@ -125,6 +125,17 @@ PARAMETERS: dict[str, tuple[object, ParameterDescriptor]] = {
         "(noise near c ≈ 1 biases the slope; ~1 px helps 8-bit input)",
         floating_point_range=_float_range(0.0, 10.0),
     )),
+    "specular": (0.0, ParameterDescriptor(
+        type=ParameterType.PARAMETER_DOUBLE,
+        description="near_light: specular lobe k of R(c) = Oren–Nayar + k·c^m, relative to "
+        "the albedo (wet tissue; 0 = none)",
+        floating_point_range=_float_range(0.0, 100.0),
+    )),
+    "shininess": (60.0, ParameterDescriptor(
+        type=ParameterType.PARAMETER_DOUBLE,
+        description="near_light: exponent m of the specular lobe k·c^m",
+        floating_point_range=_float_range(1.0, 1000.0),
+    )),
     "publish_normals": (False, ParameterDescriptor(
         type=ParameterType.PARAMETER_BOOL,
         description="also publish unit surface normals on 'normals' (32FC3, optical frame)",
@@ -208,7 +219,7 @@ class SfsNode(Node):
                     successful=False, reason=f"model must be one of {MODELS}"
                 )
         for parameter in parameters:
-            if parameter.name in ("model", "roughness", "solve_scale"):
+            if parameter.name in ("model", "roughness", "solve_scale", "specular", "shininess"):
                 self._previous = None  # the old solution no longer seeds this problem
             if parameter.name == "stamp_tolerance":
                 self._matcher.tolerance_ns = round(float(parameter.value) * NS_PER_S)
@@ -270,6 +281,8 @@ class SfsNode(Node):
                 order=int(self._value("order")),
                 dark_level=float(self._value("dark_level")),
                 smoothing=float(self._value("smoothing")),
+                specular=float(self._value("specular")),
+                shininess=float(self._value("shininess")),
             )
         except NoValidPixelsError:
             # Nothing to reconstruct: say so downstream with an all-NaN depth,

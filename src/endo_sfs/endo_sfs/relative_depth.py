@@ -162,6 +162,8 @@ def solve(
     boundary_depth: np.ndarray | None = None,
     concave: bool = False,
     smoothing: float = 0.0,
+    specular: float = 0.0,
+    shininess: float = 60.0,
 ) -> SfsSolution:
     """Shape from shading of one frame; see :func:`reconstruct` for the arguments.
 
@@ -193,12 +195,14 @@ def solve(
         warm_log_r, warm_irradiance = _warm_nodes(warm_start, grid)
         log_r, info = solve_near_light(
             nodes, node_valid, grid.conformal_factor_sq, grid.spacing, roughness, order,
-            tolerance, max_iterations, warm_log_r, warm_irradiance,
+            tolerance, max_iterations, warm_log_r, warm_irradiance, specular, shininess,
         )
         with np.errstate(invalid="ignore"):
             depth = np.exp(grid.to_pixels(log_r, valid)) * grid.pixel_rays[..., 2]
         node_solution = log_r
     else:
+        if specular > 0.0:
+            raise SfsInputError("the orthographic model has no specular term (set specular=0)")
         boundary_nodes = None
         if boundary_depth is not None:
             if boundary_depth.shape != image.shape:
@@ -241,6 +245,8 @@ def reconstruct(
     boundary_depth: np.ndarray | None = None,
     concave: bool = False,
     smoothing: float = 0.0,
+    specular: float = 0.0,
+    shininess: float = 60.0,
 ) -> np.ndarray:
     """Relative depth from one linear irradiance image by shape from shading.
 
@@ -269,6 +275,10 @@ def reconstruct(
             ``boundary_depth`` is (H, W) relative depth, NaN where unknown.
         smoothing: Gaussian σ in pixels applied to the valid irradiance
             before solving (:func:`smooth_irradiance`); 0 for none.
+        specular, shininess: near-light only: a specular lobe k·c^m
+            relative to the albedo added to the co-located reflectance
+            (:func:`endo_sfs.reflectance.colocated_radiance`); wet tissue
+            under a co-located light; 0 for none.
 
     Returns:
         (H, W) float32 relative depth along the optical axis, NaN invalid.
@@ -281,7 +291,7 @@ def reconstruct(
     return solve(
         irradiance, camera, model, roughness, mask, solve_scale, tolerance, max_iterations,
         warm_start, order, dark_level, saturation, singular_tolerance, boundary_depth, concave,
-        smoothing,
+        smoothing, specular, shininess,
     ).depth
 
 

@@ -156,9 +156,13 @@ def render_near_light(
     camera: CameraModel,
     surface: Sphere | Plane | TubeInterior | BumpyRadialSurface,
     roughness: float = 0.0,
+    specular: float = 0.0,
+    shininess: float = 60.0,
 ) -> Rendering:
     """Render I = R(cos θ)/r² with the light at the optical centre.
 
+    R is Oren–Nayar plus an optional specular lobe k·cos^m θ
+    (:func:`endo_sfs.reflectance.colocated_radiance`).
     Returns a :class:`Rendering` of the camera's size; pixels whose ray
     misses the surface or sees it from behind are NaN in both images.
     """
@@ -167,7 +171,8 @@ def render_near_light(
     cos_theta = -np.sum(normals * rays, axis=-1)
     with np.errstate(invalid="ignore"):
         seen = np.isfinite(r) & (cos_theta > 0.0)
-        irradiance = np.where(seen, colocated_radiance(cos_theta, roughness) / (r * r), np.nan)
+        radiance = colocated_radiance(cos_theta, roughness, specular, shininess)
+        irradiance = np.where(seen, radiance / (r * r), np.nan)
     depth = np.where(seen, r * rays[..., 2], np.nan)
     return Rendering(irradiance=irradiance, depth=depth)
 

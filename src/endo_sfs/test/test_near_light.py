@@ -62,6 +62,22 @@ def test_8bit_noisy_relative_depth_error_is_below_three_percent(name, roughness)
     assert error.abs_rel < 0.03
 
 
+@pytest.mark.parametrize("name", ["sphere", "bumpy"])
+def test_specular_lobe_is_part_of_the_inverted_reflectance(name):
+    # Wet tissue: Oren–Nayar plus 5·cos^60 θ (the simulator's colon gloss
+    # relative to its albedo). Modelled, it is recovered like the diffuse
+    # case; ignored, the highlights read as nearer surface.
+    camera = _camera()
+    mask = camera.fov_mask(0.48 * SIZE)
+    rendering = render_near_light(camera, near_light_surface(name), 0.3, 5.0, 60.0)
+    modelled = reconstruct(rendering.irradiance, camera, roughness=0.3, mask=mask,
+                           specular=5.0, shininess=60.0)
+    error = depth_error(modelled, rendering.depth, mask)
+    assert error.abs_rel < 0.01 and error.coverage > 0.999
+    ignored = reconstruct(rendering.irradiance, camera, roughness=0.3, mask=mask)
+    assert depth_error(ignored, rendering.depth, mask).abs_rel > 5 * error.abs_rel
+
+
 def test_wrong_roughness_gives_a_larger_error():
     # The roughness matters: solving a σ = 0.3 image as Lambertian is worse.
     camera, mask, rendering = _scene("bumpy", 0.3)
