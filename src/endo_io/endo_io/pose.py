@@ -13,6 +13,10 @@ Conventions:
 Every input rotation is checked: a NaN, a quaternion whose norm is further
 than ``tolerance`` from 1, or a matrix that is not a rotation raises
 :class:`PoseError`. Accepted quaternions are normalised before use.
+
+Interpolation between stamped transforms (linear translation, SLERP rotation)
+has one vectorised core, shared by :func:`slerp`, the scalar
+:func:`interpolate_transform` and the batched :func:`interpolate_transforms`.
 """
 
 from __future__ import annotations
@@ -75,7 +79,12 @@ def quaternion_to_matrix(q_xyzw: np.ndarray, *, tolerance: float = DEFAULT_TOLER
     Raises:
         PoseError: NaN/inf or a norm further than ``tolerance`` from 1.
     """
-    x, y, z, w = np.moveaxis(_unit_quaternions(q_xyzw, tolerance), -1, 0)
+    return _rotation_of_unit_quaternion(_unit_quaternions(q_xyzw, tolerance))
+
+
+def _rotation_of_unit_quaternion(q: np.ndarray) -> np.ndarray:
+    """(..., 4) unit quaternions x, y, z, w (not checked) -> (..., 3, 3) rotations."""
+    x, y, z, w = np.moveaxis(q, -1, 0)
     xx, yy, zz = x * x, y * y, z * z
     xy, xz, yz = x * y, x * z, y * z
     wx, wy, wz = w * x, w * y, w * z
@@ -116,7 +125,11 @@ def matrix_to_quaternion(R: np.ndarray, *, tolerance: float = DEFAULT_TOLERANCE)
     Raises:
         PoseError: NaN/inf, not orthonormal within ``tolerance``, or det <= 0.
     """
-    rot = _check_rotation(R, tolerance)
+    return _quaternion_of_rotation(_check_rotation(R, tolerance))
+
+
+def _quaternion_of_rotation(rot: np.ndarray) -> np.ndarray:
+    """(..., 3, 3) rotations (not checked) -> (..., 4) canonical quaternions x, y, z, w."""
     m = {(i, j): rot[..., i, j] for i in range(3) for j in range(3)}
     # Shepperd's method: build the quaternion from whichever of 4w^2, 4x^2,
     # 4y^2, 4z^2 is largest, so the divisor is never close to zero.
@@ -232,18 +245,49 @@ def slerp(
     q1 = _unit_quaternions(q1_xyzw, tolerance)
     if q0.shape != (4,) or q1.shape != (4,):
         raise PoseError(f"slerp needs two (4,) quaternions, got {q0.shape} and {q1.shape}")
-    if np.dot(q0, q1) < 0.0:
-        q1 = -q1
-    # Half the rotation angle between them; atan2 of chord lengths stays
-    # accurate for nearly identical quaternions, where acos(dot) does not.
-    theta = 2.0 * np.arctan2(np.linalg.norm(q1 - q0), np.linalg.norm(q1 + q0))
+    return _slerp_unit(q0, q1, alpha)
+
+
+def _slerp_unit(q0: np.ndarray, q1: np.ndarray, alpha: float | np.ndarray) -> np.ndarray:
+    """SLERP of unit quaternions (not checked), broadcast over leading axes.
+
+    ``q0``, ``q1``: (..., 4) x, y, z, w; ``alpha``: scalar or (...,)
+    fractions broadcastable with their leading axes. Each pair takes its own
+    shorter arc. Returns (..., 4) canonical unit quaternions. The one SLERP
+    of this module: :func:`slerp` and both interpolations call it.
+    """
     a = np.asarray(alpha, dtype=np.float64)[..., None]
-    if theta < _SLERP_LINEAR_BELOW_RAD:
-        q = (1.0 - a) * q0 + a * q1
-    else:
-        q = (np.sin((1.0 - a) * theta) * q0 + np.sin(a * theta) * q1) / np.sin(theta)
+    q1 = np.where(np.sum(q0 * q1, axis=-1, keepdims=True) < 0.0, -q1, q1)
+    # The angle between the two quaternions (half the rotation between them);
+    # atan2 of chord lengths stays accurate for nearly identical quaternions,
+    # where acos(dot) does not.
+    theta = 2.0 * np.arctan2(
+        np.linalg.norm(q1 - q0, axis=-1, keepdims=True),
+        np.linalg.norm(q1 + q0, axis=-1, keepdims=True),
+    )
+    linear = theta < _SLERP_LINEAR_BELOW_RAD
+    sin_theta = np.where(linear, 1.0, np.sin(theta))  # no 0/0 where it is not used
+    spherical = (np.sin((1.0 - a) * theta) * q0 + np.sin(a * theta) * q1) / sin_theta
+    q = np.where(linear, (1.0 - a) * q0 + a * q1, spherical)
     q = q / np.linalg.norm(q, axis=-1, keepdims=True)
     return canonical_quaternion(q)
+
+
+def _interpolate_rigid(T0: np.ndarray, T1: np.ndarray, alpha: np.ndarray) -> np.ndarray:
+    """Transforms at fraction ``alpha`` (N,) between (N, 4, 4) ``T0`` and ``T1`` (not checked).
+
+    Linear translation, SLERP rotation; ``alpha`` outside [0, 1] extrapolates.
+    Returns (N, 4, 4) float64.
+    """
+    q = _slerp_unit(
+        _quaternion_of_rotation(T0[:, :3, :3]), _quaternion_of_rotation(T1[:, :3, :3]), alpha
+    )
+    a = alpha[:, None]
+    T = np.zeros((len(alpha), 4, 4))
+    T[:, :3, :3] = _rotation_of_unit_quaternion(q)
+    T[:, :3, 3] = (1.0 - a) * T0[:, :3, 3] + a * T1[:, :3, 3]
+    T[:, 3, 3] = 1.0
+    return T
 
 
 def interpolate_transform(
@@ -286,12 +330,86 @@ def interpolate_transform(
     if t_ns == t1_ns:
         return B.copy()
     alpha = (int(t_ns) - int(t0_ns)) / (int(t1_ns) - int(t0_ns))  # exact int difference
-    q = slerp(
-        matrix_to_quaternion(A[:3, :3], tolerance=tolerance),
-        matrix_to_quaternion(B[:3, :3], tolerance=tolerance),
-        alpha,
-    )
-    T = np.eye(4)
-    T[:3, :3] = quaternion_to_matrix(q)
-    T[:3, 3] = (1.0 - alpha) * A[:3, 3] + alpha * B[:3, 3]
-    return T
+    return _interpolate_rigid(A[None], B[None], np.array([alpha]))[0]
+
+
+def _check_transforms(T: np.ndarray, tolerance: float, name: str) -> np.ndarray:
+    """Validate (M, 4, 4) rigid transforms; return them as float64."""
+    mat = np.asarray(T, dtype=np.float64)
+    if mat.ndim != 3 or mat.shape[1:] != (4, 4):
+        raise PoseError(f"{name} must have shape (M, 4, 4), got {mat.shape}")
+    if not np.all(np.isfinite(mat)):
+        raise PoseError(f"{name} contain NaN or infinity")
+    if not np.array_equal(mat[:, 3], np.broadcast_to([0.0, 0.0, 0.0, 1.0], (len(mat), 4))):
+        raise PoseError(f"{name}: every bottom row must be [0, 0, 0, 1]")
+    _check_rotation(mat[:, :3, :3], tolerance)
+    return mat
+
+
+def _integer_stamps(stamps: np.ndarray, name: str) -> np.ndarray:
+    array = np.asarray(stamps)
+    if array.ndim != 1:
+        raise PoseError(f"{name} must have shape (N,), got {array.shape}")
+    if array.size and not np.issubdtype(array.dtype, np.integer):
+        raise PoseError(f"{name} must be integer nanoseconds, got dtype {array.dtype}")
+    return array.astype(np.int64)
+
+
+def interpolate_transforms(
+    stamps_ns: np.ndarray,
+    poses: np.ndarray,
+    query_ns: np.ndarray,
+    max_gap_ns: int,
+    *,
+    tolerance: float = DEFAULT_TOLERANCE,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Interpolate a stamped stream of rigid transforms at many times at once.
+
+    Each query is interpolated between the last sample at or before it and
+    the first sample after it, exactly as :func:`interpolate_transform` does
+    for one pair (linear translation, shortest-arc SLERP rotation).
+
+    Args:
+        stamps_ns: (M,) integer nanoseconds, sorted (non-decreasing; of equal
+            stamps the last sample counts).
+        poses: (M, 4, 4) rigid transforms (metres) at ``stamps_ns``.
+        query_ns: (N,) integer nanoseconds, any order.
+        max_gap_ns: longest interval between the two samples around a query
+            that is bridged, ns (>= 0).
+        tolerance: allowed deviation of the rotations from orthonormal.
+
+    Returns:
+        ((N, 4, 4) float64 transforms, NaN where invalid; (N,) bool valid).
+        A query is valid when it equals a sample's stamp (then the result is
+        that sample's transform exactly) or lies between two samples at most
+        ``max_gap_ns`` apart; queries outside the stream or in a longer gap
+        are invalid (never extrapolated).
+
+    Raises:
+        PoseError: wrong shapes or dtypes, unsorted stamps, a negative
+            ``max_gap_ns``, or invalid transforms.
+    """
+    stamps = _integer_stamps(stamps_ns, "stamps_ns")
+    query = _integer_stamps(query_ns, "query_ns")
+    samples = _check_transforms(poses, tolerance, "poses")
+    if len(samples) != len(stamps):
+        raise PoseError(f"{len(stamps)} stamps but {len(samples)} poses")
+    if np.any(np.diff(stamps) < 0):
+        raise PoseError("stamps_ns must be sorted (non-decreasing)")
+    if max_gap_ns < 0:
+        raise PoseError(f"max_gap_ns must be >= 0, got {max_gap_ns}")
+    result = np.full((len(query), 4, 4), np.nan)
+    if len(stamps) == 0:
+        return result, np.zeros(len(query), dtype=bool)
+    after = np.searchsorted(stamps, query, side="right")
+    before = after - 1
+    b, a = np.clip(before, 0, len(stamps) - 1), np.clip(after, 0, len(stamps) - 1)
+    exact = (before >= 0) & (stamps[b] == query)
+    between = ~exact & (before >= 0) & (after < len(stamps))
+    between[between] = (stamps[a[between]] - stamps[b[between]]) <= max_gap_ns
+    result[exact] = samples[b[exact]]
+    if np.any(between):
+        b, a, t = b[between], a[between], query[between]
+        alpha = (t - stamps[b]) / (stamps[a] - stamps[b])  # exact int64 differences
+        result[between] = _interpolate_rigid(samples[b], samples[a], alpha)
+    return result, exact | between

@@ -13,6 +13,7 @@ from endo_io.errors import PoseError
 from endo_io.pose import (
     canonical_quaternion,
     interpolate_transform,
+    interpolate_transforms,
     matrix_to_pose,
     matrix_to_quaternion,
     pose_to_matrix,
@@ -207,3 +208,105 @@ def test_interpolate_transform_time_checks():
         interpolate_transform(T0, 0, T1, 10, 11)
     T = interpolate_transform(T0, 0, T1, 10, 20, extrapolate=True)
     np.testing.assert_allclose(T, transform(rot_z(0.4), [2.0, 0.0, 0.0]), atol=1e-15)
+
+
+def _stream(seed: int = 0, count: int = 40) -> tuple[np.ndarray, np.ndarray]:
+    """A tracker-like stream: 60 Hz with jitter, two long dropouts, rotations
+    that jump (both quaternion signs, large angles) and one repeated pose."""
+    rng = np.random.default_rng(seed)
+    steps = rng.integers(14_000_000, 19_000_000, count - 1)
+    dropouts = [count // 4, 2 * count // 3]
+    steps[dropouts] = [80_000_000, 250_000_000]
+    stamps = 1_700_000_000_000_000_000 + np.concatenate([[0], np.cumsum(steps)])
+    rotations = Rotation.from_rotvec(rng.normal(0.0, 1.2, (count, 3))).as_matrix()
+    rotations[count // 2] = rotations[count // 2 - 1]  # identical: SLERP's linear branch
+    poses = np.stack([transform(R, rng.normal(0.0, 0.2, 3)) for R in rotations])
+    return stamps.astype(np.int64), poses
+
+
+def test_interpolate_transforms_agrees_with_the_scalar_interpolation():
+    stamps, poses = _stream()
+    rng = np.random.default_rng(1)
+    query = np.concatenate(
+        [
+            rng.integers(stamps[0] - 30_000_000, stamps[-1] + 30_000_000, 400),
+            stamps[::3],  # exactly on samples
+            stamps[[10, 26]] - 1,  # inside the dropouts
+            [stamps[0] - 1, stamps[-1] + 1],  # just outside the stream
+        ]
+    )
+    max_gap_ns = 60_000_000
+    result, valid = interpolate_transforms(stamps, poses, query, max_gap_ns)
+    assert result.shape == (len(query), 4, 4) and result.dtype == np.float64
+    checked = 0
+    for k, t in enumerate(query.tolist()):
+        after = int(np.searchsorted(stamps, t, side="right"))
+        if after > 0 and stamps[after - 1] == t:
+            assert valid[k]
+            np.testing.assert_array_equal(result[k], poses[after - 1])
+        elif 0 < after < len(stamps) and stamps[after] - stamps[after - 1] <= max_gap_ns:
+            assert valid[k]
+            expected = interpolate_transform(
+                poses[after - 1], int(stamps[after - 1]), poses[after], int(stamps[after]), t
+            )
+            np.testing.assert_allclose(result[k], expected, rtol=0.0, atol=1e-12)
+            checked += 1
+        else:
+            assert not valid[k]
+            assert np.all(np.isnan(result[k]))
+    assert checked > 200
+    assert valid.sum() < len(query) - 4  # dropouts and the ends are invalid
+
+
+def test_interpolate_transforms_against_scipy_slerp():
+    stamps, poses = _stream(seed=2, count=12)
+    bracket = np.arange(len(stamps) - 1)
+    bracket = bracket[np.diff(stamps) <= 60_000_000]
+    alpha = np.linspace(0.05, 0.95, len(bracket))
+    offsets = np.round(alpha * (stamps[bracket + 1] - stamps[bracket])).astype(np.int64)
+    result, valid = interpolate_transforms(stamps, poses, stamps[bracket] + offsets, 60_000_000)
+    assert valid.all()
+    fraction = offsets / (stamps[bracket + 1] - stamps[bracket])
+    for k, i in enumerate(bracket):
+        pair = Rotation.from_matrix(poses[i : i + 2, :3, :3])
+        expected_R = Slerp([0.0, 1.0], pair)([fraction[k]]).as_matrix()[0]
+        np.testing.assert_allclose(result[k, :3, :3], expected_R, atol=1e-13)
+        expected_t = (1 - fraction[k]) * poses[i, :3, 3] + fraction[k] * poses[i + 1, :3, 3]
+        np.testing.assert_allclose(result[k, :3, 3], expected_t, atol=1e-15)
+        np.testing.assert_array_equal(result[k, 3], [0, 0, 0, 1])
+
+
+def test_interpolate_transforms_gap_rule_and_edge_cases():
+    T0, T1 = np.eye(4), transform(rot_z(math.pi / 2), [0.01, 0.0, 0.0])
+    stamps = np.array([0, 16, 200, 216, 216], dtype=np.int64)
+    poses = np.stack([T0, T1, T0, T0, T1])
+    query = np.array([8, 16, 100, 216, -1, 300, 208], dtype=np.int64)
+    result, valid = interpolate_transforms(stamps, poses, query, max_gap_ns=16)
+    assert valid.tolist() == [True, True, False, True, False, False, True]
+    np.testing.assert_allclose(result[0], transform(rot_z(math.pi / 4), [0.005, 0, 0]), atol=1e-15)
+    np.testing.assert_array_equal(result[1], T1)
+    np.testing.assert_array_equal(result[3], T1)  # of equal stamps the last sample counts
+    # a gap of exactly max_gap_ns is bridged, one longer is not
+    assert not interpolate_transforms(stamps, poses, query, max_gap_ns=15)[1][0]
+    # empty stream or no queries
+    empty, none = interpolate_transforms(np.zeros(0, np.int64), np.zeros((0, 4, 4)), query, 10)
+    assert empty.shape == (7, 4, 4) and not none.any()
+    assert interpolate_transforms(stamps, poses, np.zeros(0, np.int64), 10)[0].shape == (0, 4, 4)
+
+
+@pytest.mark.parametrize(
+    ("stamps", "poses", "query", "gap", "match"),
+    [
+        ([10, 0], np.stack([np.eye(4)] * 2), [5], 10, "sorted"),
+        ([0, 10], np.stack([np.eye(4)] * 3), [5], 10, "3 poses"),
+        ([0.0, 10.0], np.stack([np.eye(4)] * 2), [5], 10, "integer"),
+        ([0, 10], np.stack([np.eye(4)] * 2), [5.0], 10, "integer"),
+        ([0, 10], np.eye(4), [5], 10, "shape"),
+        ([0, 10], np.stack([np.eye(4), np.diag([1.0, 1.0, -1.0, 1.0])]), [5], 10, "reflection"),
+        ([0, 10], np.stack([np.eye(4), np.full((4, 4), np.nan)]), [5], 10, "NaN"),
+        ([0, 10], np.stack([np.eye(4)] * 2), [5], -1, "max_gap_ns"),
+    ],
+)
+def test_interpolate_transforms_rejects_bad_input(stamps, poses, query, gap, match):
+    with pytest.raises(PoseError, match=match):
+        interpolate_transforms(np.array(stamps), poses, np.array(query), gap)
