@@ -18,6 +18,9 @@ from typing import Any
 #: Worker threads (one per core; ENDO_SIM_THREADS overrides).
 WORKERS = max(1, int(os.environ.get("ENDO_SIM_THREADS", os.cpu_count() or 1)))
 
+#: Bands per worker thread (dynamic load balancing).
+BANDS_PER_WORKER = 8
+
 _pool: ThreadPoolExecutor | None = None
 
 
@@ -46,13 +49,13 @@ def run_in_bands(kernel: Callable[..., Any], rows: int, *args: Any) -> None:
     arrays passed in ``args``; bands are disjoint, so no two calls write the
     same element.
     """
-    if WORKERS == 1 or rows < 2 * WORKERS:
+    bands = BANDS_PER_WORKER * WORKERS
+    if WORKERS == 1 or rows < bands:
         kernel(*args, 0, rows)
         return
-    # Interleaved bands balance the load (the lumen centre is costlier).
-    bounds = [round(rows * k / (2 * WORKERS)) for k in range(2 * WORKERS + 1)]
-    futures = [
-        _executor().submit(kernel, *args, bounds[k], bounds[k + 1]) for k in range(2 * WORKERS)
-    ]
+    # Many bands handed out as workers come free balance the load (the
+    # lumen's centre costs more per pixel than its walls).
+    bounds = [round(rows * k / bands) for k in range(bands + 1)]
+    futures = [_executor().submit(kernel, *args, bounds[k], bounds[k + 1]) for k in range(bands)]
     for future in futures:
         future.result()
