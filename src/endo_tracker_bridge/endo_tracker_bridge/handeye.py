@@ -17,26 +17,22 @@ Steps (:func:`calibrate_hand_eye`):
 
 1. Coarse clock search: for each candidate offset on a grid, interpolate the
    marker poses at ``image_stamp + offset`` (SLERP,
-   :func:`endo_io.pose.interpolate_transform`), solve the closed form (Park)
+   :func:`endo_io.pose.interpolate_transforms`), solve the closed form (Park)
    and score the median spread of the implied board poses ``A_i X B_i``.
-2. At the best offset, solve ``A X = X B`` with Tsai–Lenz (1989), Park–Martin
-   (1994) and Daniilidis (1999); keep the one whose implied board poses
-   agree best; reject views whose board pose is an outlier (median + 4 MAD).
+2. At the best offset, solve ``A X = X B`` with ``cv2.calibrateHandEye``:
+   Tsai–Lenz (1989), Park–Martin (1994) and Daniilidis (1999); keep the one
+   whose implied board poses agree best; reject views whose board pose is an
+   outlier (median + 4 MAD).
 3. Refine X and W by non-linear least squares on the reprojection error of
    every checkerboard corner (scipy.optimize.least_squares).
 4. Fine clock search: minimise the refined reprojection RMS over the offset
    in a bracket around the coarse optimum (bounded Brent), then refine once
    more at the optimum and report the residuals.
-
-OpenCV's ``calibrateHandEye`` is not exposed to Python in the pinned
-opencv-python-headless 5.0.0.93 (opencv/opencv#29565), so the three closed
-forms are implemented here from the papers.
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import cv2
@@ -45,11 +41,23 @@ from scipy.optimize import least_squares, minimize_scalar
 from scipy.spatial.transform import Rotation
 
 from endo_io.camera import CameraModel
-from endo_io.pose import interpolate_transform, matrix_to_quaternion
+from endo_io.pose import interpolate_transforms
 from endo_tracker_bridge.composition import invert_transform
 from endo_tracker_bridge.errors import HandEyeError
 
-METHODS = ("tsai", "park", "daniilidis")
+#: The closed forms: OpenCV's flag for each method name.
+_OPENCV_METHODS = {
+    "tsai": cv2.CALIB_HAND_EYE_TSAI,
+    "park": cv2.CALIB_HAND_EYE_PARK,
+    "daniilidis": cv2.CALIB_HAND_EYE_DANIILIDIS,
+}
+METHODS = tuple(_OPENCV_METHODS)
+#: Views handed to ``cv2.calibrateHandEye`` at most (evenly spread). OpenCV
+#: forms a motion from every pair of views, N (N - 1) / 2 of them at a few
+#: microseconds each, so the closed form's cost grows with the square of N;
+#: 100 views (4950 pairs, ~30 ms) already pin X down to the tracker's noise
+#: and the least-squares refinement uses every view anyway.
+CLOSED_FORM_MAX_VIEWS = 100
 MS = 1_000_000
 
 
@@ -220,171 +228,27 @@ def marker_poses_at(
 
     ``tracker_stamps_ns`` (M,) int64 increasing, ``tracker_poses`` (M, 4, 4)
     metres, ``query_ns`` (N,) int64 (tracker clock). A query is valid when it
-    lies between two samples at most ``max_gap_ns`` apart (a dropout longer
-    than that is not bridged). Returns ((N, 4, 4) float64, NaN where
-    invalid; (N,) bool valid).
+    falls on a sample or between two samples at most ``max_gap_ns`` apart (a
+    dropout longer than that is not bridged). Returns ((N, 4, 4) float64, NaN
+    where invalid; (N,) bool valid). This is
+    :func:`endo_io.pose.interpolate_transforms` (linear translation, SLERP).
     """
-    stamps = np.asarray(tracker_stamps_ns, dtype=np.int64)
-    query = np.asarray(query_ns, dtype=np.int64)
-    after = np.searchsorted(stamps, query, side="right")
-    before = after - 1
-    b, a = np.clip(before, 0, len(stamps) - 1), np.clip(after, 0, len(stamps) - 1)
-    exact = (before >= 0) & (stamps[b] == query)
-    bracketed = (before >= 0) & (after < len(stamps)) & ((stamps[a] - stamps[b]) <= max_gap_ns)
-    valid = exact | bracketed
-    poses = np.full((len(query), 4, 4), np.nan)
-    poses[exact] = tracker_poses[b[exact]]
-    for k in np.flatnonzero(bracketed & ~exact):
-        poses[k] = interpolate_transform(
-            tracker_poses[b[k]],
-            int(stamps[b[k]]),
-            tracker_poses[a[k]],
-            int(stamps[a[k]]),
-            int(query[k]),
-        )
-    return poses, valid
+    return interpolate_transforms(tracker_stamps_ns, tracker_poses, query_ns, max_gap_ns)
 
 
 # -- closed-form hand-eye (A X = X B) ------------------------------------------------
 
 
-def _skew(v: np.ndarray) -> np.ndarray:
-    """(..., 3) → (..., 3, 3) cross-product matrices."""
-    s = np.zeros((*v.shape[:-1], 3, 3))
-    s[..., 0, 1], s[..., 0, 2] = -v[..., 2], v[..., 1]
-    s[..., 1, 0], s[..., 1, 2] = v[..., 2], -v[..., 0]
-    s[..., 2, 0], s[..., 2, 1] = -v[..., 1], v[..., 0]
-    return s
+def _rotates_about_one_axis(T_tracker_marker: np.ndarray) -> bool:
+    """Whether every marker rotation relative to the first view shares one axis.
 
-
-def relative_motions(
-    T_tracker_marker: np.ndarray, T_camera_target: np.ndarray, min_angle_deg: float = 10.0
-) -> tuple[np.ndarray, np.ndarray]:
-    """Marker and camera motions between pairs of views, for ``A X = X B``.
-
-    Inputs (N, 4, 4). Of at most 20000 evenly spread candidate pairs, uses
-    every pair whose marker rotation is at least
-    ``min_angle_deg`` (pairs with little rotation constrain X poorly), or
-    the best-rotated quarter of all pairs if fewer qualify; at most 4000
-    pairs, spread evenly. Returns (A (P, 4, 4), B (P, 4, 4)) with
-    ``A = A_j⁻¹ A_i`` and ``B = B_j B_i⁻¹``.
+    Then ``A X = X B`` leaves a rotation of X about that axis (and a
+    translation along it) free: every closed form is degenerate.
     """
-    n = len(T_tracker_marker)
-    i, j = np.triu_indices(n, k=1)
-    if len(i) > 20000:  # enough candidates; the cost grows with the square of the views
-        pick = np.linspace(0, len(i) - 1, 20000).astype(int)
-        i, j = i[pick], j[pick]
-    A = invert_transform(T_tracker_marker)[j] @ T_tracker_marker[i]
-    B = T_camera_target[j] @ invert_transform(T_camera_target)[i]
-    angle = np.degrees(Rotation.from_matrix(A[:, :3, :3]).magnitude())
-    keep = np.flatnonzero(angle >= min_angle_deg)
-    if len(keep) < max(3, len(angle) // 4):
-        keep = np.argsort(angle)[-max(3, len(angle) // 4) :]
-    if len(keep) > 4000:
-        keep = keep[np.linspace(0, len(keep) - 1, 4000).astype(int)]
-    return A[keep], B[keep]
-
-
-def _translation_least_squares(A: np.ndarray, B: np.ndarray, R_x: np.ndarray) -> np.ndarray:
-    """t_X from (R_A − I) t_X = R_X t_B − t_A stacked over pairs (metres)."""
-    lhs = (A[:, :3, :3] - np.eye(3)).reshape(-1, 3)
-    rhs = (B[:, :3, 3] @ R_x.T - A[:, :3, 3]).reshape(-1)
-    return np.linalg.lstsq(lhs, rhs, rcond=None)[0]
-
-
-def _hand_eye_tsai(A: np.ndarray, B: np.ndarray) -> np.ndarray:
-    # Tsai & Lenz 1989: modified Rodrigues vectors P = 2 sin(θ/2) n satisfy
-    # skew(P_A + P_B) P' = P_B − P_A with P' = P_X / sqrt(4 − |P_X|²).
-    def rodrigues(T: np.ndarray) -> np.ndarray:
-        rotvec = Rotation.from_matrix(T[:, :3, :3]).as_rotvec()
-        angle = np.linalg.norm(rotvec, axis=-1, keepdims=True)
-        axis = np.divide(rotvec, angle, out=np.zeros_like(rotvec), where=angle > 0)
-        return 2.0 * np.sin(angle / 2.0) * axis
-
-    p_a, p_b = rodrigues(A), rodrigues(B)
-    p_prime = np.linalg.lstsq(_skew(p_a + p_b).reshape(-1, 3), (p_b - p_a).reshape(-1), rcond=None)[
-        0
-    ]
-    p_x = 2.0 * p_prime / math.sqrt(1.0 + float(p_prime @ p_prime))
-    norm2 = float(p_x @ p_x)
-    R_x = (1.0 - norm2 / 2.0) * np.eye(3) + 0.5 * (
-        np.outer(p_x, p_x) + math.sqrt(max(0.0, 4.0 - norm2)) * _skew(p_x)
-    )
-    u, _, vt = np.linalg.svd(R_x)
-    R_x = u @ vt
-    X = np.eye(4)
-    X[:3, :3], X[:3, 3] = R_x, _translation_least_squares(A, B, R_x)
-    return X
-
-
-def _hand_eye_park(A: np.ndarray, B: np.ndarray) -> np.ndarray:
-    # Park & Martin 1994: the rotation logs satisfy α = R_X β; R_X is the
-    # orthogonal Procrustes solution of Σ α βᵀ.
-    alpha = Rotation.from_matrix(A[:, :3, :3]).as_rotvec()
-    beta = Rotation.from_matrix(B[:, :3, :3]).as_rotvec()
-    u, _, vt = np.linalg.svd(alpha.T @ beta)
-    R_x = u @ np.diag([1.0, 1.0, np.linalg.det(u @ vt)]) @ vt
-    X = np.eye(4)
-    X[:3, :3], X[:3, 3] = R_x, _translation_least_squares(A, B, R_x)
-    return X
-
-
-def _dual_quaternions(T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(P, 4, 4) → real and dual parts (P, 4) as (w, x, y, z), w >= 0."""
-    q_xyzw = matrix_to_quaternion(T[:, :3, :3])
-    q = np.concatenate([q_xyzw[:, 3:], q_xyzw[:, :3]], axis=-1)
-    t = np.concatenate([np.zeros((len(T), 1)), T[:, :3, 3]], axis=-1)
-    return q, 0.5 * _quaternion_product(t, q)
-
-
-def _quaternion_product(p: np.ndarray, q: np.ndarray) -> np.ndarray:
-    """Hamilton product of (..., 4) (w, x, y, z) quaternions."""
-    pw, pv, qw, qv = p[..., :1], p[..., 1:], q[..., :1], q[..., 1:]
-    return np.concatenate(
-        [pw * qw - np.sum(pv * qv, axis=-1, keepdims=True), pw * qv + qw * pv + np.cross(pv, qv)],
-        axis=-1,
-    )
-
-
-def _hand_eye_daniilidis(A: np.ndarray, B: np.ndarray) -> np.ndarray:
-    # Daniilidis 1999: with dual quaternions a x = x b, each pair gives six
-    # linear equations in the 8 unknowns of x; x lies in the span of the two
-    # right singular vectors of least singular value, fixed by |q| = 1 and
-    # q·q' = 0.
-    qa, qa_dual = _dual_quaternions(A)
-    qb, qb_dual = _dual_quaternions(B)
-    rows = np.zeros((len(A), 6, 8))
-    rows[:, :3, 0] = qa[:, 1:] - qb[:, 1:]
-    rows[:, :3, 1:4] = _skew(qa[:, 1:] + qb[:, 1:])
-    rows[:, 3:, 0] = qa_dual[:, 1:] - qb_dual[:, 1:]
-    rows[:, 3:, 1:4] = _skew(qa_dual[:, 1:] + qb_dual[:, 1:])
-    rows[:, 3:, 4] = qa[:, 1:] - qb[:, 1:]
-    rows[:, 3:, 5:8] = _skew(qa[:, 1:] + qb[:, 1:])
-    _, _, vt = np.linalg.svd(rows.reshape(-1, 8), full_matrices=False)
-    v1, v2 = vt[-2], vt[-1]
-    u1, w1, u2, w2 = v1[:4], v1[4:], v2[:4], v2[4:]
-    # s = λ1/λ2 solves s² u1·w1 + s (u1·w2 + u2·w1) + u2·w2 = 0
-    roots = np.roots([u1 @ w1, u1 @ w2 + u2 @ w1, u2 @ w2])
-    roots = roots[np.isreal(roots)].real
-    if len(roots) == 0:
-        raise HandEyeError("Daniilidis: no real solution (too little motion)")
-    norms = roots**2 * (u1 @ u1) + 2.0 * roots * (u1 @ u2) + (u2 @ u2)
-    s = roots[np.argmax(norms)]
-    lambda2 = 1.0 / math.sqrt(float(np.max(norms)))
-    x = s * lambda2 * v1 + lambda2 * v2
-    q, q_dual = x[:4], x[4:]
-    t = 2.0 * _quaternion_product(q_dual, q * np.array([1.0, -1.0, -1.0, -1.0]))[1:]
-    X = np.eye(4)
-    X[:3, :3] = Rotation.from_quat(np.concatenate([q[1:], q[:1]])).as_matrix()
-    X[:3, 3] = t
-    return X
-
-
-_SOLVERS: dict[str, Callable[[np.ndarray, np.ndarray], np.ndarray]] = {
-    "tsai": _hand_eye_tsai,
-    "park": _hand_eye_park,
-    "daniilidis": _hand_eye_daniilidis,
-}
+    relative = np.swapaxes(T_tracker_marker[:1, :3, :3], -1, -2) @ T_tracker_marker[1:, :3, :3]
+    rotvecs = Rotation.from_matrix(relative).as_rotvec()
+    singular = np.linalg.svd(rotvecs, compute_uv=False)
+    return len(singular) < 2 or singular[1] / math.sqrt(len(rotvecs)) < 1e-6
 
 
 def solve_hand_eye(
@@ -392,15 +256,56 @@ def solve_hand_eye(
 ) -> np.ndarray:
     """Closed-form T_marker_camera (4, 4) from N >= 3 views (N, 4, 4) each, metres.
 
-    ``method`` is ``tsai``, ``park`` or ``daniilidis``. Raises HandEyeError
-    with fewer than 3 views or an unknown method.
+    ``method`` is ``tsai``, ``park`` or ``daniilidis``, solved by
+    ``cv2.calibrateHandEye`` with the marker as OpenCV's gripper and the
+    tracker as its base (``T_tracker_marker`` = gripper2base,
+    ``T_camera_target`` = target2cam; the result, cam2gripper, is
+    T_marker_camera). OpenCV uses every pair of views i < j, with the motions
+    ``A_j⁻¹ A_i`` and ``B_j B_i⁻¹``; of more than
+    :data:`CLOSED_FORM_MAX_VIEWS` views an evenly spread subset is used.
+    Raises HandEyeError with fewer than 3 views, an unknown method, views
+    whose marker rotations share one axis, too few view pairs rotating by
+    more than ~17° (``tsai``: OpenCV skips the others), or a non-finite or
+    non-rotation result.
     """
-    if method not in _SOLVERS:
+    if method not in _OPENCV_METHODS:
         raise HandEyeError(f"unknown hand-eye method '{method}' (expected {', '.join(METHODS)})")
-    if len(T_tracker_marker) < 3:
-        raise HandEyeError(f"hand-eye needs at least 3 views, got {len(T_tracker_marker)}")
-    A, B = relative_motions(T_tracker_marker, T_camera_target)
-    return _SOLVERS[method](A, B)
+    A = np.asarray(T_tracker_marker, dtype=np.float64)
+    B = np.asarray(T_camera_target, dtype=np.float64)
+    if len(A) < 3:
+        raise HandEyeError(f"hand-eye needs at least 3 views, got {len(A)}")
+    if A.shape[1:] != (4, 4) or B.shape != A.shape:
+        raise HandEyeError(f"hand-eye needs two (N, 4, 4) stacks, got {A.shape} and {B.shape}")
+    if len(A) > CLOSED_FORM_MAX_VIEWS:
+        pick = np.unique(np.linspace(0, len(A) - 1, CLOSED_FORM_MAX_VIEWS).round().astype(int))
+        A, B = A[pick], B[pick]
+    if _rotates_about_one_axis(A):
+        raise HandEyeError("the marker rotates about one axis only; hand-eye is undetermined")
+    try:
+        R, t = cv2.calibrateHandEye(
+            list(np.ascontiguousarray(A[:, :3, :3])),
+            list(np.ascontiguousarray(A[:, :3, 3:])),
+            list(np.ascontiguousarray(B[:, :3, :3])),
+            list(np.ascontiguousarray(B[:, :3, 3:])),
+            method=_OPENCV_METHODS[method],
+        )
+    except cv2.error as error:
+        raise HandEyeError(f"cv2.calibrateHandEye ({method}) failed: {error.err}") from error
+    if np.array_equal(R, np.eye(3)) and not np.any(t):
+        # OpenCV's Tsai keeps only view pairs that rotate by more than ~17°
+        # (2 sin(θ/2) >= 0.3, measured on 4.14); with fewer than two it logs
+        # an error and returns its initial identity rotation and zero
+        # translation, which no real solution equals exactly.
+        raise HandEyeError(f"{method}: too few view pairs with a large rotation")
+    X = np.eye(4)
+    X[:3, :3], X[:3, 3] = R, np.ravel(t)
+    if not np.all(np.isfinite(X)):
+        raise HandEyeError(f"{method}: no finite hand-eye solution (too little motion?)")
+    if np.max(np.abs(R.T @ R - np.eye(3))) > 1e-6 or np.linalg.det(R) <= 0.0:
+        raise HandEyeError(f"{method}: the hand-eye solution is not a rotation (degenerate data)")
+    u, _, vt = np.linalg.svd(R)  # remove rounding, so X is rigid to machine precision
+    X[:3, :3] = u @ vt
+    return X
 
 
 # -- residuals ---------------------------------------------------------------------------

@@ -17,6 +17,7 @@ from endo_io.camera import CameraModel
 from endo_tracker_bridge.composition import invert_transform
 from endo_tracker_bridge.errors import HandEyeError
 from endo_tracker_bridge.handeye import (
+    CLOSED_FORM_MAX_VIEWS,
     METHODS,
     MS,
     Checkerboard,
@@ -102,19 +103,61 @@ def _errors(T_estimated):
     )
 
 
-@pytest.mark.parametrize("method", METHODS)
-def test_closed_forms_are_exact_on_noise_free_data(method):
-    rng = np.random.default_rng(3)
+def _noise_free_views(count, seed=3, spread_rad=0.5):
+    """Marker poses with the board fixed (A_i X B_i = W exactly), 1 m from the tracker."""
+    rng = np.random.default_rng(seed)
     A = np.stack(
         [
-            _transform(rng.normal(0, 0.5, 3), rng.normal(0, 0.1, 3) + np.array([0.0, 0.0, -1.0]))
-            for _ in range(12)
+            _transform(
+                rng.normal(0, spread_rad, 3), rng.normal(0, 0.1, 3) + np.array([0.0, 0.0, -1.0])
+            )
+            for _ in range(count)
         ]
     )
-    B = invert_transform(A @ X_TRUE) @ W_TRUE
-    translation_mm, rotation_deg = _errors(solve_hand_eye(A, B, method))
+    return A, invert_transform(A @ X_TRUE) @ W_TRUE
+
+
+@pytest.mark.parametrize("method", METHODS)
+@pytest.mark.parametrize(
+    ("count", "spread_rad"),
+    [(12, 0.5), (12, 1.5), (CLOSED_FORM_MAX_VIEWS + 30, 0.5)],
+    ids=["12-views", "12-views-large-rotations", "subsampled"],
+)
+def test_each_opencv_method_recovers_the_true_transform(method, count, spread_rad):
+    A, B = _noise_free_views(count, spread_rad=spread_rad)
+    X = solve_hand_eye(A, B, method)
+    translation_mm, rotation_deg = _errors(X)
     assert translation_mm < 1e-6
     assert rotation_deg < 1e-6
+    np.testing.assert_allclose(X[:3, :3].T @ X[:3, :3], np.eye(3), atol=1e-14)
+    np.testing.assert_array_equal(X[3], [0, 0, 0, 1])
+
+
+def test_closed_form_refusals():
+    A, B = _noise_free_views(12)
+    with pytest.raises(HandEyeError, match="at least 3 views"):
+        solve_hand_eye(A[:2], B[:2], "park")
+    with pytest.raises(HandEyeError, match="unknown hand-eye method 'horaud'"):
+        solve_hand_eye(A, B, "horaud")
+    with pytest.raises(HandEyeError, match=r"\(N, 4, 4\)"):
+        solve_hand_eye(A, B[:-1], "park")
+    # rotations about one axis only leave X free to turn about it
+    turns = np.stack(
+        [
+            _transform([0.0, 0.0, angle], A[k, :3, 3])
+            for k, angle in enumerate(np.linspace(-0.6, 0.6, 12))
+        ]
+    )
+    for method in METHODS:
+        with pytest.raises(HandEyeError, match="one axis"):
+            solve_hand_eye(turns, invert_transform(turns @ X_TRUE) @ W_TRUE, method)
+    # views a few degrees apart: OpenCV's Tsai finds no pair rotating by 17°
+    # or more and refuses; Park and Daniilidis still solve exact data
+    small, small_B = _noise_free_views(12, seed=4, spread_rad=0.03)
+    with pytest.raises(HandEyeError, match="too few view pairs"):
+        solve_hand_eye(small, small_B, "tsai")
+    for method in ("park", "daniilidis"):
+        assert _errors(solve_hand_eye(small, small_B, method))[0] < 1e-6
 
 
 def test_board_pose_from_projected_corners_is_exact():
