@@ -7,7 +7,10 @@ into docs/benchmarks.md under "endo_tracker_bridge hand–eye".
    marker swings around a checkerboard; the tracker samples at 60 Hz with
    0.25 mm / 0.1° noise, 3 % dropouts and 23.4 ms latency; corners get
    0.1 px noise. For several numbers of views: solver time and errors.
-2. bags/handeye.mcap when present: corner detection time per image, solver
+2. The closed forms alone (``cv2.calibrateHandEye`` through
+   ``solve_hand_eye``) on the 20 s synthetic recording at the true offset:
+   time per call and error of each method, for several numbers of views.
+3. bags/handeye.mcap when present: corner detection time per image, solver
    time, and the errors against <bag>.ground_truth.yaml.
 """
 
@@ -18,7 +21,9 @@ import subprocess
 import time
 from pathlib import Path
 
+import cv2
 import numpy as np
+import scipy
 import yaml
 from scipy.spatial.transform import Rotation
 
@@ -26,10 +31,13 @@ from endo_io.camera import CameraModel
 from endo_tracker_bridge.composition import invert_transform
 from endo_tracker_bridge.conventions import LengthUnit
 from endo_tracker_bridge.handeye import (
+    METHODS,
     Checkerboard,
     OffsetSearch,
     board_view,
     calibrate_hand_eye,
+    marker_poses_at,
+    solve_hand_eye,
 )
 from endo_tracker_bridge.handeye_cli import read_observations
 
@@ -109,6 +117,31 @@ def bench_synthetic():
         )
 
 
+def bench_closed_forms():
+    views, stamps, poses = _synthetic(20.0)
+    A, valid = marker_poses_at(
+        stamps, poses, np.array([v.stamp_ns for v in views]) + round(23.4 * MS), 60 * MS
+    )
+    B = np.stack([v.T_camera_target for v in views])[valid]
+    A = A[valid]
+    print("## closed forms alone (cv2.calibrateHandEye), 20 s synthetic, true offset")
+    print("| views | " + " | ".join(f"{m} ms, mm, °" for m in METHODS) + " |")
+    print("|---|" + "---|" * len(METHODS))
+    for count in (24, 60, 100, len(A)):
+        pick = np.unique(np.linspace(0, len(A) - 1, count).round().astype(int))
+        cells = []
+        for method in METHODS:
+            solve_hand_eye(A[pick], B[pick], method)  # warm-up
+            repeats = 5
+            start = time.perf_counter()
+            for _ in range(repeats):
+                X = solve_hand_eye(A[pick], B[pick], method)
+            elapsed_ms = 1e3 * (time.perf_counter() - start) / repeats
+            t_err, r_err = _errors(X_TRUE, X)
+            cells.append(f"{elapsed_ms:.1f}, {t_err:.3f}, {r_err:.4f}")
+        print(f"| {len(pick)} | " + " | ".join(cells) + " |")
+
+
 def bench_bag(bag: Path):
     truth_path = bag.with_name(bag.stem + ".ground_truth.yaml")
     truth = yaml.safe_load(truth_path.read_text())
@@ -149,8 +182,12 @@ def main():
     model = next(
         (line.split(":", 1)[1].strip() for line in cpu.splitlines() if "Model name" in line), "?"
     )
-    print(f"machine: {model}, {platform.python_version()}")
+    print(
+        f"machine: {model}, Python {platform.python_version()}, numpy {np.__version__}, "
+        f"scipy {scipy.__version__}, OpenCV {cv2.__version__}"
+    )
     bench_synthetic()
+    bench_closed_forms()
     bag = ROOT / "bags" / "handeye.mcap"
     if bag.exists():
         bench_bag(bag)
