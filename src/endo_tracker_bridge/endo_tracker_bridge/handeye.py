@@ -23,11 +23,12 @@ Steps (:func:`calibrate_hand_eye`):
    Tsai–Lenz (1989), Park–Martin (1994) and Daniilidis (1999); keep the one
    whose implied board poses agree best; reject views whose board pose is an
    outlier (median + 4 MAD).
-3. Refine X and W by non-linear least squares on the reprojection error of
-   every checkerboard corner (scipy.optimize.least_squares).
-4. Fine clock search: minimise the refined reprojection RMS over the offset
-   in a bracket around the coarse optimum (bounded Brent), then refine once
-   more at the optimum and report the residuals.
+3. Refine X and W by non-linear least squares on the difference between each
+   measured marker pose and the one its board view predicts, weighted by the
+   tracker's noise (:func:`refine_hand_eye`, scipy.optimize.least_squares).
+4. Fine clock search: minimise that refined cost over the offset in a
+   bracket around the coarse optimum (bounded Brent), then fit once more at
+   the optimum and report the residuals (tracker and corner reprojection).
 """
 
 from __future__ import annotations
