@@ -31,7 +31,6 @@ from std_msgs.msg import Float32
 from endo_io.bag import BagMessage, BagReader, BagWriter, deserialize, serialize
 from endo_io.bag.qos_yaml import qos_profiles_from_yaml, qos_profiles_to_yaml
 from endo_io.errors import BagCorruptError, BagError
-from endo_io.record import dds_aligned
 from endo_io.stamp import ns_to_stamp, stamp_to_ns
 
 pytestmark = pytest.mark.ros
@@ -94,7 +93,7 @@ def write_input_bag(path: Path) -> None:
         # alignment, as DDS delivers it (rclpy's serialisation is unpadded;
         # CameraInfo ends in a bool and needs 3 bytes of padding).
         for t, topic, msg in sorted(events, key=lambda e: e[0]):
-            writer.write(topic, dds_aligned(serialize(msg)), t)
+            writer.write(topic, serialize(msg), t)
 
 
 def read_all(path: Path) -> tuple[list[BagMessage], bool]:

@@ -32,11 +32,11 @@ import numpy as np
 from std_msgs.msg import Float32
 
 from endo_io.bag import BagReader, BagWriter, message_class, msgtype_of, serialize
+from endo_io.bag.serde import dds_aligned
 from endo_io.camera import CameraModel
 from endo_io.errors import BagError, Endo3dError
 from endo_io.image import array_to_image
 from endo_io.pose import matrix_to_pose
-from endo_io.record import dds_aligned
 
 #: DDS domain of the demo when the environment gives none (as in the Makefile).
 DEMO_DOMAIN_ID = "41"
@@ -105,7 +105,7 @@ def write_synthetic_bag(path: Path, seconds: float = 2.0) -> None:
             if topic not in added:
                 writer.add_topic(topic, msgtype_of(msg))
                 added.add(topic)
-            writer.write(topic, dds_aligned(serialize(msg)), t)
+            writer.write(topic, serialize(msg), t)
 
 
 # --------------------------------------------------------------------------

@@ -265,18 +265,6 @@ class Recording:
         return self.report
 
 
-def dds_aligned(data: bytes) -> bytes:
-    """``data`` padded with zero bytes to a multiple of 4 bytes.
-
-    DDS (Fast DDS here) delivers a serialized message padded to 4-byte
-    alignment, and that padded payload is what the recorder receives and
-    stores, as ``ros2 bag record`` does. rclpy's own serialisation is not
-    padded, so a message serialised locally equals its recorded form after
-    this padding. Used to compare bags across a replay/record round trip.
-    """
-    return data + bytes(-len(data) % 4)
-
-
 def seconds_to_ns(seconds: float | None) -> int | None:
     """Option seconds to integer nanoseconds (None stays None; must be finite and > 0)."""
     if seconds is None:

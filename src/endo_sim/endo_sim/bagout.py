@@ -39,7 +39,6 @@ from typing import Any
 
 import numpy as np
 import yaml
-from rosbags.typesys import Stores, get_typestore
 from std_msgs.msg import Float32
 
 from endo_io.bag import BagWriter, qos_profiles_to_yaml, serialize
@@ -154,22 +153,6 @@ def recording_messages(sequence: Sequence) -> Iterator[TimedMessage]:
         yield message
 
 
-_TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
-
-
-def canonical_cdr(message: Any, msgtype: str) -> bytes:
-    """CDR bytes of ``message`` with every alignment padding byte zero.
-
-    rclpy's serialiser leaves CDR alignment padding (e.g. the bytes between
-    ``Image.is_bigendian`` and ``Image.step``) uninitialised, so the same
-    message can serialise to different bytes from run to run. Decoding those
-    bytes and encoding them again with rosbags' pure-Python CDR codec, which
-    writes zero padding, makes equal messages equal bytes: same seed, same bag.
-    """
-    decoded = _TYPESTORE.deserialize_cdr(serialize(message), msgtype)
-    return bytes(_TYPESTORE.serialize_cdr(decoded, msgtype))
-
-
 @dataclass(frozen=True)
 class BagSummary:
     """What was written: paths, message counts per topic, and the bag's size."""
@@ -194,7 +177,7 @@ def write_bag(sequence: Sequence, path: str | Path, compression: str = "zstd") -
         for topic in topics:
             bag.add_topic(topic, _TOPIC_TYPES[topic], qos)
         for message in recording_messages(sequence):
-            data = canonical_cdr(message.message, _TOPIC_TYPES[message.topic])
+            data = serialize(message.message)
             bag.write(message.topic, data, message.log_time_ns)
             counts[message.topic] += 1
     truth = write_ground_truth(sequence, path, counts)

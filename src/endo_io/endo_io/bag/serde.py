@@ -69,7 +69,38 @@ def deserialize(message: BagMessage) -> Any:
         ) from exc
 
 
+@functools.lru_cache(maxsize=1)
+def _typestore() -> Any:
+    from rosbags.typesys import Stores, get_typestore
+
+    return get_typestore(Stores.ROS2_JAZZY)
+
+
+def dds_aligned(data: bytes) -> bytes:
+    """``data`` padded with zero bytes to a multiple of 4 bytes.
+
+    DDS (Fast DDS here) delivers a serialized message padded to 4-byte
+    alignment, and that padded payload is what a recorder receives and
+    stores, as ``ros2 bag record`` does.
+    """
+    return data + bytes(-len(data) % 4)
+
+
 def serialize(message: Any) -> bytes:
-    """CDR bytes of a ROS 2 message instance (rclpy serialisation)."""
-    msgtype_of(message)
-    return serialize_message(message)
+    """Canonical CDR bytes of a ROS 2 message instance.
+
+    rclpy's serialiser leaves CDR alignment padding (e.g. the bytes between
+    ``Image.is_bigendian`` and ``Image.step``) uninitialised, so one message
+    can serialise to different bytes from run to run. The bytes are therefore
+    re-encoded with rosbags' CDR codec, which zeroes every padding byte, for
+    every type of the standard Jazzy type store (other types keep rclpy's
+    bytes), and padded to 4 bytes as DDS delivers them. Equal messages give
+    equal bytes, and a bag written here equals its replay-and-record round
+    trip byte for byte.
+    """
+    msgtype = msgtype_of(message)
+    data = serialize_message(message)
+    store = _typestore()
+    if msgtype in store.fielddefs:
+        data = bytes(store.serialize_cdr(store.deserialize_cdr(data, msgtype), msgtype))
+    return dds_aligned(data)
