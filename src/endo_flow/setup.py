@@ -14,7 +14,10 @@ setup(
     zip_safe=True,
     maintainer="endo3d developers",
     maintainer_email="dev@endo3d.org",
-    description="Lucas-Kanade flow and tracker poses to absolute scale, metric depth and world-frame point clouds.",
+    description=(
+        "Lucas-Kanade flow and tracker poses to absolute scale, metric depth"
+        " and world-frame point clouds."
+    ),
     license="Apache-2.0",
     tests_require=["pytest"],
     entry_points={
