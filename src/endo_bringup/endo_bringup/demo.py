@@ -1,23 +1,36 @@
-"""``endo-demo``: send a bag through real ROS 2 topics and record it back.
+"""``endo-demo``: the endo3d graph as it exists so far, on the sample bags, over DDS.
 
-Until the full endo3d graph exists, the demo exercises its spine: a bag is
-played by ``endo-replay`` in one OS process and recorded by ``endo-record``
-in another, over loopback DDS, and the recording is compared with the input
-message for message. The bag is ``bags/phantom_*.mcap`` if there is one, else
-the first ``bags/*.mcap``, else a small synthetic bag written here (two
-seconds of 160x120 rgb8 endoscope frames with camera info, a tracked tool
-pose and a light level). Outputs go to a new temporary directory (or
-``--output-dir``), never into the repository.
+Three parts, every one through the command-line tools a user runs, each tool
+in its own OS process, talking to the others over loopback DDS only:
 
-Exit status 0 when every played message came back with the same bytes, 1
-when the round trip differs or a process failed.
+1. Round trip (the spine): a bag is played by ``endo-replay`` and recorded
+   by ``endo-record``, and the recording is compared with the input message
+   for message. The bag is ``bags/phantom_*.mcap`` if there is one, else the
+   first ``bags/*.mcap``, else a small synthetic bag written here (two
+   seconds of 160x120 rgb8 endoscope frames with camera info, a tracked tool
+   pose and a light level).
+2. Offline calibrations: ``endo-calibrate`` on ``bags/graycard.mcap`` and
+   ``endo-handeye`` on ``bags/handeye.mcap``, scored against the ground-truth
+   files beside the bags.
+3. Live graph (:mod:`endo_bringup.graph`): ``photometric_correction``,
+   ``endo-sfs`` and ``endo-tracker-bridge`` with those calibrations,
+   ``endo-record`` of their outputs and the ground truth, and
+   ``endo-replay`` of ``bags/phantom_colon.mcap`` into them; the recording is
+   scored by :mod:`endo_bringup.evaluation` (frames per stage, median-scaled
+   AbsRel of the relative depth, camera pose error).
+
+Parts 2 and 3 need the three sample bags with their ground truth; without
+them (or with ``--round-trip-only``) only part 1 runs. Outputs go to a new
+temporary directory (or ``--output-dir``), never into the repository.
+
+Exit status 0 when every played message came back with the same bytes and
+every stage of the graph produced output; 1 otherwise.
 """
 
 from __future__ import annotations
 
 import argparse
 import os
-import shutil
 import signal
 import subprocess
 import sys
@@ -29,14 +42,36 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+import yaml
 from std_msgs.msg import Float32
 
+from endo_bringup import evaluation
+from endo_bringup.dds_profile import with_large_frame_profile
+from endo_bringup.graph import (
+    CORRECTED_TOPIC,
+    DEPTH_TOPIC,
+    POSE_TOPIC,
+    RAW_TOPIC,
+    TRUE_DEPTH_TOPIC,
+    TRUE_POSE_TOPIC,
+    GraphError,
+    GraphRun,
+    GraphSettings,
+    OfflineStep,
+    ground_truth_of,
+    run_live_graph,
+    run_offline_calibrations,
+)
+from endo_bringup.process_group import console_script
+from endo_calib.calibration import PhotometricCalibration
 from endo_io.bag import BagReader, BagWriter, message_class, msgtype_of, serialize
 from endo_io.bag.serde import dds_aligned
 from endo_io.camera import CameraModel
 from endo_io.errors import BagError, Endo3dError
 from endo_io.image import array_to_image
 from endo_io.pose import matrix_to_pose
+from endo_sfs.evaluation import DepthError
+from endo_tracker_bridge.handeye_file import HandEyeCalibration
 
 #: DDS domain of the demo when the environment gives none (as in the Makefile).
 DEMO_DOMAIN_ID = "41"
@@ -176,16 +211,6 @@ def compare_bags(sent_path: Path, received_path: Path, topics: list[str]) -> Rou
 # Running the two processes
 
 
-def _script(name: str) -> str:
-    beside = Path(sys.executable).parent / name
-    if beside.exists():
-        return str(beside)
-    found = shutil.which(name)
-    if found is None:
-        raise FileNotFoundError(f"{name} is not installed (pip install -e src/endo_io)")
-    return found
-
-
 def _count_readable(path: Path) -> int:
     try:
         with BagReader(path) as reader:
@@ -225,7 +250,7 @@ def run_round_trip(
     with record_log.open("wb") as log:
         recorder = subprocess.Popen(
             [
-                _script("endo-record"),
+                console_script("endo-record"),
                 "--topics",
                 *topics,
                 "-o",
@@ -240,7 +265,7 @@ def run_round_trip(
         try:
             replay = subprocess.run(
                 [
-                    _script("endo-replay"),
+                    console_script("endo-replay"),
                     str(bag),
                     "--topics",
                     *topics,
@@ -271,29 +296,276 @@ def run_round_trip(
     return replay.returncode, record_rc, logs
 
 
+# --------------------------------------------------------------------------
+# The graph on the sample bags
+
+#: The sample bags the graph part needs, with their ground truth beside them.
+GRAYCARD_BAG, HANDEYE_BAG, PHANTOM_BAG = "graycard.mcap", "handeye.mcap", "phantom_colon.mcap"
+SAMPLE_BAGS = (GRAYCARD_BAG, HANDEYE_BAG, PHANTOM_BAG)
+
+
+@dataclass
+class CalibrationScores:
+    """The offline calibrations against the simulator's truth.
+
+    response_residual_dn: endo-calibrate's fit residual RMS (raw values);
+    inverse_response_max_error: max |g − g_true| over raw values 5–250, fraction
+    of full scale; handeye_*: T_marker_camera error (mm, deg), clock offset
+    error (ms), the fit's residuals and views.
+    """
+
+    response_residual_dn: float
+    inverse_response_max_error: float
+    handeye_translation_mm: float
+    handeye_rotation_deg: float
+    time_offset_error_ms: float
+    handeye_residuals: dict[str, float]
+    handeye_views: tuple[int, int]
+
+
+@dataclass
+class GraphReport:
+    """Everything the graph part did and measured.
+
+    counts: messages per recorded topic; depth_errors: stamp (ns) -> median-
+    scaled error of each depth frame that has a ground truth; poses: the
+    bridge's /endoscope/pose against /ground_truth/camera_pose.
+    """
+
+    calibrate: OfflineStep
+    handeye: OfflineStep
+    scores: CalibrationScores | None
+    run: GraphRun | None
+    counts: dict[str, int] = field(default_factory=dict)
+    depth_errors: dict[int, DepthError] = field(default_factory=dict)
+    poses: evaluation.PoseComparison | None = None
+    dds_note: str = ""
+    error: str = ""
+
+    def failures(self) -> list[str]:
+        """Why this run counts as failed (empty when it did not)."""
+        problems = [
+            f"{step.argv[0].rsplit('/', 1)[-1]} exited {step.return_code}"
+            for step in (self.calibrate, self.handeye)
+            if step.return_code != 0
+        ]
+        if self.error:
+            problems.append(self.error)
+        if self.run is not None:
+            problems += [
+                f"{name} exited {'(killed)' if code is None else code}"
+                for name, code in self.run.return_codes.items()
+                if code != 0
+            ]
+            problems += [
+                f"no message on {topic}"
+                for topic in (CORRECTED_TOPIC, DEPTH_TOPIC, POSE_TOPIC)
+                if self.counts.get(topic, 0) == 0
+            ]
+            if not self.depth_errors:
+                problems.append("no depth frame has a ground truth with the same stamp")
+            if self.poses is None or self.poses.compared == 0:
+                problems.append("no camera pose could be compared with the ground truth")
+        return problems
+
+
+def score_calibrations(
+    photometric: Path, handeye: Path, graycard_bag: Path, handeye_bag: Path
+) -> CalibrationScores:
+    """Compare photometric.yaml and handeye.yaml with the ground truth beside the bags."""
+    calibration = PhotometricCalibration.load(photometric)
+    fit = yaml.safe_load(photometric.read_text())["fit"]["channels"]
+    true_response = np.load(graycard_bag.with_name(graycard_bag.stem + ".inverse_response.npy"))
+    hand_eye = HandEyeCalibration.load(handeye)
+    tracker = ground_truth_of(handeye_bag)["tracker"]
+    translation_mm, rotation_deg = evaluation.handeye_error(
+        hand_eye.T_marker_camera,
+        np.asarray(tracker["T_marker_camera"], dtype=np.float64),  # type: ignore[index]
+    )
+    return CalibrationScores(
+        response_residual_dn=float(max(c["residual_rms_dn"] for c in fit.values())),
+        inverse_response_max_error=evaluation.inverse_response_error(
+            np.asarray(calibration.inverse_response).reshape(len(true_response), -1)[:, 0],
+            true_response,
+        ),
+        handeye_translation_mm=translation_mm,
+        handeye_rotation_deg=rotation_deg,
+        time_offset_error_ms=hand_eye.time_offset_ns * 1e-6 - float(tracker["latency_s"]) * 1e3,  # type: ignore[index]
+        handeye_residuals=dict(hand_eye.residuals),
+        handeye_views=(hand_eye.views_used, hand_eye.views_total),
+    )
+
+
+def graph_settings_for(bag: Path, rate: float, solve_scale: float) -> GraphSettings:
+    """Settings of the live graph for a simulated bag.
+
+    The SFS roughness is the simulator's Oren–Nayar σ (a user would take it
+    from tissue measurements). T_world_tracker is the simulator's
+    tracker-to-world registration, so that /endoscope/pose lands in the
+    frame of /ground_truth/camera_pose; a real setup gets it from a
+    registration step (not part of endo3d yet).
+    """
+    truth = ground_truth_of(bag)
+    T_tracker_world = np.asarray(truth["tracker"]["T_tracker_world"], dtype=np.float64)  # type: ignore[index]
+    return GraphSettings(
+        rate=rate,
+        model="near_light",
+        roughness=float(truth["photometry"]["roughness_rad"]),  # type: ignore[index]
+        solve_scale=solve_scale,
+        T_world_tracker=np.linalg.inv(T_tracker_world),
+    )
+
+
+def run_graph_stage(
+    bags_dir: Path, out_dir: Path, env: dict[str, str], rate: float = 0.5, solve_scale: float = 0.5
+) -> GraphReport:
+    """Offline calibrations, then the live graph on the phantom bag, then the scores.
+
+    bags_dir holds graycard.mcap, handeye.mcap and phantom_colon.mcap with
+    their ground truth; everything is written under ``out_dir``. Every child
+    process has ended when this returns.
+    """
+    graycard, handeye_bag, phantom = (bags_dir / name for name in SAMPLE_BAGS)
+    calibrate, handeye = run_offline_calibrations(graycard, handeye_bag, out_dir, env)
+    report = GraphReport(calibrate=calibrate, handeye=handeye, scores=None, run=None)
+    if calibrate.return_code != 0 or handeye.return_code != 0:
+        return report
+    report.scores = score_calibrations(calibrate.result, handeye.result, graycard, handeye_bag)
+    graph_env, report.dds_note = with_large_frame_profile(env, out_dir)
+    settings = graph_settings_for(phantom, rate, solve_scale)
+    try:
+        report.run = run_live_graph(
+            phantom, calibrate.result, handeye.result, out_dir, graph_env, settings
+        )
+    except GraphError as error:
+        report.error = str(error)
+        return report
+    recording = report.run.recording
+    report.counts = dict(evaluation.topic_counts(recording))
+    report.depth_errors = evaluation.depth_errors_at_truth(
+        evaluation.read_depth_frames(recording, DEPTH_TOPIC),
+        evaluation.read_depth_frames(recording, TRUE_DEPTH_TOPIC),
+    )
+    report.poses = evaluation.compare_poses(
+        *evaluation.read_pose_stream(recording, POSE_TOPIC),
+        *evaluation.read_pose_stream(recording, TRUE_POSE_TOPIC),
+    )
+    return report
+
+
+def print_graph_report(report: GraphReport, rate: float) -> None:
+    """The graph part's summary: what ran, frames per stage, errors against the truth."""
+    for step in (report.calibrate, report.handeye):
+        name = step.argv[0].rsplit("/", 1)[-1]
+        status = "ok" if step.return_code == 0 else f"FAILED (exit {step.return_code})"
+        print(f"  {name:<16} {status} in {step.seconds:.1f} s -> {step.result}")
+        if step.return_code != 0:
+            print("    " + step.output.strip().replace("\n", "\n    "))
+    scores = report.scores
+    if scores is not None:
+        r = scores.handeye_residuals
+        print(
+            f"  photometric: response fit residual {scores.response_residual_dn:.3f} DN RMS; "
+            f"inverse response vs truth: max error {100 * scores.inverse_response_max_error:.2f} %"
+            " of full scale (values 5-250)"
+        )
+        print(
+            f"  hand-eye: residuals {r.get('translation_rms_mm', float('nan')):.3f} mm, "
+            f"{r.get('rotation_rms_deg', float('nan')):.3f} deg RMS "
+            f"({scores.handeye_views[0]}/{scores.handeye_views[1]} views); vs truth: "
+            f"{scores.handeye_translation_mm:.3f} mm, {scores.handeye_rotation_deg:.3f} deg, "
+            f"clock offset {scores.time_offset_error_ms:+.3f} ms"
+        )
+    if report.dds_note:
+        print(f"  {report.dds_note}")
+    run = report.run
+    if run is None:
+        if report.error:
+            print(f"  live graph: FAILED: {report.error}")
+        return
+    played = run.played
+    print(f"  live graph: {PHANTOM_BAG} at {rate:g}x, {run.seconds:.1f} s; logs in {run.log_dir}")
+    print(f"    {'stage':<32} {'topic':<30} {'in':>5} {'out':>5}")
+    stages = [
+        ("endo-replay (ground truth)", TRUE_POSE_TOPIC, played.get(TRUE_POSE_TOPIC, 0)),
+        ("endo-replay (ground truth)", TRUE_DEPTH_TOPIC, played.get(TRUE_DEPTH_TOPIC, 0)),
+        ("photometric_correction", CORRECTED_TOPIC, played.get(RAW_TOPIC, 0)),
+        ("endo-sfs", DEPTH_TOPIC, report.counts.get(CORRECTED_TOPIC, 0)),
+        ("endo-tracker-bridge", POSE_TOPIC, played.get("/tracker/pose", 0)),
+    ]
+    for stage, topic, count_in in stages:
+        print(f"    {stage:<32} {topic:<30} {count_in:>5} {report.counts.get(topic, 0):>5}")
+    if report.depth_errors:
+        values = [e.abs_rel for e in report.depth_errors.values()]
+        listed = ", ".join(f"{v:.3f}" for v in values)
+        print(
+            f"  depth: {len(values)} depth_relative frames with a ground truth of the same stamp; "
+            f"AbsRel after median scaling (per frame, s = median(true)/median(estimate)) "
+            f"{listed}; mean {np.mean(values):.3f}"
+        )
+        print(
+            "    (relative depth: its scale is not known to SFS and is recovered here from the "
+            "truth; endo_flow will recover it from the tracker poses)"
+        )
+    poses = report.poses
+    if poses is not None and poses.compared:
+        print(
+            f"  camera pose: /endoscope/pose interpolated at {poses.compared} ground-truth stamps "
+            f"({poses.missing} in tracker dropouts): position error median "
+            f"{np.median(poses.position_mm):.3f} mm, max {np.max(poses.position_mm):.3f} mm; "
+            f"rotation error median {np.median(poses.rotation_deg):.3f} deg, "
+            f"max {np.max(poses.rotation_deg):.3f} deg"
+        )
+    print(f"  recording: {run.recording}")
+    print(
+        f"  look at it: open {run.recording} in Foxglove Studio, or play it with "
+        f"`endo-replay {run.recording} --loop` and watch in RViz2 on the same ROS_DOMAIN_ID"
+    )
+
+
+def sample_bags_dir(search_dirs: list[Path]) -> Path | None:
+    """The first directory holding all three sample bags and their ground truth."""
+    for directory in search_dirs:
+        if all(
+            (directory / name).exists()
+            and (directory / name.replace(".mcap", ".ground_truth.yaml")).exists()
+            for name in SAMPLE_BAGS
+        ):
+            return directory
+    return None
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The ``endo-demo`` command line."""
     parser = argparse.ArgumentParser(
         prog="endo-demo",
-        description="Play a bag with endo-replay, record it with endo-record, compare.",
+        description="Round trip replay/record, offline calibrations, and the live endo3d graph "
+        "on the sample bags, every tool in its own process over DDS.",
     )
-    parser.add_argument("--bag", type=Path, default=None, help="bag to play (default: see above)")
+    parser.add_argument("--bag", type=Path, default=None, help="bag of the round trip")
     parser.add_argument(
         "--output-dir", type=Path, default=None, help="where to write (default: a new temp dir)"
     )
-    parser.add_argument("--rate", type=float, default=1.0, help="playback speed factor")
+    parser.add_argument("--rate", type=float, default=1.0, help="round-trip playback speed")
+    parser.add_argument(
+        "--graph-rate",
+        type=float,
+        default=0.5,
+        help="playback speed of the phantom bag into the graph (default 0.5: 15 frames/s, "
+        "which the SFS node at solve_scale 0.5 keeps up with on 2 cores)",
+    )
+    parser.add_argument(
+        "--solve-scale", type=float, default=0.5, help="the SFS node's solve_scale (default 0.5)"
+    )
+    parser.add_argument(
+        "--round-trip-only", action="store_true", help="skip the calibrations and the graph"
+    )
     return parser
 
 
-def main(argv: list[str] | None = None) -> int:
-    """Run the demo; returns the exit status."""
-    options = build_parser().parse_args(argv)
-    env = dict(os.environ)
-    env.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
-    env.setdefault("ROS_DOMAIN_ID", DEMO_DOMAIN_ID)
-    out_dir = options.output_dir or Path(tempfile.mkdtemp(prefix="endo_demo_"))
-    out_dir.mkdir(parents=True, exist_ok=True)
-    bag = options.bag or find_bag(list(dict.fromkeys([Path.cwd() / "bags", REPO_ROOT / "bags"])))
+def run_round_trip_stage(bag: Path | None, out_dir: Path, rate: float, env: dict[str, str]) -> bool:
+    """Part 1: replay ``bag`` (or the default one), record it, compare; print the table."""
+    bag = bag or find_bag(list(dict.fromkeys([Path.cwd() / "bags", REPO_ROOT / "bags"])))
     if bag is None:
         bag = out_dir / "synthetic_input.mcap"
         write_synthetic_bag(bag)
@@ -301,21 +573,25 @@ def main(argv: list[str] | None = None) -> int:
     output = out_dir / "round_trip.mcap"
     if output.exists():
         print(f"endo-demo: error: {output} exists", file=sys.stderr)
-        return 1
+        return False
     topics, skipped = playable_topics(bag)
     print(
-        f"endo-demo: playing {bag} at {options.rate:g}x over DDS (domain {env['ROS_DOMAIN_ID']}, "
-        f"discovery {env['ROS_AUTOMATIC_DISCOVERY_RANGE']}), recording into {output}"
+        f"endo-demo: [1/3] round trip: playing {bag} at {rate:g}x over DDS "
+        f"(domain {env['ROS_DOMAIN_ID']}, discovery {env['ROS_AUTOMATIC_DISCOVERY_RANGE']}), "
+        f"recording into {output}"
     )
     for name in skipped:
         print(f"  {name}: type not installed here, not played")
     started = time.monotonic()
-    replay_rc, record_rc, logs = run_round_trip(bag, output, options.rate, env)
+    replay_rc, record_rc, logs = run_round_trip(bag, output, rate, env)
     elapsed = time.monotonic() - started
     if replay_rc != 0 or record_rc != 0 or not output.exists():
         print(logs)
-        print(f"endo-demo: FAILED (endo-replay exit {replay_rc}, endo-record exit {record_rc})")
-        return 1
+        print(
+            f"endo-demo: round trip FAILED (endo-replay exit {replay_rc}, "
+            f"endo-record exit {record_rc})"
+        )
+        return False
     result = compare_bags(bag, output, topics)
     print(f"  {'topic':<28} {'type':<32} {'sent':>6} {'recorded':>9} {'bytes':>11}  result")
     for name, t in result.topics.items():
@@ -330,11 +606,43 @@ def main(argv: list[str] | None = None) -> int:
     for name in result.extra_topics:
         print(f"  {name}: recorded but not played (DIFFERENT)")
     total = sum(t.sent for t in result.topics.values())
-    print(f"  {total} messages in {elapsed:.1f} s; recording kept in {out_dir}")
+    print(f"  {total} messages in {elapsed:.1f} s")
     if not result.equal:
-        print("endo-demo: FAILED: the recording differs from the bag")
+        print("endo-demo: round trip FAILED: the recording differs from the bag")
+        return False
+    print("  round trip OK: the recording equals the bag, message for message")
+    return True
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run the demo; returns the exit status."""
+    options = build_parser().parse_args(argv)
+    env = dict(os.environ)
+    env.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    env.setdefault("ROS_DOMAIN_ID", DEMO_DOMAIN_ID)
+    out_dir = options.output_dir or Path(tempfile.mkdtemp(prefix="endo_demo_"))
+    out_dir.mkdir(parents=True, exist_ok=True)
+    started = time.monotonic()
+    round_trip_ok = run_round_trip_stage(options.bag, out_dir, options.rate, env)
+    failures = [] if round_trip_ok else ["round trip"]
+    bags_dir = sample_bags_dir(list(dict.fromkeys([Path.cwd() / "bags", REPO_ROOT / "bags"])))
+    if options.round_trip_only:
+        pass
+    elif bags_dir is None:
+        print("endo-demo: [2/3, 3/3] skipped: bags/ lacks graycard, handeye and phantom_colon bags")
+    else:
+        print(
+            f"endo-demo: [2/3] offline calibrations on {bags_dir / GRAYCARD_BAG} and "
+            f"{bags_dir / HANDEYE_BAG}; [3/3] live graph on {bags_dir / PHANTOM_BAG}"
+        )
+        report = run_graph_stage(bags_dir, out_dir, env, options.graph_rate, options.solve_scale)
+        print_graph_report(report, options.graph_rate)
+        failures += report.failures()
+    print(f"endo-demo: outputs in {out_dir} ({time.monotonic() - started:.0f} s in all)")
+    if failures:
+        print("endo-demo: FAILED: " + "; ".join(failures))
         return 1
-    print("endo-demo: OK: the recording equals the bag, message for message")
+    print("endo-demo: OK")
     return 0
 
 
