@@ -283,8 +283,8 @@ def convergence_table() -> list[str]:
     return rows
 
 
-def phantom(bag: str, calibration: str, roughness: float, specular: float,
-            shininess: float) -> None:
+def phantom(bag: str, calibration: str, roughness: float, mask_highlights: bool,
+            solve_scale: float, fov_radius: float) -> None:
     """Median-scaled AbsRel on an endo_sim bag, after endo_calib's correction."""
     from endo_calib.calibration import PhotometricCalibration
     from endo_calib.raw_image import to_raw_frame
@@ -308,14 +308,16 @@ def phantom(bag: str, calibration: str, roughness: float, specular: float,
         irradiance = correction.luminance(correction.correct(raw))
         start = time.thread_time()
         previous = solve(irradiance, camera, roughness=roughness, warm_start=previous,
-                         specular=specular, shininess=shininess)
+                         mask=camera.fov_mask(fov_radius), solve_scale=solve_scale,
+                         mask_highlights=mask_highlights)
         cpu.append(time.thread_time() - start)
         error = depth_error(previous.depth, image_to_array(depths[stamp]), scaling="median")
         errors.append(error.abs_rel)
         scales.append(error.scale)
         coverage.append(error.coverage)
     print(f"{bag}: {len(stamps)} frames {camera.width}×{camera.height}, σ = {roughness}, "
-          f"specular {specular} (m = {shininess})")
+          f"mask_highlights {mask_highlights}, solve_scale {solve_scale}")
+    print("per frame: " + ", ".join(f"{e:.4f}" for e in errors))
     print(f"median-scaled AbsRel: mean {np.mean(errors):.4f}, median {np.median(errors):.4f}, "
           f"max {np.max(errors):.4f}; coverage {np.mean(coverage):.3f}; per-frame scale "
           f"spread {np.std(scales) / np.mean(scales):.3f} (cv); CPU {1e3 * np.median(cpu):.0f} "
@@ -331,14 +333,18 @@ def main() -> None:
     parser.add_argument("--phantom", metavar="BAG", help="only evaluate an endo_sim bag")
     parser.add_argument("--calibration", metavar="YAML", help="endo_calib photometric.yaml")
     parser.add_argument("--roughness", type=float, default=0.3)
-    parser.add_argument("--specular", type=float, default=0.0)
-    parser.add_argument("--shininess", type=float, default=60.0)
+    parser.add_argument("--no-highlight-mask", action="store_true",
+                        help="phantom: solve highlights as diffuse shading")
+    parser.add_argument("--solve-scale", type=float, default=1.0)
+    parser.add_argument("--fov-radius", type=float, default=240.0,
+                        help="phantom: field-of-view radius in pixels")
     args = parser.parse_args()
     print(f"machine: {machine()}")
     if args.phantom:
         if not args.calibration:
             parser.error("--phantom needs --calibration")
-        phantom(args.phantom, args.calibration, args.roughness, args.specular, args.shininess)
+        phantom(args.phantom, args.calibration, args.roughness, not args.no_highlight_mask,
+                args.solve_scale, args.fov_radius)
         return
     if args.accuracy:
         print("\nAbsRel after one least-squares scale, 256² (8-bit: mean of 3 noise seeds;"

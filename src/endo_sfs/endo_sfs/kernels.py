@@ -88,26 +88,20 @@ _TABLE_INV_STEP = TABLE_INTERVALS / TABLE_MAX_SLOPE
 
 
 #: Layout of the ``reflectance`` array the near-light kernels take.
-REFLECTANCE_A, REFLECTANCE_B, REFLECTANCE_SPECULAR, REFLECTANCE_SHININESS = 0, 1, 2, 3
+REFLECTANCE_A, REFLECTANCE_B = 0, 1
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
 def _log_radiance_direct(f: float, reflectance: np.ndarray) -> tuple[float, float]:
     """g(F) = ½·ln R(c), c = 1/√(1+F²), and g'(F) = −½·R'(c)/R·F·c³.
 
-    R(c) = A·c + B·(1 − c²) + k·c^m with reflectance = (A, B, k, m).
+    R(c) = A·c + B·(1 − c²) with reflectance = (A, B).
     """
     coef_a = reflectance[REFLECTANCE_A]
     coef_b = reflectance[REFLECTANCE_B]
-    specular = reflectance[REFLECTANCE_SPECULAR]
-    shininess = reflectance[REFLECTANCE_SHININESS]
     c = 1.0 / np.sqrt(1.0 + f * f)
     radiance = coef_a * c + coef_b * (1.0 - c * c)
     slope = coef_a - 2.0 * coef_b * c
-    if specular > 0.0:
-        lobe = specular * c ** (shininess - 1.0)
-        radiance += lobe * c
-        slope += shininess * lobe
     return 0.5 * np.log(radiance), -0.5 * slope / radiance * f * c * c * c
 
 
@@ -178,7 +172,7 @@ def near_light_update(
     Newton on v. Safeguarded Newton on q(F) = λF − √(left side), seeded
     with ``f_guess`` (the node's previous F, or the last frame's); v(F) comes
     from ``table`` (:func:`log_radiance_table` of the same ``reflectance``,
-    (A, B, k, m) of R(c) = A·c + B·(1 − c²) + k·c^m). Newton
+    (A, B) of R(c) = A·c + B·(1 − c²)). Newton
     stops once the residual guarantees |F − F*| < 1e-4·(1 + F)
     (``_NEWTON_RESIDUAL_TOL``) and takes one more Newton step. Returns (v, F).
     """
@@ -193,9 +187,7 @@ def near_light_update(
         # larger one-sided term alone.
         coef_a = reflectance[REFLECTANCE_A]
         coef_b = reflectance[REFLECTANCE_B]
-        specular = reflectance[REFLECTANCE_SPECULAR]
-        shininess = reflectance[REFLECTANCE_SHININESS]
-        kappa = (coef_a - 2.0 * coef_b + specular * shininess) / (4.0 * (coef_a + specular))
+        kappa = (coef_a - 2.0 * coef_b) / (4.0 * coef_a)
         w = wa if (v_star - a) * (v_star - a) * wa >= (v_star - b) * (v_star - b) * wb else wb
         f = (-lam + np.sqrt(lam * lam + 4.0 * w * kappa * (v_star - m))) / (
             2.0 * np.sqrt(w) * kappa
@@ -445,8 +437,8 @@ def near_light_sweep(
     log_intensity, lam, v_star: per-node ln I, conformal
     factor λ and singular value v* = ½·ln(A/I).
     order: 1 (first-order Godunov), 2 (:func:`second_order_neighbour`) or 3
-    (:func:`weno_neighbour`). reflectance: (A, B, k, m) of the co-located
-    R(c) = A·c + B·(1 − c²) + k·c^m; table: its :func:`log_radiance_table`. The node update
+    (:func:`weno_neighbour`). reflectance: (A, B) of the co-located
+    R(c) = A·c + B·(1 − c²); table: its :func:`log_radiance_table`. The node update
     replaces the value (the scheme is monotone in its neighbours and strictly
     increasing in v through e^{2v}, so any start converges).
     Returns (iterations, last max change of v, node updates computed).

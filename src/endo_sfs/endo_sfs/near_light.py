@@ -36,7 +36,7 @@ import numpy as np
 from endo_sfs import kernels
 from endo_sfs.errors import NoValidPixelsError, SfsInputError
 from endo_sfs.orthographic import SolveInfo, pad
-from endo_sfs.reflectance import check_specular, colocated_cosine, oren_nayar_coefficients
+from endo_sfs.reflectance import colocated_cosine, oren_nayar_coefficients
 
 #: WENO smoothness regulariser, relative to the squared node spacing.
 _WENO_EPS_REL = 0.1
@@ -45,16 +45,14 @@ _WENO_EPS_REL = 0.1
 MAX_ROUGHNESS = 0.6
 
 
-def singular_log_distance(
-    intensity: np.ndarray, roughness: float, specular: float = 0.0
-) -> np.ndarray:
-    """v* = ½·ln(R(1)/I), R(1) = A + k: the log-distance at which a node would face the camera.
+def singular_log_distance(intensity: np.ndarray, roughness: float) -> np.ndarray:
+    """v* = ½·ln(A/I), R(1) = A: the log-distance at which a node would face the camera.
 
     intensity: (...) float > 0. Returns (...) float64 (an upper bound of v).
     """
     coef_a, _ = oren_nayar_coefficients(roughness)
     with np.errstate(divide="ignore", invalid="ignore"):
-        return 0.5 * np.log((coef_a + specular) / np.asarray(intensity, dtype=np.float64))
+        return 0.5 * np.log(coef_a / np.asarray(intensity, dtype=np.float64))
 
 
 #: Lift of a warm start above the previous frame's solution (in ln r), on top
@@ -96,8 +94,6 @@ def tangent_from_log_distance(
     log_distance: np.ndarray,
     intensity: np.ndarray,
     roughness: float,
-    specular: float = 0.0,
-    shininess: float = 1.0,
 ) -> np.ndarray:
     """tan θ implied by the data at a given v: R(cos θ) = I·e^{2v}.
 
@@ -105,9 +101,7 @@ def tangent_from_log_distance(
     grazing, NaN where v is NaN.
     """
     with np.errstate(over="ignore", invalid="ignore"):
-        c = colocated_cosine(
-            intensity * np.exp(2.0 * log_distance), roughness, specular, shininess
-        )
+        c = colocated_cosine(intensity * np.exp(2.0 * log_distance), roughness)
     with np.errstate(divide="ignore", invalid="ignore"):
         return np.sqrt(np.maximum(1.0 / (c * c) - 1.0, 0.0))
 
@@ -123,8 +117,6 @@ def solve_near_light(
     max_iterations: int = 100,
     warm_start: np.ndarray | None = None,
     warm_start_intensity: np.ndarray | None = None,
-    specular: float = 0.0,
-    shininess: float = 1.0,
 ) -> tuple[np.ndarray, SolveInfo]:
     """Log-distance v = ln r per node of a stereographic solve grid.
 
@@ -136,9 +128,7 @@ def solve_near_light(
     changed v by more than this (relative distance). warm_start: (ny, nx) v
     from the previous frame (NaN where unknown) or None; warm_start_intensity:
     that frame's (ny, nx) node irradiance, if known (see
-    :func:`warm_start_values`). specular, shininess: the co-located
-    specular lobe k·c^m relative to the albedo
-    (:func:`endo_sfs.reflectance.colocated_radiance`); 0 for none.
+    :func:`warm_start_values`).
     Returns ((ny, nx) float64 v, NaN at invalid nodes; info).
     """
     if order not in (1, 2, 3):
@@ -149,14 +139,10 @@ def solve_near_light(
     valid = np.asarray(valid, dtype=bool) & np.isfinite(intensity) & (intensity > 0.0)
     if not valid.any():
         raise NoValidPixelsError("no node with a positive, finite irradiance")
-    try:
-        check_specular(specular, shininess)
-    except ValueError as error:
-        raise SfsInputError(str(error)) from None
     coef_a, coef_b = oren_nayar_coefficients(roughness)
-    reflectance = np.array([coef_a, coef_b, specular, shininess])
+    reflectance = np.array([coef_a, coef_b])
     safe_intensity = np.where(valid, intensity, 1.0)
-    v_star = singular_log_distance(safe_intensity, roughness, specular)
+    v_star = singular_log_distance(safe_intensity, roughness)
     start = v_star
     seed = np.zeros_like(v_star)
     if warm_start is not None:
@@ -168,10 +154,7 @@ def solve_near_light(
             warm_start, v_star, valid, safe_intensity, warm_start_intensity
         )
         seed = np.nan_to_num(
-            np.minimum(
-                tangent_from_log_distance(start, safe_intensity, roughness, specular, shininess),
-                1e3,
-            )
+            np.minimum(tangent_from_log_distance(start, safe_intensity, roughness), 1e3)
         )
     hx, hy = spacing
     # The sweeps must start above the solution (values then only fall and the

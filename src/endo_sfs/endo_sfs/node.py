@@ -9,9 +9,11 @@ with ``publish_normals``, ``normals`` (32FC3 unit normals in the optical
 frame).
 
 Every frame goes through :func:`endo_sfs.relative_depth.solve`, the function
-offline tools call. The near-light solve is warm-started from the previous
-frame. The numba kernels are loaded (compiled on the very first run, then
-from the on-disk cache) by a warm-up solve of a tiny synthetic image before
+offline tools call; with ``mask_highlights`` (default true) specular
+highlights are masked by :func:`endo_sfs.highlights.detect_highlights`.
+The near-light solve is warm-started from the previous frame. The numba
+kernels are loaded (compiled on the very first run, then from the on-disk
+cache) by a warm-up solve of a tiny synthetic image before
 the subscriptions exist, so the first real frame is not slow.
 
 Bad input never stops the node: a wrong encoding, a camera_info of another
@@ -125,16 +127,10 @@ PARAMETERS: dict[str, tuple[object, ParameterDescriptor]] = {
         "(noise near c ≈ 1 biases the slope; ~1 px helps 8-bit input)",
         floating_point_range=_float_range(0.0, 10.0),
     )),
-    "specular": (0.0, ParameterDescriptor(
-        type=ParameterType.PARAMETER_DOUBLE,
-        description="near_light: specular lobe k of R(c) = Oren–Nayar + k·c^m, relative to "
-        "the albedo (wet tissue; 0 = none)",
-        floating_point_range=_float_range(0.0, 100.0),
-    )),
-    "shininess": (60.0, ParameterDescriptor(
-        type=ParameterType.PARAMETER_DOUBLE,
-        description="near_light: exponent m of the specular lobe k·c^m",
-        floating_point_range=_float_range(1.0, 1000.0),
+    "mask_highlights": (True, ParameterDescriptor(
+        type=ParameterType.PARAMETER_BOOL,
+        description="detect specular highlights (saturated pixels and bright blobs over the "
+        "diffuse baseline, with their shoulders) and give them no data term; they come out NaN",
     )),
     "publish_normals": (False, ParameterDescriptor(
         type=ParameterType.PARAMETER_BOOL,
@@ -219,7 +215,7 @@ class SfsNode(Node):
                     successful=False, reason=f"model must be one of {MODELS}"
                 )
         for parameter in parameters:
-            if parameter.name in ("model", "roughness", "solve_scale", "specular", "shininess"):
+            if parameter.name in ("model", "roughness", "solve_scale"):
                 self._previous = None  # the old solution no longer seeds this problem
             if parameter.name == "stamp_tolerance":
                 self._matcher.tolerance_ns = round(float(parameter.value) * NS_PER_S)
@@ -281,8 +277,7 @@ class SfsNode(Node):
                 order=int(self._value("order")),
                 dark_level=float(self._value("dark_level")),
                 smoothing=float(self._value("smoothing")),
-                specular=float(self._value("specular")),
-                shininess=float(self._value("shininess")),
+                mask_highlights=bool(self._value("mask_highlights")),
             )
         except NoValidPixelsError:
             # Nothing to reconstruct: say so downstream with an all-NaN depth,

@@ -16,9 +16,10 @@ is zero, and Oren–Nayar reduces to
     R(c) = A·c + B·(1 − c²),   c = cos θ ∈ [0, 1],
 
 which is equation (1) of the seed paper. :func:`colocated_cosine` inverts it
-per pixel. An optional specular lobe k·c^m (relative to the albedo) models
-the wet-tissue highlights a co-located light puts where the surface faces
-the camera; it keeps R increasing in c, so the inversion stays unique.
+per pixel. Specular highlights are not part of this model: wet tissue's
+lobe is white (it is reflected at the air/mucus interface, not scaled by the
+albedo), so it cannot be folded into a reflectance per unit albedo; it is
+detected and masked instead (:mod:`endo_sfs.highlights`).
 """
 
 from __future__ import annotations
@@ -94,47 +95,28 @@ def oren_nayar_radiance(
     return np.where(lit, radiance, 0.0)
 
 
-def colocated_radiance(
-    cos_theta: ArrayLike, roughness: float, specular: float = 0.0, shininess: float = 1.0
-) -> NDArray[np.float64]:
-    """Radiance with the light at the viewer: A·c + B·(1 − c²) + k·c^m.
+def colocated_radiance(cos_theta: ArrayLike, roughness: float) -> NDArray[np.float64]:
+    """Oren–Nayar radiance with the light at the viewer: A·c + B·(1 − c²).
 
-    The Oren–Nayar part per unit albedo, plus an optional specular lobe
-    k·c^m (Phong/Blinn with the half vector equal to the view direction),
-    k = ``specular`` relative to the albedo, m = ``shininess``.
-    cos_theta: (...) cosine of the angle between normal and light (= view)
-    direction. Returns (...) float64; 0 where c ≤ 0.
+    Per unit albedo. cos_theta: (...) cosine of the angle between normal and
+    light (= view) direction. Returns (...) float64; 0 where c ≤ 0.
     """
     a_coef, b_coef = oren_nayar_coefficients(roughness)
     c = np.asarray(cos_theta, dtype=np.float64)
     c_clip = np.clip(c, 0.0, 1.0)
     radiance = a_coef * c_clip + b_coef * (1.0 - c_clip * c_clip)
-    if specular > 0.0:
-        radiance = radiance + specular * c_clip**shininess
     return np.where(c > 0.0, radiance, 0.0)
 
 
-def check_specular(specular: float, shininess: float) -> None:
-    """Raise ValueError unless specular ≥ 0 and shininess ≥ 1 (both finite)."""
-    if not (np.isfinite(specular) and specular >= 0.0):
-        raise ValueError(f"specular must be a finite value >= 0, got {specular!r}")
-    if not (np.isfinite(shininess) and shininess >= 1.0):
-        raise ValueError(f"shininess must be a finite value >= 1, got {shininess!r}")
-
-
-def colocated_cosine(
-    radiance: ArrayLike, roughness: float, specular: float = 0.0, shininess: float = 1.0
-) -> NDArray[np.float64]:
+def colocated_cosine(radiance: ArrayLike, roughness: float) -> NDArray[np.float64]:
     """Invert :func:`colocated_radiance` per pixel: c = cos θ from radiance I.
 
-    Without a specular lobe: solves B·c² − A·c + (I − B) = 0 and takes the
-    root on the physical branch (the one equal to 1 at I = A, continuous with
-    the Lambertian c = I at B → 0), written as
-    c = 2(I − B)/(A + √(A² − 4B(I − B))) to stay accurate for small B. With
-    one: R is still increasing on [0, 1] (for σ ≤ 0.6), so a table inverse
-    refined by two Newton steps. The result is clamped to [0, 1]: I below the
-    grazing value B gives 0, I above the frontal value R(1) gives 1. NaN
-    stays NaN.
+    Solves B·c² − A·c + (I − B) = 0 and takes the root on the physical
+    branch (the one equal to 1 at I = A, continuous with the Lambertian
+    c = I at B → 0), written as c = 2(I − B)/(A + √(A² − 4B(I − B))) to stay
+    accurate for small B. The result is clamped to [0, 1]: I below the
+    grazing value B gives 0, I above the frontal value A gives 1. NaN stays
+    NaN.
 
     radiance: (...) float, per unit albedo × light. Returns (...) float64.
     """
@@ -143,18 +125,4 @@ def colocated_cosine(
     excess = intensity - b_coef
     disc = np.maximum(a_coef * a_coef - 4.0 * b_coef * excess, 0.0)
     c = 2.0 * excess / (a_coef + np.sqrt(disc))
-    if specular > 0.0:
-        check_specular(specular, shininess)
-        grid = np.linspace(0.0, 1.0, 4097)
-        values = colocated_radiance(grid, roughness, specular, shininess)
-        values[0] = b_coef
-        c = np.interp(intensity, values, grid)
-        for _ in range(2):
-            c_safe = np.clip(c, 1e-12, 1.0)
-            slope = a_coef - 2.0 * b_coef * c_safe + specular * shininess * c_safe ** (
-                shininess - 1.0
-            )
-            c = c_safe - (colocated_radiance(c_safe, roughness, specular, shininess)
-                          - intensity) / slope
-        c = np.where(np.isnan(intensity), np.nan, c)
     return np.clip(c, 0.0, 1.0)

@@ -32,6 +32,7 @@ from endo_sfs.errors import (
     UnknownModelError,
 )
 from endo_sfs.grid import SolveGrid, solve_grid
+from endo_sfs.highlights import detect_highlights
 from endo_sfs.near_light import MAX_ROUGHNESS, solve_near_light
 from endo_sfs.orthographic import SolveInfo, solve_orthographic
 
@@ -162,8 +163,7 @@ def solve(
     boundary_depth: np.ndarray | None = None,
     concave: bool = False,
     smoothing: float = 0.0,
-    specular: float = 0.0,
-    shininess: float = 60.0,
+    mask_highlights: bool = False,
 ) -> SfsSolution:
     """Shape from shading of one frame; see :func:`reconstruct` for the arguments.
 
@@ -180,6 +180,8 @@ def solve(
         raise SfsInputError(f"order must be 1, 2 or 3, got {order}")
     image = _check_inputs(irradiance, camera, mask)
     valid = valid_pixels(image, mask, dark_level, saturation)
+    if mask_highlights:
+        valid &= ~detect_highlights(image, mask, saturation)
     grid = solve_grid(camera, "stereographic" if model == "near_light" else "gnomonic", solve_scale)
     valid &= np.all(np.isfinite(grid.pixel_rays), axis=-1)
     if not valid.any():
@@ -195,14 +197,12 @@ def solve(
         warm_log_r, warm_irradiance = _warm_nodes(warm_start, grid)
         log_r, info = solve_near_light(
             nodes, node_valid, grid.conformal_factor_sq, grid.spacing, roughness, order,
-            tolerance, max_iterations, warm_log_r, warm_irradiance, specular, shininess,
+            tolerance, max_iterations, warm_log_r, warm_irradiance,
         )
         with np.errstate(invalid="ignore"):
             depth = np.exp(grid.to_pixels(log_r, valid)) * grid.pixel_rays[..., 2]
         node_solution = log_r
     else:
-        if specular > 0.0:
-            raise SfsInputError("the orthographic model has no specular term (set specular=0)")
         boundary_nodes = None
         if boundary_depth is not None:
             if boundary_depth.shape != image.shape:
@@ -245,8 +245,7 @@ def reconstruct(
     boundary_depth: np.ndarray | None = None,
     concave: bool = False,
     smoothing: float = 0.0,
-    specular: float = 0.0,
-    shininess: float = 60.0,
+    mask_highlights: bool = False,
 ) -> np.ndarray:
     """Relative depth from one linear irradiance image by shape from shading.
 
@@ -275,10 +274,11 @@ def reconstruct(
             ``boundary_depth`` is (H, W) relative depth, NaN where unknown.
         smoothing: Gaussian σ in pixels applied to the valid irradiance
             before solving (:func:`smooth_irradiance`); 0 for none.
-        specular, shininess: near-light only: a specular lobe k·c^m
-            relative to the albedo added to the co-located reflectance
-            (:func:`endo_sfs.reflectance.colocated_radiance`); wet tissue
-            under a co-located light; 0 for none.
+        mask_highlights: detect specular highlights and their shoulders
+            (:func:`endo_sfs.highlights.detect_highlights`, with ``mask``
+            and ``saturation``) and give them no data term: the surface
+            around them is solved from the diffuse data, and they come out
+            NaN, like every other masked pixel.
 
     Returns:
         (H, W) float32 relative depth along the optical axis, NaN invalid.
@@ -291,7 +291,7 @@ def reconstruct(
     return solve(
         irradiance, camera, model, roughness, mask, solve_scale, tolerance, max_iterations,
         warm_start, order, dark_level, saturation, singular_tolerance, boundary_depth, concave,
-        smoothing, specular, shininess,
+        smoothing, mask_highlights,
     ).depth
 
 

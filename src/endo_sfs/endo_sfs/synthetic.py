@@ -161,8 +161,10 @@ def render_near_light(
 ) -> Rendering:
     """Render I = R(cos θ)/r² with the light at the optical centre.
 
-    R is Oren–Nayar plus an optional specular lobe k·cos^m θ
-    (:func:`endo_sfs.reflectance.colocated_radiance`).
+    R is Oren–Nayar (:func:`endo_sfs.reflectance.colocated_radiance`, albedo
+    1) plus an optional white specular lobe k·cos^m θ (``specular`` k,
+    ``shininess`` m), the highlights of wet tissue, which the SFS models do
+    not contain (see :mod:`endo_sfs.highlights`).
     Returns a :class:`Rendering` of the camera's size; pixels whose ray
     misses the surface or sees it from behind are NaN in both images.
     """
@@ -171,7 +173,9 @@ def render_near_light(
     cos_theta = -np.sum(normals * rays, axis=-1)
     with np.errstate(invalid="ignore"):
         seen = np.isfinite(r) & (cos_theta > 0.0)
-        radiance = colocated_radiance(cos_theta, roughness, specular, shininess)
+        radiance = colocated_radiance(cos_theta, roughness)
+        if specular > 0.0:
+            radiance = radiance + specular * np.clip(cos_theta, 0.0, 1.0) ** shininess
         irradiance = np.where(seen, radiance / (r * r), np.nan)
     depth = np.where(seen, r * rays[..., 2], np.nan)
     return Rendering(irradiance=irradiance, depth=depth)

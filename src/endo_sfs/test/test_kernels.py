@@ -22,18 +22,18 @@ def test_godunov_update_is_exact_for_planes():
     assert kernels.godunov_eikonal_update(np.inf, 1.0, 1.0, np.inf, 1.0, 1.0, 1.0) == np.inf
 
 
-MODELS = [(0.0, 0.0), (0.3, 0.0), (0.3, 5.0)]  # (σ, specular k); shininess 60
+MODELS = [0.0, 0.3]  # σ
 
 
-@pytest.mark.parametrize(("sigma", "specular"), MODELS)
-def test_near_light_update_solves_its_discrete_equation(sigma, specular):
+@pytest.mark.parametrize("sigma", MODELS)
+def test_near_light_update_solves_its_discrete_equation(sigma):
     rng = np.random.default_rng(5)
     coef_a, coef_b = oren_nayar_coefficients(sigma)
-    reflectance = np.array([coef_a, coef_b, specular, 60.0])
+    reflectance = np.array([coef_a, coef_b])
 
     def residual(v, a, b, wa, wb, lam, intensity):
         lhs = wa * max(v - a, 0.0) ** 2 + wb * max(v - b, 0.0) ** 2
-        c = colocated_cosine(intensity * np.exp(2.0 * v), sigma, specular, 60.0)
+        c = colocated_cosine(intensity * np.exp(2.0 * v), sigma)
         return np.sqrt(lhs) - lam * np.sqrt(1.0 / c**2 - 1.0)
 
     table = kernels.log_radiance_table(reflectance)
@@ -42,7 +42,7 @@ def test_near_light_update_solves_its_discrete_equation(sigma, specular):
         wa, wb = rng.uniform(1e4, 4e4, 2)
         lam = rng.uniform(1.5, 2.0)
         intensity = rng.uniform(0.3, 1.0)
-        v_star = 0.5 * np.log((coef_a + specular) / intensity)
+        v_star = 0.5 * np.log(coef_a / intensity)
         a, b = v_star + rng.uniform(-0.05, 0.005, 2)
         v, tan_theta = kernels.near_light_update(
             a, b, wa, wb, np.sqrt(wa), np.sqrt(wb), lam, np.log(intensity), v_star,
@@ -53,7 +53,7 @@ def test_near_light_update_solves_its_discrete_equation(sigma, specular):
             singular += 1
             continue
         c = 1.0 / np.sqrt(1.0 + tan_theta**2)
-        assert colocated_radiance(c, sigma, specular, 60.0) == pytest.approx(
+        assert colocated_radiance(c, sigma) == pytest.approx(
             intensity * np.exp(2 * v), rel=1e-7
         )
         args = (a, b, wa, wb, lam, intensity)
@@ -63,20 +63,19 @@ def test_near_light_update_solves_its_discrete_equation(sigma, specular):
     assert 0 < singular < 200
 
 
-@pytest.mark.parametrize(("sigma", "specular"), MODELS)
-def test_log_radiance_table_matches_the_closed_form(sigma, specular):
+@pytest.mark.parametrize("sigma", MODELS)
+def test_log_radiance_table_matches_the_closed_form(sigma):
     coef_a, coef_b = oren_nayar_coefficients(sigma)
-    reflectance = np.array([coef_a, coef_b, specular, 60.0])
+    reflectance = np.array([coef_a, coef_b])
     table = kernels.log_radiance_table(reflectance)
 
     def log_radiance(f):
-        return 0.5 * np.log(colocated_radiance(1.0 / np.sqrt(1.0 + f * f), sigma, specular, 60.0))
+        return 0.5 * np.log(colocated_radiance(1.0 / np.sqrt(1.0 + f * f), sigma))
 
     for f in np.concatenate([np.linspace(0.0, 15.99, 997), [16.0, 20.0, 300.0]]):
         value, slope = kernels._log_radiance(f, table, reflectance)
-        # Cubic Hermite on 2048 intervals: 1e-10 for Oren–Nayar, ~1e-8 with
-        # the sharp c^60 lobe (a relative radiance error of 2e-8).
-        assert value == pytest.approx(log_radiance(f), abs=1e-7 if specular else 1e-9)
+        # Cubic Hermite on 2048 intervals: about 1e-10.
+        assert value == pytest.approx(log_radiance(f), abs=1e-9)
         if f == 0.0:
             assert slope == 0.0  # ln R(c) is even in F
             continue

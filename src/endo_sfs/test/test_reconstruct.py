@@ -66,9 +66,6 @@ def test_camera_of_a_different_size_is_rejected(scene):
         ({"roughness": 0.9}, SfsInputError),
         ({"solve_scale": 0.0}, SfsInputError),
         ({"order": 4}, SfsInputError),
-        ({"specular": -1.0}, SfsInputError),
-        ({"specular": 1.0, "shininess": 0.5}, SfsInputError),
-        ({"model": "orthographic", "specular": 1.0}, SfsInputError),
         ({"mask": np.ones((3, 3), bool)}, SfsInputError),
     ],
 )

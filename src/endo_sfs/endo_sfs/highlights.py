@@ -1,0 +1,213 @@
+"""Specular highlights: find them so that shape from shading can ignore them.
+
+Wet mucosa under a light at the optical centre reflects a white specular lobe
+where the surface faces the camera. The lobe comes from the air/mucus
+interface, so it is not scaled by the (textured) albedo and is no part of the
+diffuse reflectance the SFS models invert: read as diffuse shading, a
+highlight is a surface patch far too close, and the near-light solution
+carries that error into its surroundings. Endoscopic SFS pipelines therefore
+detect highlights and give those pixels no data term; the PDE continues the
+surface around them from the surrounding diffuse data (the hole's edge is a
+state constraint, see :mod:`endo_sfs.near_light`).
+
+Detection, on the linear irradiance (the output of ``endo_calib``):
+
+1. **Saturated pixels**: NaN inside ``mask`` (``endo_calib`` marks saturated
+   pixels NaN), values at or above ``saturation``, and, without a mask, NaN
+   holes enclosed by finite pixels. They are grown by a small margin
+   (the last codes below saturation are compressed by the response).
+2. **A diffuse baseline** of ln I, on a grid about 120 rows high:
+   a grey-scale *closing* (radius ``closing_radius``, a fraction of the image
+   height) bridges the dark gaps between fold ridges and vessels, then an
+   *opening* (``opening_radius``) removes bright blobs narrower than its
+   disc. Highlights are such blobs; diffuse shading, after the closing, is
+   broader. Saturated cells count as very bright; cells outside the data take
+   no part (neither erode nor dilate), so a highlight at the edge of the
+   field of view is measured against the data beside it.
+3. **Excess** e = ln I (Gaussian σ = 1.5 px) − baseline. Pixels with
+   e > ``core_excess`` or saturated are highlight cores; an excess core
+   needs a baseline with support, i.e. at least ``min_support`` of the
+   opening's disc on data. Without that rule the bright band of a wall close
+   to the camera along the edge of the field of view reads as a highlight
+   (the opening, cut by the edge, removes it), and masking it makes the
+   remaining wall's nearest points unseen, which costs more than the band.
+   The lobe's shoulders (where it is still a large fraction of the diffuse
+   light but no longer stands out from the texture) are taken by
+   hysteresis: every connected region of e > ``shoulder_excess`` that
+   contains a core.
+
+The defaults were chosen on endo_sim's colon phantom (specular 2·c^120 on
+albedo 0.4, σ = 0.3) against the true specular fraction; see docs/sfs.md for
+the figures and the limits.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+from scipy import ndimage
+
+from endo_sfs.errors import SfsInputError
+
+#: Rows of the grid on which the morphological baseline is computed.
+BASELINE_ROWS = 120
+#: Default radii of the baseline filters, as fractions of the image height.
+DEFAULT_OPENING_RADIUS = 0.15
+DEFAULT_CLOSING_RADIUS = 0.025
+#: Default thresholds on the excess of ln I over the diffuse baseline.
+DEFAULT_CORE_EXCESS = 0.9
+DEFAULT_SHOULDER_EXCESS = 0.3
+#: Smallest fraction of the opening's disc that must hold data for the
+#: excess to be measured (about 0.4 radii from a straight edge of the data).
+DEFAULT_MIN_SUPPORT = 0.85
+#: Gaussian σ (pixels) of ln I before it is compared with the baseline.
+_FINE_SIGMA = 1.5
+#: Stand-in for ±∞ in the float32 morphology (cells that take no part).
+_NO_PART = np.float32(1e30)
+
+
+def _disc(radius: int) -> np.ndarray:
+    return cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * radius + 1, 2 * radius + 1))
+
+
+def _erode(values: np.ndarray, part: np.ndarray, radius: int) -> np.ndarray:
+    """Minimum over a disc of the cells in ``part`` (others neither count nor change)."""
+    out = cv2.erode(np.where(part, values, _NO_PART).astype(np.float32), _disc(radius))
+    return np.where(part, out, values).astype(np.float32)
+
+
+def _dilate(values: np.ndarray, part: np.ndarray, radius: int) -> np.ndarray:
+    """Maximum over a disc of the cells in ``part`` (others neither count nor change)."""
+    out = cv2.dilate(np.where(part, values, -_NO_PART).astype(np.float32), _disc(radius))
+    return np.where(part, out, values).astype(np.float32)
+
+
+def _normalised_blur(values: np.ndarray, weight: np.ndarray, sigma: float) -> np.ndarray:
+    num = cv2.GaussianBlur(values * weight, (0, 0), sigma, borderType=cv2.BORDER_CONSTANT)
+    den = cv2.GaussianBlur(weight, (0, 0), sigma, borderType=cv2.BORDER_CONSTANT)
+    return num / np.maximum(den, np.float32(1e-6))
+
+
+def diffuse_excess(
+    irradiance: np.ndarray,
+    data: np.ndarray,
+    saturated: np.ndarray,
+    opening_radius: float = DEFAULT_OPENING_RADIUS,
+    closing_radius: float = DEFAULT_CLOSING_RADIUS,
+    min_support: float = DEFAULT_MIN_SUPPORT,
+) -> tuple[np.ndarray, np.ndarray]:
+    """ln I minus its morphological diffuse baseline (step 2–3 of the module docstring).
+
+    irradiance: (H, W) float linear irradiance; data: (H, W) bool pixels with
+    a finite, positive value; saturated: (H, W) bool. opening_radius,
+    closing_radius: fractions of H. min_support: see
+    :data:`DEFAULT_MIN_SUPPORT`. Returns ((H, W) float32 excess in ln units,
+    0 where not ``data``; (H, W) bool pixels whose baseline has that support).
+    """
+    height, width = irradiance.shape
+    log_i = np.log(np.where(data, irradiance, 1.0)).astype(np.float32)
+    weight = data.astype(np.float32)
+    factor = max(1, round(height / BASELINE_ROWS))
+    size = (max(1, width // factor), max(1, height // factor))
+    cell_weight = cv2.resize(weight, size, interpolation=cv2.INTER_AREA)
+    cell_log = cv2.resize(log_i * weight, size, interpolation=cv2.INTER_AREA)
+    has_data = cell_weight > 0.5
+    cell_log = np.where(has_data, cell_log / np.maximum(cell_weight, 1e-6), 0.0)
+    cell_saturated = (
+        cv2.resize(saturated.astype(np.float32), size, interpolation=cv2.INTER_AREA) > 0.5
+    ) & ~has_data
+    if not has_data.any():
+        return np.zeros((height, width), dtype=np.float32), np.zeros((height, width), bool)
+    cell_log[cell_saturated] = cell_log[has_data].max()
+    part = has_data | cell_saturated
+    rows = height / factor
+    closing = max(1, round(closing_radius * rows))
+    opening = max(1, round(opening_radius * rows))
+    closed = _erode(_dilate(cell_log, part, closing), part, closing)
+    baseline = _dilate(_erode(closed, part, opening), part, opening)
+    baseline = _normalised_blur(baseline, part.astype(np.float32), 1.0)
+    baseline = cv2.resize(baseline, (width, height), interpolation=cv2.INTER_LINEAR)
+    # Where the opening's disc leaves the data, the baseline has too little
+    # support to tell a highlight from a bright band along the edge.
+    disc = _disc(opening).astype(np.float32)
+    support = cv2.filter2D(
+        part.astype(np.float32), -1, disc / disc.sum(), borderType=cv2.BORDER_CONSTANT
+    )
+    support = cv2.resize(support, (width, height), interpolation=cv2.INTER_LINEAR)
+    fine = _normalised_blur(log_i, weight, _FINE_SIGMA)
+    excess = np.where(data, fine - baseline, 0.0).astype(np.float32)
+    return excess, data & (support >= min_support)
+
+
+def detect_highlights(
+    irradiance: np.ndarray,
+    mask: np.ndarray | None = None,
+    saturation: float | None = None,
+    core_excess: float = DEFAULT_CORE_EXCESS,
+    shoulder_excess: float = DEFAULT_SHOULDER_EXCESS,
+    opening_radius: float = DEFAULT_OPENING_RADIUS,
+    closing_radius: float = DEFAULT_CLOSING_RADIUS,
+    min_support: float = DEFAULT_MIN_SUPPORT,
+) -> np.ndarray:
+    """Pixels of specular highlights (saturated or not) and their shoulders.
+
+    Args:
+        irradiance: (H, W) float linear irradiance (any scale; NaN marks
+            saturated or unseen pixels, as ``endo_calib`` writes them).
+        mask: optional (H, W) bool region of interest (the circular field of
+            view). NaN inside it counts as saturated; without it only NaN
+            holes enclosed by finite pixels do.
+        saturation: irradiance at or above which a pixel is saturated, or None.
+        core_excess: ln-excess over the diffuse baseline that makes a
+            highlight core (0.9: the pixel is 2.5× brighter than the
+            baseline).
+        shoulder_excess: ln-excess down to which a core's connected region
+            is included (0.3: 1.35×), 0 < shoulder_excess ≤ core_excess.
+        opening_radius, closing_radius: baseline filter radii, fractions of
+            the image height (> 0).
+        min_support: fraction of the opening's disc that must hold data
+            for an excess core (see the module docstring).
+
+    Returns:
+        (H, W) bool, True on highlight pixels (inside ``mask`` if given).
+
+    Raises:
+        SfsInputError: bad shapes or thresholds.
+    """
+    image = np.asarray(irradiance)
+    if image.ndim != 2:
+        raise SfsInputError(f"irradiance must be (H, W), got shape {image.shape}")
+    if mask is not None and np.shape(mask) != image.shape:
+        raise SfsInputError(f"mask has shape {np.shape(mask)}, expected {image.shape}")
+    if not 0.0 < shoulder_excess <= core_excess:
+        raise SfsInputError(
+            f"need 0 < shoulder_excess <= core_excess, got {shoulder_excess}, {core_excess}"
+        )
+    if not (opening_radius > 0.0 and closing_radius > 0.0):
+        raise SfsInputError("opening_radius and closing_radius must be > 0")
+    region = np.ones(image.shape, dtype=bool) if mask is None else np.asarray(mask, dtype=bool)
+    finite = np.isfinite(image)
+    with np.errstate(invalid="ignore"):
+        saturated = ~finite
+        if saturation is not None:
+            saturated |= image >= saturation
+        data = finite & (image > 0.0) & region & ~saturated
+    if mask is None:
+        saturated &= ndimage.binary_fill_holes(finite)
+    saturated &= region
+    if saturated.any():
+        margin = max(1, round(image.shape[0] / 240))
+        saturated = cv2.dilate(saturated.astype(np.uint8), _disc(margin)).astype(bool) & region
+        data &= ~saturated
+    excess, supported = diffuse_excess(
+        image, data, saturated, opening_radius, closing_radius, min_support
+    )
+    core = saturated | ((excess > core_excess) & supported)
+    if not core.any():
+        return np.zeros(image.shape, dtype=bool)
+    candidate = (core | (excess > shoulder_excess)).astype(np.uint8)
+    count, labels = cv2.connectedComponents(candidate, connectivity=8)
+    keep = np.zeros(count, dtype=bool)
+    keep[labels[core]] = True
+    keep[0] = False
+    return keep[labels] & region

@@ -1,0 +1,94 @@
+"""Highlight detection on synthetic shading with known specular lobes."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from endo_sfs.errors import SfsInputError
+from endo_sfs.highlights import detect_highlights
+from endo_sfs.synthetic import SCENE_NAMES, near_light_surface, render_near_light, scene_camera
+
+SIZE = 240
+
+
+def _wall(rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A textured, smoothly shaded wall with two white highlights.
+
+    Returns (irradiance with saturated pixels NaN, specular / diffuse ratio,
+    field-of-view mask), all (SIZE, SIZE).
+    """
+    v, u = np.mgrid[0:SIZE, 0:SIZE].astype(np.float64)
+    x, y = (u - SIZE / 2) / SIZE, (v - SIZE / 2) / SIZE
+    fov = x * x + y * y < 0.48**2
+    shading = 0.2 * np.exp(-3.0 * (x + 0.1) ** 2 - 2.0 * y**2)
+    # Texture: ±15 % mottling and dark vessel-like lines.
+    albedo = 0.4 * np.exp(0.15 * rng.standard_normal((SIZE, SIZE)))
+    albedo *= 1.0 - 0.25 * (np.abs(np.sin(40.0 * x + 9.0 * y**2)) < 0.08)
+    diffuse = albedo * shading
+    # Two lobes: an elongated one that saturates and a weak round one that does not.
+    lobe = 0.4 * np.exp(-(((x - 0.18) / 0.03) ** 2) - ((y + 0.1) / 0.12) ** 2)
+    lobe += 0.2 * np.exp(-((x + 0.2) ** 2 + (y - 0.2) ** 2) / 0.035**2)
+    image = diffuse + lobe
+    image = np.where(image >= 0.25, np.nan, image)
+    return np.where(fov, image, np.nan), lobe / diffuse, fov
+
+
+def test_saturated_cores_and_shoulders_are_found_without_false_alarms():
+    image, ratio, fov = _wall(np.random.default_rng(3))
+    found = detect_highlights(image, fov)
+    assert not found[~fov].any()
+    assert np.all(found[fov & np.isnan(image)])  # every saturated pixel
+    strong = fov & (ratio > 1.0)  # the lobe outshines the diffuse light
+    shoulder = fov & (ratio > 0.5)  # still 40 % of the light
+    faint = fov & (ratio > 0.2)  # at the texture's contrast
+    assert found[strong].mean() > 0.99
+    assert found[shoulder].mean() > 0.9
+    assert found[faint].mean() > 0.6
+    clean = fov & (ratio < 0.01)
+    assert found[clean].mean() < 0.01
+
+
+def test_a_highlight_is_found_at_any_brightness_scale():
+    image, _, fov = _wall(np.random.default_rng(4))
+    found = detect_highlights(image, fov)
+    np.testing.assert_array_equal(detect_highlights(37.0 * image, fov), found)
+
+
+def test_without_a_mask_only_enclosed_nan_holes_count_as_saturated():
+    image, ratio, fov = _wall(np.random.default_rng(5))
+    found = detect_highlights(image)
+    assert not found[~fov].any()  # the unseen corners are not highlights
+    assert found[fov & (ratio > 1.0)].mean() > 0.99
+
+
+@pytest.mark.parametrize("name", SCENE_NAMES)
+def test_pure_diffuse_shading_has_no_highlight(name):
+    camera = scene_camera(256)
+    image = render_near_light(camera, near_light_surface(name), 0.3).irradiance
+    mask = camera.fov_mask(0.48 * 256) & np.isfinite(image)
+    assert not detect_highlights(image, mask).any()
+
+
+def test_saturation_level_marks_saturated_pixels():
+    image, _, fov = _wall(np.random.default_rng(6))
+    clipped = np.where(np.isnan(image) & fov, 0.25, image)
+    found = detect_highlights(clipped, fov, saturation=0.25)
+    assert np.all(found[clipped >= 0.25])
+
+
+def test_an_empty_frame_has_no_highlight():
+    assert not detect_highlights(np.zeros((SIZE, SIZE))).any()
+    assert not detect_highlights(np.full((SIZE, SIZE), np.nan)).any()
+
+
+def test_bad_arguments_raise_named_errors():
+    image, _, fov = _wall(np.random.default_rng(7))
+    with pytest.raises(SfsInputError):
+        detect_highlights(image[..., None], fov)
+    with pytest.raises(SfsInputError):
+        detect_highlights(image, fov[:10])
+    with pytest.raises(SfsInputError):
+        detect_highlights(image, fov, core_excess=0.2, shoulder_excess=0.5)
+    with pytest.raises(SfsInputError):
+        detect_highlights(image, fov, opening_radius=0.0)
