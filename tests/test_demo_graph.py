@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from endo_bringup.demo import SAMPLE_BAGS, run_graph_stage
+from endo_bringup.demo import GRAPH_RATE, SAMPLE_BAGS, run_graph_stage
 from endo_bringup.graph import (
     CORRECTED_TOPIC,
     DEPTH_TOPIC,
@@ -54,7 +54,7 @@ def test_graph_on_the_sample_bags(tmp_path: Path) -> None:
     env.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     assert "ROS_DOMAIN_ID" in env, "run with the test's own ROS_DOMAIN_ID"
 
-    report = run_graph_stage(BAGS, tmp_path, env, rate=0.5, solve_scale=0.5)
+    report = run_graph_stage(BAGS, tmp_path, env, rate=GRAPH_RATE, solve_scale=0.5)
 
     assert report.failures() == []
     # offline calibrations, against the simulator's truth

@@ -302,6 +302,11 @@ def run_round_trip(
 #: The sample bags the graph part needs, with their ground truth beside them.
 GRAYCARD_BAG, HANDEYE_BAG, PHANTOM_BAG = "graycard.mcap", "handeye.mcap", "phantom_colon.mcap"
 SAMPLE_BAGS = (GRAYCARD_BAG, HANDEYE_BAG, PHANTOM_BAG)
+#: Playback speed of the phantom bag into the graph: 30 fps × 0.25 = 7.5 frames/s,
+#: which the SFS node (solve_scale 0.5) keeps up with while sharing 2 cores with
+#: the recorder, the correction node and the player (measured 85–115 ms per frame
+#: there, so at 0.5× it dropped 3–17 of 90 frames).
+GRAPH_RATE = 0.25
 
 
 @dataclass
@@ -417,7 +422,11 @@ def graph_settings_for(bag: Path, rate: float, solve_scale: float) -> GraphSetti
 
 
 def run_graph_stage(
-    bags_dir: Path, out_dir: Path, env: dict[str, str], rate: float = 0.5, solve_scale: float = 0.5
+    bags_dir: Path,
+    out_dir: Path,
+    env: dict[str, str],
+    rate: float = GRAPH_RATE,
+    solve_scale: float = 0.5,
 ) -> GraphReport:
     """Offline calibrations, then the live graph on the phantom bag, then the scores.
 
@@ -461,66 +470,99 @@ def print_graph_report(report: GraphReport, rate: float) -> None:
         print(f"  {name:<16} {status} in {step.seconds:.1f} s -> {step.result}")
         if step.return_code != 0:
             print("    " + step.output.strip().replace("\n", "\n    "))
-    scores = report.scores
-    if scores is not None:
-        r = scores.handeye_residuals
-        print(
-            f"  photometric: response fit residual {scores.response_residual_dn:.3f} DN RMS; "
-            f"inverse response vs truth: max error {100 * scores.inverse_response_max_error:.2f} %"
-            " of full scale (values 5-250)"
-        )
-        print(
-            f"  hand-eye: residuals {r.get('translation_rms_mm', float('nan')):.3f} mm, "
-            f"{r.get('rotation_rms_deg', float('nan')):.3f} deg RMS "
-            f"({scores.handeye_views[0]}/{scores.handeye_views[1]} views); vs truth: "
-            f"{scores.handeye_translation_mm:.3f} mm, {scores.handeye_rotation_deg:.3f} deg, "
-            f"clock offset {scores.time_offset_error_ms:+.3f} ms"
-        )
     if report.dds_note:
         print(f"  {report.dds_note}")
     run = report.run
-    if run is None:
-        if report.error:
-            print(f"  live graph: FAILED: {report.error}")
-        return
-    played = run.played
-    print(f"  live graph: {PHANTOM_BAG} at {rate:g}x, {run.seconds:.1f} s; logs in {run.log_dir}")
-    print(f"    {'stage':<32} {'topic':<30} {'in':>5} {'out':>5}")
-    stages = [
-        ("endo-replay (ground truth)", TRUE_POSE_TOPIC, played.get(TRUE_POSE_TOPIC, 0)),
-        ("endo-replay (ground truth)", TRUE_DEPTH_TOPIC, played.get(TRUE_DEPTH_TOPIC, 0)),
-        ("photometric_correction", CORRECTED_TOPIC, played.get(RAW_TOPIC, 0)),
-        ("endo-sfs", DEPTH_TOPIC, report.counts.get(CORRECTED_TOPIC, 0)),
-        ("endo-tracker-bridge", POSE_TOPIC, played.get("/tracker/pose", 0)),
-    ]
-    for stage, topic, count_in in stages:
-        print(f"    {stage:<32} {topic:<30} {count_in:>5} {report.counts.get(topic, 0):>5}")
-    if report.depth_errors:
-        values = [e.abs_rel for e in report.depth_errors.values()]
-        listed = ", ".join(f"{v:.3f}" for v in values)
+    if run is None and report.error:
+        print(f"  live graph: FAILED: {report.error}")
+    if run is not None:
+        played = run.played
         print(
-            f"  depth: {len(values)} depth_relative frames with a ground truth of the same stamp; "
-            f"AbsRel after median scaling (per frame, s = median(true)/median(estimate)) "
-            f"{listed}; mean {np.mean(values):.3f}"
+            f"  live graph: {PHANTOM_BAG} at {rate:g}x, {run.seconds:.1f} s; one log per process "
+            f"(command line first) in {run.log_dir}"
         )
-        print(
-            "    (relative depth: its scale is not known to SFS and is recovered here from the "
-            "truth; endo_flow will recover it from the tracker poses)"
+        print(f"    {'stage':<28} {'output topic':<30} {'in':>5} {'out':>5}  exit")
+        stages = [
+            ("endo-replay (ground truth)", TRUE_POSE_TOPIC, played.get(TRUE_POSE_TOPIC, 0)),
+            ("endo-replay (ground truth)", TRUE_DEPTH_TOPIC, played.get(TRUE_DEPTH_TOPIC, 0)),
+            ("photometric_correction", CORRECTED_TOPIC, played.get(RAW_TOPIC, 0)),
+            ("endo-sfs", DEPTH_TOPIC, report.counts.get(CORRECTED_TOPIC, 0)),
+            ("endo-tracker-bridge", POSE_TOPIC, played.get("/tracker/pose", 0)),
+        ]
+        for stage, topic, count_in in stages:
+            code = run.return_codes.get(stage.split(" ")[0], "?")
+            out = report.counts.get(topic, 0)
+            print(f"    {stage:<28} {topic:<30} {count_in:>5} {out:>5}  {code}")
+    rows: list[tuple[str, str]] = []
+    scores = report.scores
+    if scores is not None:
+        r = scores.handeye_residuals
+        rows += [
+            ("photometric fit residual", f"{scores.response_residual_dn:.3f} DN RMS"),
+            (
+                "inverse response vs truth",
+                f"max error {100 * scores.inverse_response_max_error:.2f} % of full scale "
+                "(raw values 5-250)",
+            ),
+            (
+                "hand-eye fit residuals",
+                f"{r.get('translation_rms_mm', float('nan')):.3f} mm, "
+                f"{r.get('rotation_rms_deg', float('nan')):.3f} deg RMS "
+                f"({scores.handeye_views[0]}/{scores.handeye_views[1]} views)",
+            ),
+            (
+                "hand-eye vs truth",
+                f"{scores.handeye_translation_mm:.3f} mm, {scores.handeye_rotation_deg:.3f} deg; "
+                f"clock offset {scores.time_offset_error_ms:+.3f} ms",
+            ),
+        ]
+    if report.depth_errors:
+        errors = list(report.depth_errors.values())
+        rows.append(
+            (
+                f"depth AbsRel, median-scaled ({len(errors)} fr.)",
+                " / ".join(f"{e.abs_rel:.3f}" for e in errors)
+                + f" (mean {np.mean([e.abs_rel for e in errors]):.3f}); coverage "
+                + " / ".join(f"{100 * e.coverage:.0f} %" for e in errors),
+            )
         )
     poses = report.poses
     if poses is not None and poses.compared:
+        frames = f"{poses.compared}/{poses.compared + poses.missing} fr."
+        rows += [
+            (
+                f"camera position error ({frames})",
+                f"median {np.median(poses.position_mm):.3f} mm, "
+                f"max {np.max(poses.position_mm):.3f} mm",
+            ),
+            (
+                "camera rotation error",
+                f"median {np.median(poses.rotation_deg):.3f} deg, "
+                f"max {np.max(poses.rotation_deg):.3f} deg",
+            ),
+        ]
+    if rows:
+        print(f"    {'measured':<40} value")
+        for label, value in rows:
+            print(f"    {label:<40} {value}")
+    if report.depth_errors:
         print(
-            f"  camera pose: /endoscope/pose interpolated at {poses.compared} ground-truth stamps "
-            f"({poses.missing} in tracker dropouts): position error median "
-            f"{np.median(poses.position_mm):.3f} mm, max {np.max(poses.position_mm):.3f} mm; "
-            f"rotation error median {np.median(poses.rotation_deg):.3f} deg, "
-            f"max {np.max(poses.rotation_deg):.3f} deg"
+            "    depth_relative is relative depth: SFS does not know its scale. Here each frame's"
+            " scale is the median ratio truth/estimate (median(true) / median(estimate)); "
+            "endo_flow will recover it from the tracker poses."
         )
-    print(f"  recording: {run.recording}")
-    print(
-        f"  look at it: open {run.recording} in Foxglove Studio, or play it with "
-        f"`endo-replay {run.recording} --loop` and watch in RViz2 on the same ROS_DOMAIN_ID"
-    )
+    if poses is not None and poses.compared:
+        print(
+            "    camera pose: /endoscope/pose interpolated (endo_io.pose.interpolate_transforms) "
+            f"at each /ground_truth/camera_pose stamp; {poses.missing} stamps fall outside the "
+            "tracker stream or in a dropout."
+        )
+    if run is not None:
+        print(f"  recording: {run.recording}")
+        print(
+            f"  look at it: open {run.recording} in Foxglove Studio, or play it with "
+            f"`endo-replay {run.recording} --loop` and watch in RViz2 on the same ROS_DOMAIN_ID"
+        )
 
 
 def sample_bags_dir(search_dirs: list[Path]) -> Path | None:
@@ -550,9 +592,10 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument(
         "--graph-rate",
         type=float,
-        default=0.5,
-        help="playback speed of the phantom bag into the graph (default 0.5: 15 frames/s, "
-        "which the SFS node at solve_scale 0.5 keeps up with on 2 cores)",
+        default=GRAPH_RATE,
+        help=f"playback speed of the phantom bag into the graph (default {GRAPH_RATE:g}: "
+        "7.5 frames/s, 133 ms per frame; the SFS node at solve_scale 0.5 takes 45 ms per "
+        "frame alone but 85-115 ms inside the running graph on 2 cores, and drops frames at 0.5)",
     )
     parser.add_argument(
         "--solve-scale", type=float, default=0.5, help="the SFS node's solve_scale (default 0.5)"

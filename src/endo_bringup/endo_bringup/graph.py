@@ -156,7 +156,7 @@ class GraphSettings:
     drain_timeout_s: how long to wait for the outputs after the replay ends.
     """
 
-    rate: float = 0.5
+    rate: float = 0.25
     model: str = "near_light"
     roughness: float = 0.0
     solve_scale: float = 0.5
