@@ -409,13 +409,107 @@ def eikonal_sweep(
     return iterations, change, updates
 
 
+#: Layout of the last axis of the per-node data of :func:`near_light_sweep`.
+NODE_LOG_INTENSITY, NODE_LAMBDA, NODE_V_STAR, NODE_SEED = 0, 1, 2, 3
+
+
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _near_light_node(
+    v: np.ndarray,
+    node: np.ndarray,
+    i: int,
+    j: int,
+    hx: float,
+    hy: float,
+    reflectance: np.ndarray,
+    order: int,
+    eps: float,
+    table: np.ndarray,
+) -> float:
+    """Solve node (i, j) from its current neighbours, store v and F; returns |change|.
+
+    node: (ny+4, nx+4, 4) float64 per-node data (ln I, λ, v*, F seed), kept
+    together so that a node's data share a cache line.
+    """
+    sx = 1.0 / hx
+    sy = 1.0 / hy
+    wx = sx * sx
+    wy = sy * sy
+    if order == 1:
+        a = min(v[i, j - 1], v[i, j + 1])
+        b = min(v[i - 1, j], v[i + 1, j])
+        wa = wx
+        wb = wy
+        sa = sx
+        sb = sy
+    elif order == 2:
+        a, _, wa = second_order_neighbour(v, i, j, 0, 1, hx, wx)
+        b, _, wb = second_order_neighbour(v, i, j, 1, 0, hy, wy)
+        sa = sx * 1.5 if wa > wx else sx
+        sb = sy * 1.5 if wb > wy else sy
+    else:
+        a = weno_neighbour(v, i, j, 0, 1, eps)
+        b = weno_neighbour(v, i, j, 1, 0, eps)
+        wa = wx
+        wb = wy
+        sa = sx
+        sb = sy
+    old = v[i, j]
+    new, node[i, j, NODE_SEED] = near_light_update(
+        a, b, wa, wb, sa, sb, node[i, j, NODE_LAMBDA], node[i, j, NODE_LOG_INTENSITY],
+        node[i, j, NODE_V_STAR], reflectance, node[i, j, NODE_SEED], table,
+    )
+    v[i, j] = new
+    return abs(new - old)
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def value_order(v: np.ndarray, valid: np.ndarray, buckets_per_node: float) -> np.ndarray:
+    """Flat indices of the valid nodes of ``v``, roughly in increasing order of value.
+
+    A counting sort into about ``buckets_per_node`` × (number of nodes)
+    equal-width buckets between the smallest and largest finite value: O(N),
+    exact up to the order inside a bucket (which the sweeps that follow
+    repair). v: (ny, nx) float64; valid: (ny, nx) uint8. Returns (n,) int64.
+    """
+    ny, nx = v.shape
+    count = 0
+    low = np.inf
+    high = -np.inf
+    for i in range(ny):
+        for j in range(nx):
+            if valid[i, j] and np.isfinite(v[i, j]):
+                count += 1
+                if v[i, j] < low:
+                    low = v[i, j]
+                if v[i, j] > high:
+                    high = v[i, j]
+    out = np.empty(count, dtype=np.int64)
+    if count == 0:
+        return out
+    buckets = max(1, int(count * buckets_per_node))
+    scale = buckets / (high - low) if high > low else 0.0
+    start = np.zeros(buckets + 1, dtype=np.int64)
+    for i in range(ny):
+        for j in range(nx):
+            if valid[i, j] and np.isfinite(v[i, j]):
+                k = min(int((v[i, j] - low) * scale), buckets - 1)
+                start[k + 1] += 1
+    for k in range(buckets):
+        start[k + 1] += start[k]
+    for i in range(ny):
+        for j in range(nx):
+            if valid[i, j] and np.isfinite(v[i, j]):
+                k = min(int((v[i, j] - low) * scale), buckets - 1)
+                out[start[k]] = i * nx + j
+                start[k] += 1
+    return out
+
+
 @njit(cache=True, nogil=True, error_model="numpy")
 def near_light_sweep(
     v: np.ndarray,
-    guess: np.ndarray,
-    log_intensity: np.ndarray,
-    lam: np.ndarray,
-    v_star: np.ndarray,
+    node: np.ndarray,
     valid: np.ndarray,
     hx: float,
     hy: float,
@@ -425,22 +519,29 @@ def near_light_sweep(
     max_iterations: int,
     eps: float,
     table: np.ndarray,
+    first_pass: np.ndarray,
 ) -> tuple[int, float, int]:
     """Fast sweeping of the near-light perspective SFS equation, in place.
 
     v: (ny+4, nx+4) float64 log-distance ln r, +inf at invalid nodes, the
     initial guess elsewhere (v* for a cold start, the previous frame's
-    solution for a warm start). guess: same shape, F = tan θ seeding each
-    node's next Newton solve (overwritten with each new F; ≤ 0 means none);
-    seeding it from the previous frame while ``v`` starts from v* keeps the
-    sweeps causal (values only fall) yet starts each solve near its root.
-    log_intensity, lam, v_star: per-node ln I, conformal
-    factor λ and singular value v* = ½·ln(A/I).
+    solution for a warm start). node: (ny+4, nx+4, 4) float64 per-node
+    ln I, conformal factor λ, singular value v* = ½·ln(A/I), and the F = tan θ
+    seeding the node's next Newton solve (overwritten with each new F; ≤ 0
+    means none), in the layout ``NODE_*``; seeding F from the previous frame
+    starts each solve near its root.
     order: 1 (first-order Godunov), 2 (:func:`second_order_neighbour`) or 3
     (:func:`weno_neighbour`). reflectance: (A, B) of the co-located
     R(c) = A·c + B·(1 − c²); table: its :func:`log_radiance_table`. The node update
     replaces the value (the scheme is monotone in its neighbours and strictly
     increasing in v through e^{2v}, so any start converges).
+
+    first_pass: (n,) int64 flat indices into the padded grid, or empty. When
+    given, every node is first solved once in this order (the causal schemes
+    are exact in one pass when a node's upwind neighbours come before it,
+    i.e. in increasing order of the solution, as in fast marching; see
+    :func:`value_order`), and the sweeps then only revisit nodes whose
+    stencil changed by more than the tolerance since.
     Returns (iterations, last max change of v, node updates computed).
     """
     ny, nx = v.shape
@@ -451,13 +552,21 @@ def near_light_sweep(
                 active[i, j] = 1
     locked = 1 - active
     reach = 1 if order == 1 else 2
-    sx = 1.0 / hx
-    sy = 1.0 / hy
-    wx = sx * sx
-    wy = sy * sy
+    causal = order != 3
+    updates = 0
+    for k in range(first_pass.size):
+        i = first_pass[k] // nx
+        j = first_pass[k] - i * nx
+        if not active[i, j]:
+            continue
+        locked[i, j] = 1
+        updates += 1
+        old = v[i, j]
+        diff = _near_light_node(v, node, i, j, hx, hy, reflectance, order, eps, table)
+        if diff > tolerance:
+            _unlock_stencil(locked, active, v, i, j, reach, min(v[i, j], old), causal)
     change = np.inf
     iterations = 0
-    updates = 0
     for _ in range(max_iterations):
         iterations += 1
         change = 0.0
@@ -474,37 +583,13 @@ def near_light_sweep(
                         continue
                     locked[i, j] = 1
                     updates += 1
-                    if order == 1:
-                        a = min(v[i, j - 1], v[i, j + 1])
-                        b = min(v[i - 1, j], v[i + 1, j])
-                        wa = wx
-                        wb = wy
-                        sa = sx
-                        sb = sy
-                    elif order == 2:
-                        a, _, wa = second_order_neighbour(v, i, j, 0, 1, hx, wx)
-                        b, _, wb = second_order_neighbour(v, i, j, 1, 0, hy, wy)
-                        sa = sx * 1.5 if wa > wx else sx
-                        sb = sy * 1.5 if wb > wy else sy
-                    else:
-                        a = weno_neighbour(v, i, j, 0, 1, eps)
-                        b = weno_neighbour(v, i, j, 1, 0, eps)
-                        wa = wx
-                        wb = wy
-                        sa = sx
-                        sb = sy
                     old = v[i, j]
-                    new, guess[i, j] = near_light_update(
-                        a, b, wa, wb, sa, sb, lam[i, j], log_intensity[i, j], v_star[i, j],
-                        reflectance, guess[i, j], table,
-                    )
-                    diff = abs(new - old)
-                    v[i, j] = new
+                    diff = _near_light_node(v, node, i, j, hx, hy, reflectance, order, eps, table)
                     if diff > tolerance:
                         _unlock_stencil(
-                            locked, active, v, i, j, reach, min(new, old), order != 3
+                            locked, active, v, i, j, reach, min(v[i, j], old), causal
                         )
-                        if order == 3:
+                        if not causal:
                             locked[i, j] = 0
                     if diff > change:
                         change = diff

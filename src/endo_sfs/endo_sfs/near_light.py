@@ -55,6 +55,9 @@ def singular_log_distance(intensity: np.ndarray, roughness: float) -> np.ndarray
         return 0.5 * np.log(coef_a / np.asarray(intensity, dtype=np.float64))
 
 
+#: Buckets per node of the ordering of the first pass (kernels.value_order).
+FIRST_PASS_BUCKETS = 0.25
+
 #: Lift of a warm start above the previous frame's solution (in ln r), on top
 #: of the frame's median change of v*: local motion up to this much per frame
 #: keeps the start above the new solution.
@@ -153,8 +156,13 @@ def solve_near_light(
         start = warm_start_values(
             warm_start, v_star, valid, safe_intensity, warm_start_intensity
         )
+        # Each node's Newton solve starts from the slope the data imply at
+        # the start value without the lift (closer to the new root).
         seed = np.nan_to_num(
-            np.minimum(tangent_from_log_distance(start, safe_intensity, roughness), 1e3)
+            np.minimum(
+                tangent_from_log_distance(start - WARM_START_MARGIN, safe_intensity, roughness),
+                1e3,
+            )
         )
     hx, hy = spacing
     # The sweeps must start above the solution (values then only fall and the
@@ -169,14 +177,19 @@ def solve_near_light(
     eps = _WENO_EPS_REL * hx * hy
     updates = 0
     table = kernels.log_radiance_table(reflectance)
+    # Causal schemes: one pass in increasing order of the start values first
+    # (nearly the order of the solution), then sweeps repair the rest.
+    node = np.stack([log_intensity_p, lam_p, v_star_p, guess], axis=-1)
+    ordered = kernels.value_order(v, valid_p, FIRST_PASS_BUCKETS)
+    no_pass = np.empty(0, dtype=np.int64)
     if order == 3 and warm_start is None:
         _, _, updates = kernels.near_light_sweep(
-            v, guess, log_intensity_p, lam_p, v_star_p, valid_p, hx, hy, reflectance,
-            2, tolerance, max_iterations, eps, table,
+            v, node, valid_p, hx, hy, reflectance, 2, tolerance, max_iterations, eps, table,
+            ordered,
         )
     iterations, change, more = kernels.near_light_sweep(
-        v, guess, log_intensity_p, lam_p, v_star_p, valid_p, hx, hy, reflectance,
-        order, tolerance, max_iterations, eps, table,
+        v, node, valid_p, hx, hy, reflectance, order, tolerance, max_iterations, eps, table,
+        ordered if order != 3 else no_pass,
     )
     info = SolveInfo(
         int(iterations), float(change), bool(change <= tolerance), int(updates + more)
