@@ -604,6 +604,66 @@ def near_light_sweep(
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
+def near_light_inputs(
+    intensity: np.ndarray,
+    valid: np.ndarray,
+    conformal_factor_sq: np.ndarray,
+    previous: np.ndarray,
+    shift: float,
+    margin: float,
+    reflectance: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Padded start values, per-node data and validity of :func:`near_light_sweep`.
+
+    intensity: (ny, nx) float64 (used where ``valid``); valid: (ny, nx) bool;
+    conformal_factor_sq: (ny, nx) λ². previous: (ny, nx) the previous frame's
+    v (NaN where unknown), or an empty array for a cold start. Start values:
+    v* = ½·ln(A/I) cold; warm, min(previous + shift + margin, v*), an upper
+    bound of the new solution when the frame's global change of v* is
+    ``shift`` and local motion stays below ``margin``. The Newton seed F is
+    the slope the data imply at previous + shift (0 cold).
+    Returns (v (ny+4, nx+4) float64, +inf outside; node (ny+4, nx+4, 4) in
+    the ``NODE_*`` layout; valid (ny+4, nx+4) uint8).
+    """
+    ny, nx = intensity.shape
+    coef_a = reflectance[REFLECTANCE_A]
+    coef_b = reflectance[REFLECTANCE_B]
+    warm = previous.size > 0
+    v = np.full((ny + 4, nx + 4), np.inf)
+    node = np.zeros((ny + 4, nx + 4, 4))
+    valid_p = np.zeros((ny + 4, nx + 4), dtype=np.uint8)
+    for i in range(ny + 4):
+        for j in range(nx + 4):
+            node[i, j, NODE_LAMBDA] = 1.0
+    for i in range(ny):
+        for j in range(nx):
+            value = intensity[i, j]
+            if not (valid[i, j] and value > 0.0 and np.isfinite(value)):
+                continue
+            log_i = np.log(value)
+            v_star = 0.5 * (np.log(coef_a) - log_i)
+            start = v_star
+            seed = 0.0
+            if warm:
+                before = previous[i, j]
+                if np.isfinite(before):
+                    guess = before + shift
+                    if guess + margin < v_star:
+                        start = guess + margin
+                    c = colocated_cosine_scalar(value * np.exp(2.0 * guess), coef_a, coef_b)
+                    seed = np.sqrt(max(1.0 / (c * c) - 1.0, 0.0)) if c > 1e-3 else 1e3
+            p, q = i + 2, j + 2
+            valid_p[p, q] = 1
+            v[p, q] = start
+            node[p, q, NODE_LOG_INTENSITY] = log_i
+            node[p, q, NODE_LAMBDA] = np.sqrt(conformal_factor_sq[i, j])
+            node[p, q, NODE_V_STAR] = v_star
+            node[p, q, NODE_SEED] = seed
+    return v, node, valid_p
+
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
 def orthographic_inputs(
     intensity: np.ndarray,
     valid: np.ndarray,

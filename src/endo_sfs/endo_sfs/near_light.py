@@ -35,24 +35,14 @@ import numpy as np
 
 from endo_sfs import kernels
 from endo_sfs.errors import NoValidPixelsError, SfsInputError
-from endo_sfs.orthographic import SolveInfo, pad
-from endo_sfs.reflectance import colocated_cosine, oren_nayar_coefficients
+from endo_sfs.orthographic import SolveInfo
+from endo_sfs.reflectance import oren_nayar_coefficients
 
 #: WENO smoothness regulariser, relative to the squared node spacing.
 _WENO_EPS_REL = 0.1
 #: Largest roughness for which the co-located Oren–Nayar model is invertible
 #: (A ≥ 2B keeps R(c) monotone on [0, 1]; equality at σ ≈ 0.622 rad).
 MAX_ROUGHNESS = 0.6
-
-
-def singular_log_distance(intensity: np.ndarray, roughness: float) -> np.ndarray:
-    """v* = ½·ln(A/I), R(1) = A: the log-distance at which a node would face the camera.
-
-    intensity: (...) float > 0. Returns (...) float64 (an upper bound of v).
-    """
-    coef_a, _ = oren_nayar_coefficients(roughness)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        return 0.5 * np.log(coef_a / np.asarray(intensity, dtype=np.float64))
 
 
 #: Buckets per node of the ordering of the first pass (kernels.value_order).
@@ -64,49 +54,28 @@ FIRST_PASS_BUCKETS = 0.25
 WARM_START_MARGIN = 0.005
 
 
-def warm_start_values(
+def global_shift(
     previous: np.ndarray,
-    v_star: np.ndarray,
     valid: np.ndarray,
     intensity: np.ndarray,
     previous_intensity: np.ndarray | None,
-) -> np.ndarray:
-    """Start values from the previous frame's v, lifted above the new solution.
+) -> float:
+    """The frame's global change of v*: −½·median(ln(I/I_prev)) over nodes known in both.
 
-    A start below the solution somewhere still converges, but slowly (too-low
-    nodes hold each other down and rise by about h·F per iteration), so the
-    previous solution is shifted by the frame's global change of v*,
-    −½·median(ln(I/I_prev)) (the camera moving towards or away from the
-    surface), plus :data:`WARM_START_MARGIN` for local motion, and capped by
-    v*. previous, v_star, intensity, previous_intensity: (ny, nx); valid:
-    (ny, nx) bool. Returns (ny, nx) float64.
+    The camera moving towards or away from the surface changes every v by
+    about this much. previous, intensity, previous_intensity: (ny, nx);
+    valid: (ny, nx) bool. Returns ln-distance units (0 when unknown).
     """
-    known = valid & np.isfinite(previous)
-    if not known.any():
-        return v_star
-    shift = 0.0
-    if previous_intensity is not None:
-        both = known & np.isfinite(previous_intensity) & (previous_intensity > 0.0)
-        if both.any():
-            shift = -0.5 * float(np.median(np.log(intensity[both] / previous_intensity[both])))
-    lifted = np.where(known, previous + shift + WARM_START_MARGIN, v_star)
-    return np.minimum(lifted, v_star)
-
-
-def tangent_from_log_distance(
-    log_distance: np.ndarray,
-    intensity: np.ndarray,
-    roughness: float,
-) -> np.ndarray:
-    """tan θ implied by the data at a given v: R(cos θ) = I·e^{2v}.
-
-    log_distance, intensity: (...) float. Returns (...) float64 ≥ 0, +inf at
-    grazing, NaN where v is NaN.
-    """
-    with np.errstate(over="ignore", invalid="ignore"):
-        c = colocated_cosine(intensity * np.exp(2.0 * log_distance), roughness)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        return np.sqrt(np.maximum(1.0 / (c * c) - 1.0, 0.0))
+    if previous_intensity is None:
+        return 0.0
+    with np.errstate(invalid="ignore"):
+        both = (
+            valid & np.isfinite(previous) & np.isfinite(previous_intensity)
+            & (previous_intensity > 0.0)
+        )
+    if not both.any():
+        return 0.0
+    return -0.5 * float(np.median(np.log(intensity[both] / previous_intensity[both])))
 
 
 def solve_near_light(
@@ -131,7 +100,7 @@ def solve_near_light(
     changed v by more than this (relative distance). warm_start: (ny, nx) v
     from the previous frame (NaN where unknown) or None; warm_start_intensity:
     that frame's (ny, nx) node irradiance, if known (see
-    :func:`warm_start_values`).
+    :func:`global_shift` and :func:`endo_sfs.kernels.near_light_inputs`).
     Returns ((ny, nx) float64 v, NaN at invalid nodes; info).
     """
     if order not in (1, 2, 3):
@@ -144,42 +113,28 @@ def solve_near_light(
         raise NoValidPixelsError("no node with a positive, finite irradiance")
     coef_a, coef_b = oren_nayar_coefficients(roughness)
     reflectance = np.array([coef_a, coef_b])
-    safe_intensity = np.where(valid, intensity, 1.0)
-    v_star = singular_log_distance(safe_intensity, roughness)
-    start = v_star
-    seed = np.zeros_like(v_star)
+    previous = np.empty((0, 0))
+    shift = 0.0
     if warm_start is not None:
         if warm_start.shape != intensity.shape:
             raise SfsInputError(
                 f"warm_start has shape {warm_start.shape}, expected {intensity.shape}"
             )
-        start = warm_start_values(
-            warm_start, v_star, valid, safe_intensity, warm_start_intensity
-        )
-        # Each node's Newton solve starts from the slope the data imply at
-        # the start value without the lift (closer to the new root).
-        seed = np.nan_to_num(
-            np.minimum(
-                tangent_from_log_distance(start - WARM_START_MARGIN, safe_intensity, roughness),
-                1e3,
-            )
-        )
-    hx, hy = spacing
-    # The sweeps must start above the solution (values then only fall and the
-    # scheme stays causal): from v* cold, or from the previous frame lifted
+        previous = np.asarray(warm_start, dtype=np.float64)
+        shift = global_shift(previous, valid, intensity, warm_start_intensity)
+    # The sweeps start above the solution (values then only fall and the
+    # scheme stays causal): from v* cold, or from the previous frame shifted
     # by the frame's global change of v* plus a margin.
-    v = pad(np.where(valid, start, np.inf), np.inf)
-    guess = pad(seed, 0.0)
-    log_intensity_p = pad(np.log(safe_intensity), 0.0)
-    lam_p = pad(np.sqrt(np.asarray(conformal_factor_sq, dtype=np.float64)), 1.0)
-    v_star_p = pad(v_star, 0.0)
-    valid_p = pad(valid.astype(np.uint8), 0)
+    v, node, valid_p = kernels.near_light_inputs(
+        intensity, valid, np.asarray(conformal_factor_sq, dtype=np.float64), previous, shift,
+        WARM_START_MARGIN, reflectance,
+    )
+    hx, hy = spacing
     eps = _WENO_EPS_REL * hx * hy
     updates = 0
     table = kernels.log_radiance_table(reflectance)
     # Causal schemes: one pass in increasing order of the start values first
     # (nearly the order of the solution), then sweeps repair the rest.
-    node = np.stack([log_intensity_p, lam_p, v_star_p, guess], axis=-1)
     ordered = kernels.value_order(v, valid_p, FIRST_PASS_BUCKETS)
     no_pass = np.empty(0, dtype=np.int64)
     if order == 3 and warm_start is None:
