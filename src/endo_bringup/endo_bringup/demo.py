@@ -451,9 +451,9 @@ def run_graph_stage(
         return report
     recording = report.run.recording
     report.counts = dict(evaluation.topic_counts(recording))
+    truths = evaluation.read_depth_frames(recording, TRUE_DEPTH_TOPIC)
     report.depth_errors = evaluation.depth_errors_at_truth(
-        evaluation.read_depth_frames(recording, DEPTH_TOPIC),
-        evaluation.read_depth_frames(recording, TRUE_DEPTH_TOPIC),
+        evaluation.read_depth_frames(recording, DEPTH_TOPIC, set(truths)), truths
     )
     report.poses = evaluation.compare_poses(
         *evaluation.read_pose_stream(recording, POSE_TOPIC),
@@ -566,13 +566,12 @@ def print_graph_report(report: GraphReport, rate: float) -> None:
 
 
 def sample_bags_dir(search_dirs: list[Path]) -> Path | None:
-    """The first directory holding all three sample bags and their ground truth."""
+    """The first directory holding the three sample bags and the ground truth they need."""
     for directory in search_dirs:
-        if all(
-            (directory / name).exists()
-            and (directory / name.replace(".mcap", ".ground_truth.yaml")).exists()
-            for name in SAMPLE_BAGS
-        ):
+        needed = [directory / name for name in SAMPLE_BAGS]
+        needed += [bag.with_name(bag.stem + ".ground_truth.yaml") for bag in needed]
+        needed.append(directory / GRAYCARD_BAG.replace(".mcap", ".inverse_response.npy"))
+        if all(path.exists() for path in needed):
             return directory
     return None
 
@@ -660,6 +659,8 @@ def run_round_trip_stage(bag: Path | None, out_dir: Path, rate: float, env: dict
 def main(argv: list[str] | None = None) -> int:
     """Run the demo; returns the exit status."""
     options = build_parser().parse_args(argv)
+    # SIGTERM ends the demo like Ctrl-C: unwinding stops every child process.
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(128 + signal.SIGTERM))
     env = dict(os.environ)
     env.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     env.setdefault("ROS_DOMAIN_ID", DEMO_DOMAIN_ID)

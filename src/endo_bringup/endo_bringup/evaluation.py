@@ -37,15 +37,23 @@ def topic_counts(bag: Path) -> Counter[str]:
     return counts
 
 
-def read_depth_frames(bag: Path, topic: str) -> dict[int, np.ndarray]:
-    """Header stamp (ns) -> (H, W) float32 depth image of every message on ``topic``."""
+def read_depth_frames(
+    bag: Path, topic: str, stamps: set[int] | None = None
+) -> dict[int, np.ndarray]:
+    """Header stamp (ns) -> (H, W) float32 depth image of the messages on ``topic``.
+
+    stamps: keep only frames with these header stamps (all when None), so a
+    long recording is not held in memory to score a few frames.
+    """
     frames: dict[int, np.ndarray] = {}
     with BagReader(bag) as reader:
         if topic not in reader.topics:
             return frames
         for message in reader.messages(topics=[topic]):
             msg = deserialize(message)
-            frames[stamp_to_ns(msg.header.stamp)] = image_to_array(msg)
+            stamp = stamp_to_ns(msg.header.stamp)
+            if stamps is None or stamp in stamps:
+                frames[stamp] = image_to_array(msg)
     return frames
 
 
