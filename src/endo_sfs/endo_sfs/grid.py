@@ -53,6 +53,7 @@ class SolveGrid:
         pixel_node_x, pixel_node_y: (H, W) float64 node coordinates of every
             pixel (NaN for pixels without a chart position).
         pixel_rays: (H, W, 3) float64 unit ray of every pixel.
+        pixel_has_ray: (H, W) bool pixels whose ray is finite.
         identity: True when nodes and pixels coincide (no resampling).
     """
 
@@ -66,6 +67,7 @@ class SolveGrid:
     pixel_node_x: np.ndarray
     pixel_node_y: np.ndarray
     pixel_rays: np.ndarray
+    pixel_has_ray: np.ndarray
     identity: bool
 
     def to_nodes(
@@ -190,6 +192,7 @@ def build_solve_grid(camera: CameraModel, projection: Projection, solve_scale: f
         pixel_node_x=np.ascontiguousarray(pixel_node_x),
         pixel_node_y=np.ascontiguousarray(pixel_node_y),
         pixel_rays=rays,
+        pixel_has_ray=np.all(np.isfinite(rays), axis=-1),
         identity=identity,
     )
 

@@ -21,6 +21,10 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+#: LLVM fast-math flags that keep IEEE infinities and NaNs (the kernels rely
+#: on +inf for invalid nodes): contraction, reciprocal, reassociation.
+_FAST = {"contract", "arcp", "reassoc", "afn"}
+
 #: Below this cosine a surface is taken as grazing: the data term is infinite.
 _MIN_COSINE = 1e-6
 #: The per-node Newton solve ends once its residual bounds the error of
@@ -116,7 +120,7 @@ def log_radiance_table(reflectance: np.ndarray) -> np.ndarray:
     return table
 
 
-@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+@njit(cache=True, nogil=True, error_model="numpy", fastmath=_FAST, inline="always")
 def _log_radiance(f: float, table: np.ndarray, reflectance: np.ndarray) -> tuple[float, float]:
     """g(F) and g'(F) from the table (cubic Hermite), directly beyond its range."""
     x = f * _TABLE_INV_STEP
@@ -137,7 +141,7 @@ def _log_radiance(f: float, table: np.ndarray, reflectance: np.ndarray) -> tuple
     return value, slope * _TABLE_INV_STEP
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy", fastmath=_FAST)
 def near_light_update(
     a: float,
     b: float,
@@ -272,7 +276,7 @@ def weno_neighbour(u: np.ndarray, i: int, j: int, di: int, dj: int, eps: float) 
 # --------------------------------------------------------------------------
 
 
-@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+@njit(cache=True, nogil=True, error_model="numpy", fastmath=_FAST, inline="always")
 def second_order_neighbour(
     u: np.ndarray, i: int, j: int, di: int, dj: int, h: float, w: float
 ) -> tuple[float, float, float]:
@@ -296,7 +300,7 @@ def second_order_neighbour(
     return n1, h, w
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy", fastmath=_FAST)
 def _unlock_stencil(
     locked: np.ndarray,
     active: np.ndarray,
@@ -413,7 +417,7 @@ def eikonal_sweep(
 NODE_LOG_INTENSITY, NODE_LAMBDA, NODE_V_STAR, NODE_SEED = 0, 1, 2, 3
 
 
-@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+@njit(cache=True, nogil=True, error_model="numpy", fastmath=_FAST, inline="always")
 def _near_light_node(
     v: np.ndarray,
     node: np.ndarray,
@@ -506,7 +510,7 @@ def value_order(v: np.ndarray, valid: np.ndarray, buckets_per_node: float) -> np
     return out
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy", fastmath=_FAST)
 def near_light_sweep(
     v: np.ndarray,
     node: np.ndarray,

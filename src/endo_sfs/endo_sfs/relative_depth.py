@@ -183,7 +183,7 @@ def solve(
     if mask_highlights:
         valid &= ~detect_highlights(image, mask, saturation)
     grid = solve_grid(camera, "stereographic" if model == "near_light" else "gnomonic", solve_scale)
-    valid &= np.all(np.isfinite(grid.pixel_rays), axis=-1)
+    valid &= grid.pixel_has_ray
     if not valid.any():
         raise NoValidPixelsError(
             "no usable pixel: the frame is all dark, saturated, NaN or masked"
