@@ -39,13 +39,13 @@ import time
 from collections import defaultdict
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
 import yaml
 from std_msgs.msg import Float32
 
-from endo_bringup import evaluation
 from endo_bringup.dds_profile import with_large_frame_profile
 from endo_bringup.graph import (
     CORRECTED_TOPIC,
@@ -63,15 +63,16 @@ from endo_bringup.graph import (
     run_offline_calibrations,
 )
 from endo_bringup.process_group import console_script
-from endo_calib.calibration import PhotometricCalibration
 from endo_io.bag import BagReader, BagWriter, message_class, msgtype_of, serialize
 from endo_io.bag.serde import dds_aligned
 from endo_io.camera import CameraModel
 from endo_io.errors import BagError, Endo3dError
 from endo_io.image import array_to_image
 from endo_io.pose import matrix_to_pose
-from endo_sfs.evaluation import DepthError
-from endo_tracker_bridge.handeye_file import HandEyeCalibration
+
+if TYPE_CHECKING:
+    from endo_bringup.evaluation import PoseComparison
+    from endo_sfs.evaluation import DepthError
 
 #: DDS domain of the demo when the environment gives none (as in the Makefile).
 DEMO_DOMAIN_ID = "41"
@@ -343,7 +344,7 @@ class GraphReport:
     run: GraphRun | None
     counts: dict[str, int] = field(default_factory=dict)
     depth_errors: dict[int, DepthError] = field(default_factory=dict)
-    poses: evaluation.PoseComparison | None = None
+    poses: PoseComparison | None = None
     dds_note: str = ""
     error: str = ""
 
@@ -378,6 +379,12 @@ def score_calibrations(
     photometric: Path, handeye: Path, graycard_bag: Path, handeye_bag: Path
 ) -> CalibrationScores:
     """Compare photometric.yaml and handeye.yaml with the ground truth beside the bags."""
+    # The graph's packages are imported only when the graph part runs, so the
+    # round trip works whatever state they are in.
+    from endo_bringup import evaluation
+    from endo_calib.calibration import PhotometricCalibration
+    from endo_tracker_bridge.handeye_file import HandEyeCalibration
+
     calibration = PhotometricCalibration.load(photometric)
     fit = yaml.safe_load(photometric.read_text())["fit"]["channels"]
     true_response = np.load(graycard_bag.with_name(graycard_bag.stem + ".inverse_response.npy"))
@@ -434,6 +441,8 @@ def run_graph_stage(
     their ground truth; everything is written under ``out_dir``. Every child
     process has ended when this returns.
     """
+    from endo_bringup import evaluation
+
     graycard, handeye_bag, phantom = (bags_dir / name for name in SAMPLE_BAGS)
     calibrate, handeye = run_offline_calibrations(graycard, handeye_bag, out_dir, env)
     report = GraphReport(calibrate=calibrate, handeye=handeye, scores=None, run=None)
@@ -554,7 +563,7 @@ def print_graph_report(report: GraphReport, rate: float) -> None:
     if poses is not None and poses.compared:
         print(
             "    camera pose: /endoscope/pose interpolated (endo_io.pose.interpolate_transforms) "
-            f"at each /ground_truth/camera_pose stamp; {poses.missing} stamps fall outside the "
+            f"at each /ground_truth/camera_pose stamp; {poses.missing} stamp(s) fall outside the "
             "tracker stream or in a dropout."
         )
     if run is not None:
