@@ -152,7 +152,9 @@ class GraphSettings:
     rate: playback speed factor of the phantom bag. model, roughness,
     solve_scale: the SFS node's parameters. T_world_tracker: (4, 4) tracker
     frame → world frame (metres), the bridge's registration parameter.
-    startup_timeout_s: how long the nodes may take to come up;
+    startup_timeout_s: how long the nodes may take to come up (on a fresh
+    checkout the SFS node first compiles its numba kernels: about 8 s alone,
+    more while the other processes start);
     drain_timeout_s: how long to wait for the outputs after the replay ends.
     """
 
@@ -161,7 +163,7 @@ class GraphSettings:
     roughness: float = 0.0
     solve_scale: float = 0.5
     T_world_tracker: np.ndarray = field(default_factory=lambda: np.eye(4))
-    startup_timeout_s: float = 30.0
+    startup_timeout_s: float = 90.0
     drain_timeout_s: float = 20.0
 
 
