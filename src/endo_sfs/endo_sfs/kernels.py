@@ -230,8 +230,10 @@ def near_light_update(
         # step-size test can stop on the wrong side of the kink of √L).
         if abs(q) < lam * _NEWTON_RESIDUAL_TOL * (1.0 + f):
             if f_new > f_lo and f_new < f_hi:
-                f = f_new
-            break
+                # The last step is below 1e-4·(1 + F): v(F) to first order
+                # (error ~ g''·step², under 1e-8) instead of another lookup.
+                return v + dv_df * (f_new - f), f_new
+            return v, f
         if not (f_new > f_lo and f_new < f_hi):
             f_new = 0.5 * (f_lo + f_hi) if f_hi < np.inf else 2.0 * f + 1.0
         f = f_new
