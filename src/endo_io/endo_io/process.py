@@ -13,6 +13,7 @@ import os
 import sys
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from pathlib import Path
 
 import rclpy
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
@@ -62,6 +63,43 @@ def log_dds_environment(node: Node) -> DdsEnvironment:
     return env
 
 
+def describe_parameters(node: Node) -> str:
+    """One line per declared parameter: name, type, default, range and description."""
+    lines = []
+    for name in sorted(node._parameters):
+        if name == "use_sim_time" or name.startswith("qos_overrides."):
+            continue
+        descriptor = node.describe_parameter(name)
+        value = node.get_parameter(name).value
+        bounds = ""
+        for r in (*descriptor.floating_point_range, *descriptor.integer_range):
+            bounds = f" [{r.from_value}, {r.to_value}]"
+        text = descriptor.description or ""
+        lines.append(f"  {name} (default {value!r}{bounds}): {text}")
+    return "\n".join(lines)
+
+
+def print_node_help(factory: Callable[[], Node], argv: Sequence[str]) -> int:
+    """``--help`` of a node executable: create the node once, print its parameters."""
+    program = Path(argv[0]).name if argv else "node"
+    rclpy.init(args=[program])
+    try:
+        node = factory()
+        doc = (sys.modules[type(node).__module__].__doc__ or "").strip().split("\n\n")[0]
+        print(f"usage: {program} [--ros-args [-p NAME:=VALUE] [-r FROM:=TO] ...]\n")
+        if doc:
+            print(doc + "\n")
+        print(f"node {node.get_fully_qualified_name()}, parameters:")
+        print(describe_parameters(node))
+        close = getattr(node, "close", None)
+        if callable(close):
+            close()
+        node.destroy_node()
+    finally:
+        rclpy.try_shutdown()
+    return 0
+
+
 def run_node(factory: Callable[[], Node], args: Sequence[str] | None = None) -> int:
     """Create a node with ``factory`` and spin it until SIGINT or SIGTERM.
 
@@ -69,9 +107,13 @@ def run_node(factory: Callable[[], Node], args: Sequence[str] | None = None) -> 
     Returns the process exit code: the node's ``exit_code`` attribute when it
     has one (a replay that hit a damaged bag sets it), else 0.
     """
+    argv = list(sys.argv if args is None else args)
+    ours, _ = split_ros_args(argv)
+    if "-h" in ours or "--help" in ours:
+        return print_node_help(factory, argv)
     # rclpy's default signal handlers cover SIGINT and SIGTERM: both shut the
     # context down, spin() returns, and the node's close() still runs below.
-    rclpy.init(args=list(sys.argv if args is None else args))
+    rclpy.init(args=argv)
     node: Node | None = None
     try:
         node = factory()

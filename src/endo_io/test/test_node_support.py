@@ -110,3 +110,27 @@ def test_status_is_published_on_diagnostics(node):
     values = {kv.key: kv.value for kv in status.values}
     assert values["processed"] == "1"
     assert values["latency_ms"] == "3.5"
+
+
+def test_run_node_help_lists_declared_parameters_and_exits(capsys):
+    from rcl_interfaces.msg import FloatingPointRange, ParameterDescriptor
+
+    from endo_io.process import run_node
+
+    class GainNode(Node):
+        def __init__(self) -> None:
+            super().__init__("gain_under_test")
+            self.declare_parameter(
+                "gain",
+                2.0,
+                ParameterDescriptor(
+                    description="multiplies every pixel",
+                    floating_point_range=[FloatingPointRange(from_value=0.0, to_value=8.0)],
+                ),
+            )
+
+    assert run_node(GainNode, ["gain-node", "--help"]) == 0
+    out = capsys.readouterr().out
+    assert "usage: gain-node [--ros-args" in out
+    assert "gain (default 2.0 [0.0, 8.0]): multiplies every pixel" in out
+    assert not rclpy.ok()  # the help path leaves no context running
