@@ -415,6 +415,11 @@ def eikonal_sweep(
     return iterations, change, updates
 
 
+#: Ordered repair rounds after the first pass, at most; they stop once a
+#: round solves fewer than REPAIR_STOP of the nodes (the sweeps do the rest).
+REPAIR_ROUNDS = 6
+REPAIR_STOP = 0.02
+
 #: Layout of the last axis of the per-node data of :func:`near_light_sweep`.
 NODE_LOG_INTENSITY, NODE_LAMBDA, NODE_V_STAR, NODE_SEED = 0, 1, 2, 3
 
@@ -526,6 +531,7 @@ def near_light_sweep(
     eps: float,
     table: np.ndarray,
     first_pass: np.ndarray,
+    repair_buckets: float,
 ) -> tuple[int, float, int]:
     """Fast sweeping of the near-light perspective SFS equation, in place.
 
@@ -546,8 +552,11 @@ def near_light_sweep(
     given, every node is first solved once in this order (the causal schemes
     are exact in one pass when a node's upwind neighbours come before it,
     i.e. in increasing order of the solution, as in fast marching; see
-    :func:`value_order`), and the sweeps then only revisit nodes whose
-    stencil changed by more than the tolerance since.
+    :func:`value_order`); the nodes this leaves unlocked (solved before an
+    upwind neighbour was final) are solved once more in the order of the
+    values just computed (``repair_buckets`` buckets per node), and the
+    sweeps then only revisit nodes whose stencil changed by more than the
+    tolerance since.
     Returns (iterations, last max change of v, node updates computed).
     """
     ny, nx = v.shape
@@ -560,17 +569,30 @@ def near_light_sweep(
     reach = 1 if order == 1 else 2
     causal = order != 3
     updates = 0
-    for k in range(first_pass.size):
-        i = first_pass[k] // nx
-        j = first_pass[k] - i * nx
-        if not active[i, j]:
-            continue
-        locked[i, j] = 1
-        updates += 1
-        old = v[i, j]
-        diff = _near_light_node(v, node, i, j, hx, hy, reflectance, order, eps, table)
-        if diff > tolerance:
-            _unlock_stencil(locked, active, v, i, j, reach, min(v[i, j], old), causal)
+    ordered = first_pass
+    repaired = 0
+    for repair in range(REPAIR_ROUNDS + 1 if first_pass.size > 0 else 0):
+        if repair > 0:
+            # Nodes solved before an upwind neighbour was final are unlocked
+            # again; repair them in the order of the values just computed,
+            # which is nearly the solution's, so a misordering does not
+            # cascade through the sweeps.
+            ordered = value_order(v, valid, repair_buckets)
+            repaired = 0
+        for k in range(ordered.size):
+            i = ordered[k] // nx
+            j = ordered[k] - i * nx
+            if locked[i, j]:
+                continue
+            locked[i, j] = 1
+            updates += 1
+            repaired += 1
+            old = v[i, j]
+            diff = _near_light_node(v, node, i, j, hx, hy, reflectance, order, eps, table)
+            if diff > tolerance:
+                _unlock_stencil(locked, active, v, i, j, reach, min(v[i, j], old), causal)
+        if repair > 0 and repaired < REPAIR_STOP * ordered.size:
+            break
     change = np.inf
     iterations = 0
     for _ in range(max_iterations):
@@ -616,56 +638,62 @@ def near_light_inputs(
     conformal_factor_sq: np.ndarray,
     previous: np.ndarray,
     shift: float,
-    margin: float,
     reflectance: np.ndarray,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Padded start values, per-node data and validity of :func:`near_light_sweep`.
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Padded start values, per-node data, validity and ordering key of :func:`near_light_sweep`.
 
     intensity: (ny, nx) float64 (used where ``valid``); valid: (ny, nx) bool;
     conformal_factor_sq: (ny, nx) λ². previous: (ny, nx) the previous frame's
-    v (NaN where unknown), or an empty array for a cold start. Start values:
-    v* = ½·ln(A/I) cold; warm, min(previous + shift + margin, v*), an upper
-    bound of the new solution when the frame's global change of v* is
-    ``shift`` and local motion stays below ``margin``. The Newton seed F is
-    the slope the data imply at previous + shift (0 cold).
+    v (NaN where unknown), or an empty array for a cold start; shift: the
+    frame's global change of v.
+
+    The start is always v* = ½·ln(A/I), an upper bound of the solution, so
+    that values only fall and the causal schemes stay causal, however the
+    surface moved. The previous frame does not enter the start values; it
+    gives the order of the first pass (its v + shift, which orders the nodes
+    almost as the new solution will; v* where unknown) and each node's Newton
+    seed (the slope the data imply at previous + shift; 0 cold).
     Returns (v (ny+4, nx+4) float64, +inf outside; node (ny+4, nx+4, 4) in
-    the ``NODE_*`` layout; valid (ny+4, nx+4) uint8).
+    the ``NODE_*`` layout; valid (ny+4, nx+4) uint8; key (ny+4, nx+4)
+    float64, +inf outside).
     """
     ny, nx = intensity.shape
     coef_a = reflectance[REFLECTANCE_A]
     coef_b = reflectance[REFLECTANCE_B]
     warm = previous.size > 0
     v = np.full((ny + 4, nx + 4), np.inf)
+    key = np.full((ny + 4, nx + 4), np.inf)
     node = np.zeros((ny + 4, nx + 4, 4))
     valid_p = np.zeros((ny + 4, nx + 4), dtype=np.uint8)
     for i in range(ny + 4):
         for j in range(nx + 4):
             node[i, j, NODE_LAMBDA] = 1.0
+    log_a = np.log(coef_a)
     for i in range(ny):
         for j in range(nx):
             value = intensity[i, j]
             if not (valid[i, j] and value > 0.0 and np.isfinite(value)):
                 continue
             log_i = np.log(value)
-            v_star = 0.5 * (np.log(coef_a) - log_i)
-            start = v_star
+            v_star = 0.5 * (log_a - log_i)
+            order_key = v_star
             seed = 0.0
             if warm:
                 before = previous[i, j]
                 if np.isfinite(before):
                     guess = before + shift
-                    if guess + margin < v_star:
-                        start = guess + margin
+                    order_key = guess
                     c = colocated_cosine_scalar(value * np.exp(2.0 * guess), coef_a, coef_b)
                     seed = np.sqrt(max(1.0 / (c * c) - 1.0, 0.0)) if c > 1e-3 else 1e3
             p, q = i + 2, j + 2
             valid_p[p, q] = 1
-            v[p, q] = start
+            v[p, q] = v_star
+            key[p, q] = order_key
             node[p, q, NODE_LOG_INTENSITY] = log_i
             node[p, q, NODE_LAMBDA] = np.sqrt(conformal_factor_sq[i, j])
             node[p, q, NODE_V_STAR] = v_star
             node[p, q, NODE_SEED] = seed
-    return v, node, valid_p
+    return v, node, valid_p, key
 
 
 

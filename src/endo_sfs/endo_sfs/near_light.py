@@ -48,12 +48,6 @@ MAX_ROUGHNESS = 0.6
 #: Buckets per node of the ordering of the first pass (kernels.value_order).
 FIRST_PASS_BUCKETS = 0.25
 
-#: Lift of a warm start above the previous frame's solution (in ln r), on top
-#: of the frame's median change of v*: local motion up to this much per frame
-#: keeps the start above the new solution.
-WARM_START_MARGIN = 0.005
-
-
 def global_shift(
     previous: np.ndarray,
     valid: np.ndarray,
@@ -122,12 +116,12 @@ def solve_near_light(
             )
         previous = np.asarray(warm_start, dtype=np.float64)
         shift = global_shift(previous, valid, intensity, warm_start_intensity)
-    # The sweeps start above the solution (values then only fall and the
-    # scheme stays causal): from v* cold, or from the previous frame shifted
-    # by the frame's global change of v* plus a margin.
-    v, node, valid_p = kernels.near_light_inputs(
+    # The sweeps start from v*, above the solution, so values only fall and
+    # the scheme stays causal; the previous frame orders the first pass and
+    # seeds each node's Newton solve.
+    v, node, valid_p, key = kernels.near_light_inputs(
         intensity, valid, np.asarray(conformal_factor_sq, dtype=np.float64), previous, shift,
-        WARM_START_MARGIN, reflectance,
+        reflectance,
     )
     hx, hy = spacing
     eps = _WENO_EPS_REL * hx * hy
@@ -135,16 +129,16 @@ def solve_near_light(
     table = kernels.log_radiance_table(reflectance)
     # Causal schemes: one pass in increasing order of the start values first
     # (nearly the order of the solution), then sweeps repair the rest.
-    ordered = kernels.value_order(v, valid_p, FIRST_PASS_BUCKETS)
+    ordered = kernels.value_order(key, valid_p, FIRST_PASS_BUCKETS)
     no_pass = np.empty(0, dtype=np.int64)
     if order == 3 and warm_start is None:
         _, _, updates = kernels.near_light_sweep(
             v, node, valid_p, hx, hy, reflectance, 2, tolerance, max_iterations, eps, table,
-            ordered,
+            ordered, FIRST_PASS_BUCKETS,
         )
     iterations, change, more = kernels.near_light_sweep(
         v, node, valid_p, hx, hy, reflectance, order, tolerance, max_iterations, eps, table,
-        ordered if order != 3 else no_pass,
+        ordered if order != 3 else no_pass, FIRST_PASS_BUCKETS,
     )
     info = SolveInfo(
         int(iterations), float(change), bool(change <= tolerance), int(updates + more)
