@@ -11,7 +11,9 @@ orderings, repeated until the largest change of a full iteration is below the
 tolerance. Nodes are skipped while *locked* (Bak, McLaughlin & Renzi 2010):
 a node is unlocked only when a node within its stencil changed by more than
 the tolerance (and, for the causal upwind schemes, only if that node may be
-upwind of it). All kernels use numpy's error model: no Python exception
+upwind of it). The near-light solver first solves every node once in
+(nearly) increasing order of its value, as fast marching would, so that the
+sweeps only repair. All kernels use numpy's error model: no Python exception
 checks on divisions inside the loops; an infinite or NaN result is handled
 by the bracketing logic instead.
 """
@@ -536,11 +538,11 @@ def near_light_sweep(
     """Fast sweeping of the near-light perspective SFS equation, in place.
 
     v: (ny+4, nx+4) float64 log-distance ln r, +inf at invalid nodes, the
-    initial guess elsewhere (v* for a cold start, the previous frame's
-    solution for a warm start). node: (ny+4, nx+4, 4) float64 per-node
-    ln I, conformal factor λ, singular value v* = ½·ln(A/I), and the F = tan θ
-    seeding the node's next Newton solve (overwritten with each new F; ≤ 0
-    means none), in the layout ``NODE_*``; seeding F from the previous frame
+    start values elsewhere (v*, see :func:`near_light_inputs`).
+    node: (ny+4, nx+4, 4) float64 per-node ln I, conformal factor λ,
+    singular value v* = ½·ln(A/I), and the F = tan θ seeding the node's
+    next Newton solve (overwritten with each new F; ≤ 0 means none), in the
+    layout ``NODE_*``; seeding F from the previous frame
     starts each solve near its root.
     order: 1 (first-order Godunov), 2 (:func:`second_order_neighbour`) or 3
     (:func:`weno_neighbour`). reflectance: (A, B) of the co-located
