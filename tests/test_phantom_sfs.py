@@ -13,10 +13,12 @@ bounds how many that are.
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
 import yaml
+from sensor_msgs.msg import CameraInfo
 
 from endo_calib.calibration import PhotometricCalibration
 from endo_calib.cli import build_parser, run
@@ -34,10 +36,10 @@ GRAYCARD = BAGS / "graycard.mcap"
 TARGET_ABS_REL = 0.08
 
 
-def _ground_truth_frames() -> list[tuple[np.ndarray, np.ndarray, object]]:
+def _ground_truth_frames() -> list[tuple[np.ndarray, np.ndarray, CameraInfo]]:
     """(raw image, true depth, camera_info) of every frame with ground-truth depth."""
     topics = ("/endoscope/image_raw", "/endoscope/camera_info", "/ground_truth/depth")
-    by_topic: dict[str, dict[int, object]] = {topic: {} for topic in topics}
+    by_topic: dict[str, dict[int, Any]] = {topic: {} for topic in topics}
     with BagReader(PHANTOM) as reader:
         for message in reader.messages(list(topics)):
             msg = deserialize(message)
@@ -55,7 +57,7 @@ def _ground_truth_frames() -> list[tuple[np.ndarray, np.ndarray, object]]:
 
 
 @pytest.fixture(scope="module")
-def calibration(tmp_path_factory) -> PhotometricCalibration:
+def calibration(tmp_path_factory: pytest.TempPathFactory) -> PhotometricCalibration:
     truth = yaml.safe_load((BAGS / "graycard.ground_truth.yaml").read_text())
     distance = float(truth["scene"]["gray_card"]["distance_m"])
     output = tmp_path_factory.mktemp("calib") / "photometric.yaml"
@@ -66,7 +68,9 @@ def calibration(tmp_path_factory) -> PhotometricCalibration:
     return run(args)
 
 
-def test_phantom_median_scaled_abs_rel_meets_the_target(calibration):
+def test_phantom_median_scaled_abs_rel_meets_the_target(
+    calibration: PhotometricCalibration,
+) -> None:
     frames = _ground_truth_frames()
     assert len(frames) == 3
     fov_radius = float(
