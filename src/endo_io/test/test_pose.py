@@ -310,3 +310,17 @@ def test_interpolate_transforms_gap_rule_and_edge_cases():
 def test_interpolate_transforms_rejects_bad_input(stamps, poses, query, gap, match):
     with pytest.raises(PoseError, match=match):
         interpolate_transforms(np.array(stamps), poses, np.array(query), gap)
+
+
+def test_invert_transform_is_the_rigid_inverse():
+    from scipy.spatial.transform import Rotation
+
+    from endo_io.pose import invert_transform
+
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_rotvec([0.3, 0.2, -0.1]).as_matrix()
+    T[:3, 3] = [0.4, -1.0, 2.0]
+    np.testing.assert_allclose(invert_transform(T) @ T, np.eye(4), atol=1e-14)
+    stack = np.stack([T, np.eye(4)])
+    np.testing.assert_allclose(invert_transform(stack)[0], np.linalg.inv(T), atol=1e-14)
+    np.testing.assert_array_equal(invert_transform(stack)[1], np.eye(4))

@@ -56,12 +56,3 @@ def corrected_stamp_ns(tracker_stamp_ns: int, time_offset_ns: int) -> int:
     return stamp
 
 
-def invert_transform(T: np.ndarray) -> np.ndarray:
-    """Inverse of rigid transforms (...,4,4) float64 (Rᵀ, −Rᵀt), without a general inverse."""
-    T = np.asarray(T, dtype=np.float64)
-    inverse = np.zeros_like(T)
-    R_t = np.swapaxes(T[..., :3, :3], -1, -2)
-    inverse[..., :3, :3] = R_t
-    inverse[..., :3, 3] = -np.einsum("...ij,...j->...i", R_t, T[..., :3, 3])
-    inverse[..., 3, 3] = 1.0
-    return inverse

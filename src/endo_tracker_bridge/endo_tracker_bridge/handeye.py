@@ -42,8 +42,7 @@ from scipy.optimize import least_squares, minimize_scalar
 from scipy.spatial.transform import Rotation
 
 from endo_io.camera import CameraModel
-from endo_io.pose import interpolate_transforms
-from endo_tracker_bridge.composition import invert_transform
+from endo_io.pose import interpolate_transforms, invert_transform
 from endo_tracker_bridge.errors import HandEyeError
 
 #: The closed forms: OpenCV's flag for each method name.

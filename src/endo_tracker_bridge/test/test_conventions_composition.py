@@ -9,7 +9,6 @@ from scipy.spatial.transform import Rotation
 from endo_tracker_bridge.composition import (
     compose_camera_pose,
     corrected_stamp_ns,
-    invert_transform,
 )
 from endo_tracker_bridge.conventions import (
     LengthUnit,
@@ -114,10 +113,3 @@ def test_stamp_correction_subtracts_the_offset():
     assert corrected_stamp_ns(5_000_000_000, 0) == 5_000_000_000
     with pytest.raises(StampCorrectionError, match="negative"):
         corrected_stamp_ns(1_000, 2_000)
-
-
-def test_invert_transform_is_the_inverse():
-    T = _transform([0.4, -1.0, 2.0], [0.3, 0.2, -0.1])
-    np.testing.assert_allclose(invert_transform(T) @ T, np.eye(4), atol=1e-14)
-    stack = np.stack([T, np.eye(4)])
-    np.testing.assert_allclose(invert_transform(stack)[0], np.linalg.inv(T), atol=1e-14)

@@ -14,7 +14,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from endo_io.camera import CameraModel
-from endo_tracker_bridge.composition import invert_transform
+from endo_io.pose import invert_transform
 from endo_tracker_bridge.errors import HandEyeError
 from endo_tracker_bridge.handeye import (
     CLOSED_FORM_MAX_VIEWS,
