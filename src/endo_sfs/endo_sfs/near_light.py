@@ -83,7 +83,8 @@ def solve_near_light(
     max_iterations: int = 100,
     warm_start: np.ndarray | None = None,
     warm_start_intensity: np.ndarray | None = None,
-) -> tuple[np.ndarray, SolveInfo]:
+    warm_start_slope: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray, SolveInfo]:
     """Log-distance v = ln r per node of a stereographic solve grid.
 
     intensity: (ny, nx) float irradiance per unit albedo × light, > 0 at valid
@@ -94,8 +95,12 @@ def solve_near_light(
     changed v by more than this (relative distance). warm_start: (ny, nx) v
     from the previous frame (NaN where unknown) or None; warm_start_intensity:
     that frame's (ny, nx) node irradiance, if known (see
-    :func:`global_shift` and :func:`endo_sfs.kernels.near_light_inputs`).
-    Returns ((ny, nx) float64 v, NaN at invalid nodes; info).
+    :func:`global_shift` and :func:`endo_sfs.kernels.near_light_inputs`);
+    warm_start_slope: that frame's (ny, nx) F = tan θ per node, if known
+    (Newton seeds).
+    Returns ((ny, nx) float64 v, NaN at invalid nodes; (ny, nx) float64
+    F = tan θ, the angle between surface normal and ray, NaN at invalid
+    nodes; info).
     """
     if order not in (1, 2, 3):
         raise SfsInputError(f"order must be 1, 2 or 3, got {order}")
@@ -108,6 +113,7 @@ def solve_near_light(
     coef_a, coef_b = oren_nayar_coefficients(roughness)
     reflectance = np.array([coef_a, coef_b])
     previous = np.empty((0, 0))
+    previous_slope = np.empty((0, 0))
     shift = 0.0
     if warm_start is not None:
         if warm_start.shape != intensity.shape:
@@ -116,12 +122,14 @@ def solve_near_light(
             )
         previous = np.asarray(warm_start, dtype=np.float64)
         shift = global_shift(previous, valid, intensity, warm_start_intensity)
+        if warm_start_slope is not None and warm_start_slope.shape == intensity.shape:
+            previous_slope = np.asarray(warm_start_slope, dtype=np.float64)
     # The sweeps start from v*, above the solution, so values only fall and
     # the scheme stays causal; the previous frame orders the first pass and
     # seeds each node's Newton solve.
     v, node, valid_p, key = kernels.near_light_inputs(
-        intensity, valid, np.asarray(conformal_factor_sq, dtype=np.float64), previous, shift,
-        reflectance,
+        intensity, valid, np.asarray(conformal_factor_sq, dtype=np.float64), previous,
+        previous_slope, shift, reflectance,
     )
     hx, hy = spacing
     eps = _WENO_EPS_REL * hx * hy
@@ -143,4 +151,9 @@ def solve_near_light(
     info = SolveInfo(
         int(iterations), float(change), bool(change <= tolerance), int(updates + more)
     )
-    return np.where(valid, v[2:-2, 2:-2], np.nan), info
+    inside = (slice(2, -2), slice(2, -2))
+    return (
+        np.where(valid, v[inside], np.nan),
+        np.where(valid, node[(*inside, kernels.NODE_SEED)], np.nan),
+        info,
+    )

@@ -55,6 +55,9 @@ class SfsSolution:
     node_irradiance: (ny, nx) float64 the data resampled to the grid.
     grid: the solve grid it lives on. valid: (H, W) bool pixels that had
     data. info: how the sweeps ended. model: the model solved.
+    node_slope: near-light only, (ny, nx) float64 tan θ (angle between the
+    surface normal and the ray) per node, NaN invalid; the next frame's
+    Newton seeds.
     """
 
     depth: np.ndarray
@@ -64,6 +67,7 @@ class SfsSolution:
     valid: np.ndarray
     info: SolveInfo
     model: str
+    node_slope: np.ndarray | None = None
 
 
 def valid_pixels(
@@ -127,13 +131,13 @@ def _check_inputs(
 
 def _warm_nodes(
     warm_start: SfsSolution | np.ndarray | None, grid: SolveGrid
-) -> tuple[np.ndarray | None, np.ndarray | None]:
-    """The previous solution as ln r on ``grid`` (NaN where unknown), and its data if known."""
+) -> tuple[np.ndarray | None, np.ndarray | None, np.ndarray | None]:
+    """The previous ln r on ``grid`` (NaN where unknown); its data and slopes if known."""
     if warm_start is None:
-        return None, None
+        return None, None, None
     if isinstance(warm_start, SfsSolution):
         if warm_start.grid is grid and warm_start.model == "near_light":
-            return warm_start.node_solution, warm_start.node_irradiance
+            return warm_start.node_solution, warm_start.node_irradiance, warm_start.node_slope
         warm_start = warm_start.depth
     depth = np.asarray(warm_start, dtype=np.float64)
     if depth.shape != grid.pixel_rays.shape[:2]:
@@ -143,7 +147,7 @@ def _warm_nodes(
     with np.errstate(invalid="ignore", divide="ignore"):
         log_r = np.log(depth / grid.pixel_rays[..., 2])
     log_r_nodes, ok = grid.to_nodes(np.nan_to_num(log_r), np.isfinite(log_r))
-    return np.where(ok, log_r_nodes, np.nan), None
+    return np.where(ok, log_r_nodes, np.nan), None, None
 
 
 def solve(
@@ -194,15 +198,16 @@ def solve(
     if not node_valid.any():
         raise NoValidPixelsError("no usable pixel survives resampling to the solve grid")
     if model == "near_light":
-        warm_log_r, warm_irradiance = _warm_nodes(warm_start, grid)
-        log_r, info = solve_near_light(
+        warm_log_r, warm_irradiance, warm_slope = _warm_nodes(warm_start, grid)
+        log_r, node_slope, info = solve_near_light(
             nodes, node_valid, grid.conformal_factor_sq, grid.spacing, roughness, order,
-            tolerance, max_iterations, warm_log_r, warm_irradiance,
+            tolerance, max_iterations, warm_log_r, warm_irradiance, warm_slope,
         )
         with np.errstate(invalid="ignore"):
             depth = np.exp(grid.to_pixels(log_r, valid)) * grid.pixel_rays[..., 2]
         node_solution = log_r
     else:
+        node_slope = None
         boundary_nodes = None
         if boundary_depth is not None:
             if boundary_depth.shape != image.shape:
@@ -225,6 +230,7 @@ def solve(
         valid=valid,
         info=info,
         model=model,
+        node_slope=node_slope,
     )
 
 
