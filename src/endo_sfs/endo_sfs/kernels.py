@@ -21,7 +21,7 @@ by the bracketing logic instead.
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
+from numba import njit, prange
 
 from endo_sfs.prefetch import prefetch
 
@@ -436,10 +436,25 @@ def eikonal_sweep(
     return iterations, change, updates
 
 
-#: Ordered repair rounds after the first pass, at most; they stop once a
-#: round solves fewer than REPAIR_STOP of the nodes (the sweeps do the rest).
+#: Node solves of the heap repair after the first pass, at most, per node
+#: (the sweeps take over beyond it).
+REPAIR_BUDGET = 4.0
+#: While more than this share of the nodes is unlocked after the first
+#: pass, repair rounds are whole passes in value order (at most
+#: REPAIR_ROUNDS, bucketed as the first pass with FIRST_PASS_BUCKETS).
+HEAP_REPAIR_SHARE = 0.05
 REPAIR_ROUNDS = 6
-REPAIR_STOP = 0.02
+FIRST_PASS_BUCKETS = 0.25
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _count_unlocked(state: np.ndarray) -> int:
+    count = 0
+    for i in range(state.shape[0]):
+        for j in range(state.shape[1]):
+            if state[i, j] == UNLOCKED:
+                count += 1
+    return count
 
 #: Layout of the last axis of the per-node data of :func:`near_light_sweep`.
 NODE_LOG_INTENSITY, NODE_LAMBDA, NODE_V_STAR, NODE_SEED = 0, 1, 2, 3
@@ -555,6 +570,183 @@ def _prefetch_stencil(
     prefetch(node, flat * node.shape[2])
 
 
+_NO_NODES = np.empty(0, dtype=np.int64)
+
+
+@njit(cache=True, nogil=True, error_model="numpy", fastmath=_FAST)
+def _ordered_pass(
+    v: np.ndarray,
+    node: np.ndarray,
+    state: np.ndarray,
+    ordered: np.ndarray,
+    hx: float,
+    hy: float,
+    reflectance: np.ndarray,
+    order: int,
+    tolerance: float,
+    eps: float,
+    table: np.ndarray,
+) -> int:
+    """Solve each unlocked node of ``ordered`` (flat indices) once, in that order.
+
+    A node whose value changes by more than ``tolerance`` unlocks the nodes
+    whose stencil holds it (:func:`_unlock_stencil`). Returns the number of
+    node solves.
+    """
+    nx = v.shape[1]
+    reach = 1 if order == 1 else 2
+    causal = order != 3
+    updates = 0
+    for k in range(ordered.size):
+        if k + PREFETCH_AHEAD < ordered.size:
+            _prefetch_stencil(v, node, state, ordered[k + PREFETCH_AHEAD], nx)
+        i = ordered[k] // nx
+        j = ordered[k] - i * nx
+        if state[i, j] != UNLOCKED:
+            continue
+        state[i, j] = LOCKED
+        updates += 1
+        old = v[i, j]
+        diff = _near_light_node(v, node, i, j, hx, hy, reflectance, order, eps, table)
+        if diff > tolerance:
+            _unlock_stencil(state, v, i, j, reach, min(v[i, j], old), causal)
+    return updates
+
+
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _heap_push(keys: np.ndarray, items: np.ndarray, size: int, key: float, item: int) -> int:
+    """Push onto the binary min-heap keys[:size]/items[:size] (capacity permitting); new size."""
+    k = size
+    while k > 0:
+        parent = (k - 1) >> 1
+        if keys[parent] <= key:
+            break
+        keys[k] = keys[parent]
+        items[k] = items[parent]
+        k = parent
+    keys[k] = key
+    items[k] = item
+    return size + 1
+
+
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _heap_pop(keys: np.ndarray, items: np.ndarray, size: int) -> tuple[int, int]:
+    """Pop the smallest item of the heap keys[:size]/items[:size]; (item, new size)."""
+    top = items[0]
+    size -= 1
+    key = keys[size]
+    item = items[size]
+    k = 0
+    while True:
+        child = 2 * k + 1
+        if child >= size:
+            break
+        if child + 1 < size and keys[child + 1] < keys[child]:
+            child += 1
+        if keys[child] >= key:
+            break
+        keys[k] = keys[child]
+        items[k] = items[child]
+        k = child
+    keys[k] = key
+    items[k] = item
+    return top, size
+
+
+@njit(cache=True, nogil=True, error_model="numpy", fastmath=_FAST)
+def _repair(
+    v: np.ndarray,
+    node: np.ndarray,
+    state: np.ndarray,
+    hx: float,
+    hy: float,
+    reflectance: np.ndarray,
+    order: int,
+    tolerance: float,
+    eps: float,
+    table: np.ndarray,
+    budget: int,
+) -> int:
+    """Solve the unlocked nodes in increasing order of their current value, with a heap.
+
+    A node solved before one of its upwind neighbours was final is unlocked
+    when that neighbour changes; taking the unlocked nodes lowest first
+    (and the ones they unlock in turn) repairs such a misordering in about
+    one solve per affected node. Stops after ``budget`` solves, leaving any
+    unlocked rest to the sweeps. Causal orders (1, 2) only. Returns the
+    number of node solves.
+    """
+    ny, nx = v.shape
+    reach = 1 if order == 1 else 2
+    count = 0
+    for i in range(ny):
+        for j in range(nx):
+            if state[i, j] == UNLOCKED:
+                count += 1
+    capacity = 2 * count + 64
+    keys = np.empty(capacity)
+    items = np.empty(capacity, dtype=np.int64)
+    size = 0
+    for i in range(ny):
+        for j in range(nx):
+            if state[i, j] == UNLOCKED:
+                size = _heap_push(keys, items, size, v[i, j], i * nx + j)
+    solves = 0
+    while size > 0 and solves < budget:
+        flat, size = _heap_pop(keys, items, size)
+        i = flat // nx
+        j = flat - i * nx
+        if state[i, j] != UNLOCKED:
+            continue
+        state[i, j] = LOCKED
+        solves += 1
+        old = v[i, j]
+        diff = _near_light_node(v, node, i, j, hx, hy, reflectance, order, eps, table)
+        if diff <= tolerance:
+            continue
+        lowest = min(v[i, j], old)
+        for k in range(1, reach + 1):
+            for ni, nj in ((i - k, j), (i + k, j), (i, j - k), (i, j + k)):
+                if state[ni, nj] == LOCKED and v[ni, nj] > lowest:
+                    state[ni, nj] = UNLOCKED
+                    if size == keys.size:
+                        keys = np.concatenate((keys, np.empty(keys.size)))
+                        items = np.concatenate((items, np.empty(items.size, dtype=np.int64)))
+                    size = _heap_push(keys, items, size, v[ni, nj], ni * nx + nj)
+    return solves
+
+
+@njit(cache=True, nogil=True, error_model="numpy", fastmath=_FAST, parallel=True)
+def _parallel_pass(
+    v: np.ndarray,
+    node: np.ndarray,
+    state: np.ndarray,
+    ordered: np.ndarray,
+    split: int,
+    hx: float,
+    hy: float,
+    reflectance: np.ndarray,
+    order: int,
+    tolerance: float,
+    eps: float,
+    table: np.ndarray,
+) -> int:
+    """:func:`_ordered_pass` of ordered[:split] and ordered[split:] on two threads.
+
+    The two lists cover disjoint regions; the only shared writes are unlocks
+    along their seam (which the caller repeats) and each thread reads the
+    other's values there as they are (8-byte stores do not tear on the
+    targets numba supports).
+    """
+    counts = np.zeros(2, dtype=np.int64)
+    for half in prange(2):
+        part = ordered[:split] if half == 0 else ordered[split:]
+        counts[half] = _ordered_pass(
+            v, node, state, part, hx, hy, reflectance, order, tolerance, eps, table
+        )
+    return counts[0] + counts[1]
+
+
 @njit(cache=True, nogil=True, error_model="numpy", fastmath=_FAST)
 def near_light_sweep(
     v: np.ndarray,
@@ -569,7 +761,8 @@ def near_light_sweep(
     eps: float,
     table: np.ndarray,
     first_pass: np.ndarray,
-    repair_buckets: float,
+    split: int,
+    seam: np.ndarray,
 ) -> tuple[int, float, int]:
     """Fast sweeping of the near-light perspective SFS equation, in place.
 
@@ -591,10 +784,16 @@ def near_light_sweep(
     are exact in one pass when a node's upwind neighbours come before it,
     i.e. in increasing order of the solution, as in fast marching; see
     :func:`value_order`); the nodes this leaves unlocked (solved before an
-    upwind neighbour was final) are solved once more in the order of the
-    values just computed (``repair_buckets`` buckets per node), and the
-    sweeps then only revisit nodes whose stencil changed by more than the
-    tolerance since.
+    upwind neighbour was final) are repaired lowest first (:func:`_repair`),
+    and the sweeps then only revisit nodes whose stencil changed by more
+    than the tolerance since.
+
+    split > 0: first_pass[:split] and first_pass[split:] are two regions of
+    the grid (each in its own value order) whose first passes run on two
+    threads at once; seam: (m,) int64 flat indices of the nodes within the
+    stencil reach of the boundary between them, solved again afterwards
+    (see :func:`split_first_pass`). The result is the same fixed point, up to
+    the tolerance.
     Returns (iterations, last max change of v, node updates computed).
     """
     ny, nx = v.shape
@@ -607,32 +806,41 @@ def near_light_sweep(
     reach = 1 if order == 1 else 2
     causal = order != 3
     updates = 0
-    ordered = first_pass
-    repaired = 0
-    for repair in range(REPAIR_ROUNDS + 1 if first_pass.size > 0 else 0):
-        if repair > 0:
-            # Nodes solved before an upwind neighbour was final are unlocked
-            # again; repair them in the order of the values just computed,
-            # which is nearly the solution's, so a misordering does not
-            # cascade through the sweeps.
-            ordered = value_order(v, valid, repair_buckets)
-            repaired = 0
-        for k in range(ordered.size):
-            if k + PREFETCH_AHEAD < ordered.size:
-                _prefetch_stencil(v, node, state, ordered[k + PREFETCH_AHEAD], nx)
-            i = ordered[k] // nx
-            j = ordered[k] - i * nx
-            if state[i, j] != UNLOCKED:
-                continue
-            state[i, j] = LOCKED
-            updates += 1
-            repaired += 1
-            old = v[i, j]
-            diff = _near_light_node(v, node, i, j, hx, hy, reflectance, order, eps, table)
-            if diff > tolerance:
-                _unlock_stencil(state, v, i, j, reach, min(v[i, j], old), causal)
-        if repair > 0 and repaired < REPAIR_STOP * ordered.size:
-            break
+    if first_pass.size > 0:
+        if split > 0:
+            updates += _parallel_pass(
+                v, node, state, first_pass, split, hx, hy, reflectance, order, tolerance, eps,
+                table,
+            )
+            # The two halves unlock each other's nodes along the seam without
+            # synchronisation, so an unlock may be lost there: solve every
+            # node near the seam once more.
+            for k in range(seam.size):
+                i = seam[k] // nx
+                j = seam[k] - i * nx
+                if state[i, j] == LOCKED:
+                    state[i, j] = UNLOCKED
+        else:
+            updates += _ordered_pass(
+                v, node, state, first_pass, hx, hy, reflectance, order, tolerance, eps, table
+            )
+        # Nodes solved before an upwind neighbour was final are unlocked
+        # again; repair them in increasing order of their current values
+        # (nearly the solution's), so a misordering does not cascade
+        # through the sweeps. While many are unlocked, whole passes in value
+        # order (prefetched, O(N)) are cheaper than a heap (O(log N) and a
+        # cache miss per node); the heap then finishes the few left.
+        for _ in range(REPAIR_ROUNDS):
+            if _count_unlocked(state) <= HEAP_REPAIR_SHARE * first_pass.size:
+                break
+            updates += _ordered_pass(
+                v, node, state, value_order(v, valid, FIRST_PASS_BUCKETS), hx, hy,
+                reflectance, order, tolerance, eps, table,
+            )
+        updates += _repair(
+            v, node, state, hx, hy, reflectance, order, tolerance, eps, table,
+            int(REPAIR_BUDGET * first_pass.size),
+        )
     change = np.inf
     iterations = 0
     for _ in range(max_iterations):
@@ -664,12 +872,75 @@ def near_light_sweep(
     return iterations, change, updates
 
 
+#: A half of the first pass must hold at least this share of the nodes;
+#: otherwise the pass runs on one thread.
+MIN_SPLIT_SHARE = 0.25
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def split_first_pass(
+    ordered: np.ndarray, nx: int, reach: int
+) -> tuple[np.ndarray, int, np.ndarray]:
+    """Split a value-ordered first pass into two regions for :func:`near_light_sweep`.
+
+    ordered: (n,) int64 flat indices in increasing order of the predicted
+    value; nx: padded grid width; reach: stencil reach (1 or 2).
+    Information flows from low to high values, from the predicted nearest
+    point (ordered[0]) towards the farthest (ordered[-1]). The seam is the
+    grid line through the nearest point along that flow (a row when the flow
+    is mostly horizontal, else a column), so that few characteristics cross
+    it; the other orientation is tried when a side would hold less than
+    MIN_SPLIT_SHARE of the nodes. Returns (the two regions' nodes, each in
+    its value order, concatenated; the length of the first, 0 when no
+    balanced split exists; (m,) flat indices of the nodes within ``reach``
+    of the seam).
+    """
+    n = ordered.size
+    if n < 2:
+        return ordered, 0, _NO_NODES
+    i_near, j_near = ordered[0] // nx, ordered[0] % nx
+    i_far, j_far = ordered[n - 1] // nx, ordered[n - 1] % nx
+    prefer_row = abs(j_far - j_near) >= abs(i_far - i_near)
+    for attempt in range(2):
+        by_row = prefer_row if attempt == 0 else not prefer_row
+        line = i_near if by_row else j_near
+        first = 0
+        for k in range(n):
+            coordinate = ordered[k] // nx if by_row else ordered[k] % nx
+            if coordinate < line:
+                first += 1
+        if MIN_SPLIT_SHARE * n <= first <= (1.0 - MIN_SPLIT_SHARE) * n:
+            out = np.empty(n, dtype=np.int64)
+            a = 0
+            b = first
+            seam_count = 0
+            for k in range(n):
+                coordinate = ordered[k] // nx if by_row else ordered[k] % nx
+                if coordinate < line:
+                    out[a] = ordered[k]
+                    a += 1
+                else:
+                    out[b] = ordered[k]
+                    b += 1
+                if line - reach <= coordinate < line + reach:
+                    seam_count += 1
+            seam = np.empty(seam_count, dtype=np.int64)
+            m = 0
+            for k in range(n):
+                coordinate = ordered[k] // nx if by_row else ordered[k] % nx
+                if line - reach <= coordinate < line + reach:
+                    seam[m] = ordered[k]
+                    m += 1
+            return out, first, seam
+    return ordered, 0, _NO_NODES
+
+
 # --------------------------------------------------------------------------
 # Inputs of the sweeps, one pass over the image
 # --------------------------------------------------------------------------
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy", parallel=True)
 def near_light_inputs(
     intensity: np.ndarray,
     valid: np.ndarray,
@@ -708,11 +979,9 @@ def near_light_inputs(
     key = np.full((ny + 4, nx + 4), np.inf)
     node = np.zeros((ny + 4, nx + 4, 4))
     valid_p = np.zeros((ny + 4, nx + 4), dtype=np.uint8)
-    for i in range(ny + 4):
-        for j in range(nx + 4):
-            node[i, j, NODE_LAMBDA] = 1.0
+    node[:, :, NODE_LAMBDA] = 1.0
     log_a = np.log(coef_a)
-    for i in range(ny):
+    for i in prange(ny):
         for j in range(nx):
             value = intensity[i, j]
             if not (valid[i, j] and value > 0.0 and np.isfinite(value)):
@@ -803,7 +1072,7 @@ def orthographic_inputs(
 # --------------------------------------------------------------------------
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy", parallel=True)
 def sample_strict(
     image: np.ndarray, valid: np.ndarray, map_x: np.ndarray, map_y: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -817,7 +1086,7 @@ def sample_strict(
     height, width = image.shape
     out = np.full(map_x.shape, np.nan)
     ok = np.zeros(map_x.shape, dtype=np.bool_)
-    for r in range(map_x.shape[0]):
+    for r in prange(map_x.shape[0]):
         for c in range(map_x.shape[1]):
             x = map_x[r, c]
             y = map_y[r, c]
@@ -838,7 +1107,7 @@ def sample_strict(
     return out, ok
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy", parallel=True)
 def sample_weighted(
     grid: np.ndarray, map_x: np.ndarray, map_y: np.ndarray, wanted: np.ndarray
 ) -> np.ndarray:
@@ -852,7 +1121,7 @@ def sample_weighted(
     """
     gh, gw = grid.shape
     out = np.full(map_x.shape, np.nan)
-    for r in range(map_x.shape[0]):
+    for r in prange(map_x.shape[0]):
         for c in range(map_x.shape[1]):
             if not wanted[r, c]:
                 continue

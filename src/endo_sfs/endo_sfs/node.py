@@ -61,6 +61,7 @@ from endo_sfs.synthetic import near_light_surface, render_near_light, scene_came
 
 #: Side of the synthetic image solved at start-up to load the kernels.
 _WARM_UP_SIZE = 24
+_WARM_UP_PARALLEL_SIZE = 192
 
 
 def _float_range(low: float, high: float) -> list[FloatingPointRange]:
@@ -105,6 +106,13 @@ PARAMETERS: dict[str, tuple[object, ParameterDescriptor]] = {
         type=ParameterType.PARAMETER_INTEGER,
         description="upwind scheme: 1 first-order Godunov, 2 second-order, 3 WENO3 Godunov",
         integer_range=_int_range(1, 3),
+    )),
+    "threads": (2, ParameterDescriptor(
+        type=ParameterType.PARAMETER_INTEGER,
+        description="CPU threads per frame (resampling, and the near_light first pass as two "
+        "halves at once on grids of 20000+ nodes); 1 leaves the other cores to the rest of the "
+        "graph and makes the output bit-reproducible",
+        integer_range=_int_range(1, 64),
     )),
     "warm_start": (True, ParameterDescriptor(
         type=ParameterType.PARAMETER_BOOL,
@@ -166,6 +174,10 @@ def warm_up_kernels() -> float:
         solve(image, camera, model="near_light", order=order, warm_start=previous)
         solve(image, camera, model="orthographic", order=order, solve_scale=0.5)
     surface_normals(previous.depth, camera)
+    # The two-thread first pass only runs on grids of near_light.MIN_PARALLEL_NODES+.
+    camera = scene_camera(_WARM_UP_PARALLEL_SIZE)
+    image = render_near_light(camera, near_light_surface("tilted_plane")).irradiance
+    solve(image, camera, model="near_light", threads=2)
     return time.perf_counter() - start
 
 
@@ -278,6 +290,7 @@ class SfsNode(Node):
                 dark_level=float(self._value("dark_level")),
                 smoothing=float(self._value("smoothing")),
                 mask_highlights=bool(self._value("mask_highlights")),
+                threads=int(self._value("threads")),
             )
         except NoValidPixelsError:
             # Nothing to reconstruct: say so downstream with an all-NaN depth,

@@ -118,3 +118,73 @@ def test_stereographic_grid_round_trips_a_smooth_function_through_distortion():
     np.testing.assert_allclose(back[inner], field[inner], atol=2e-4)
     # The chart is conformal with factor λ = 2/(1+|s|²) ∈ (1, 2] here.
     assert np.all(grid.conformal_factor_sq <= 4.0) and np.all(grid.conformal_factor_sq > 1.0)
+
+
+def _bowl(ny: int, nx: int, centre: tuple[float, float]) -> tuple[np.ndarray, np.ndarray]:
+    """A padded value field rising away from ``centre`` and its value-ordered valid nodes."""
+    i, j = np.mgrid[0 : ny + 4, 0 : nx + 4].astype(np.float64)
+    values = np.hypot(i - centre[0], j - centre[1])
+    valid = np.zeros((ny + 4, nx + 4), dtype=np.uint8)
+    valid[2:-2, 2:-2] = 1
+    return values, kernels.value_order(np.where(valid, values, np.inf), valid, 1.0)
+
+
+def test_split_first_pass_cuts_through_the_nearest_point_along_the_flow():
+    ny, nx = 60, 80
+    # Nearest point at the left edge, middle row: flow to the right, so the
+    # seam is the row through it and both halves keep their value order.
+    values, ordered = _bowl(ny, nx, (31.0, 2.0))
+    out, split, seam = kernels.split_first_pass(ordered, nx + 4, 2)
+    rows = out // (nx + 4)
+    assert 0.25 * ordered.size <= split <= 0.75 * ordered.size
+    assert np.all(rows[:split] < 31) and np.all(rows[split:] >= 31)
+    assert sorted(out.tolist()) == sorted(ordered.tolist())
+    for part in (out[:split], out[split:]):
+        assert np.all(np.diff(values.ravel()[part]) >= -1.0)  # bucketed order kept
+    assert set((seam // (nx + 4)).tolist()) == {29, 30, 31, 32}
+    # Nearest point in a corner: no balanced cut, one thread.
+    _, corner = _bowl(ny, nx, (2.0, 2.0))
+    assert kernels.split_first_pass(corner, nx + 4, 2)[1] == 0
+
+
+@pytest.mark.parametrize("split", [False, True])
+def test_any_first_pass_order_reaches_the_fixed_point_of_the_sweeps(split):
+    camera = scene_camera(96)
+    grid = build_solve_grid(camera, "stereographic", 1.0)
+    rng = np.random.default_rng(3)
+    ny, nx = grid.shape
+    intensity = np.exp(rng.normal(0.0, 0.02, (ny, nx))) * 0.5 * (1.0 + 0.3 * np.hypot(
+        *np.mgrid[-1 : 1 : ny * 1j, -1 : 1 : nx * 1j]))
+    valid = np.ones((ny, nx), dtype=bool)
+    reflectance = np.array(oren_nayar_coefficients(0.3))
+    table = kernels.log_radiance_table(reflectance)
+    hx, hy = grid.spacing
+    empty = np.empty(0, dtype=np.int64)
+
+    def run(first_pass: np.ndarray, parts: int, seam: np.ndarray) -> np.ndarray:
+        v, node, valid_p, _ = kernels.near_light_inputs(
+            intensity, valid, grid.conformal_factor_sq, np.empty((0, 0)), np.empty((0, 0)),
+            0.0, reflectance,
+        )
+        _, change, _ = kernels.near_light_sweep(
+            v, node, valid_p, hx, hy, reflectance, 2, 1e-9, 500, 0.0, table, first_pass,
+            parts, seam,
+        )
+        assert change <= 1e-9
+        return v[2:-2, 2:-2]
+
+    reference = run(empty, 0, empty)  # plain sweeps
+    # A scrambled first pass: every misordering must be repaired.
+    scrambled = rng.permutation(np.flatnonzero(np.pad(valid, 2).ravel())).astype(np.int64)
+    parts, seam = 0, empty
+    if split:
+        half = scrambled.size // 2
+        rows = scrambled // (nx + 4)
+        scrambled = np.concatenate([scrambled[rows < ny // 2 + 2], scrambled[rows >= ny // 2 + 2]])
+        parts = int(np.sum(rows < ny // 2 + 2))
+        assert abs(parts - half) < 0.1 * half
+        seam_rows = (scrambled // (nx + 4) >= ny // 2) & (scrambled // (nx + 4) < ny // 2 + 4)
+        seam = scrambled[seam_rows]
+    # Equal up to the per-node Newton accuracy (~1e-7), far below the default
+    # sweep tolerance of 1e-5.
+    np.testing.assert_allclose(run(scrambled, parts, seam), reference, atol=1e-6)
