@@ -5,6 +5,15 @@ seed paper and the near-light perspective model of Prados & Faugeras.
 ``endo_sfs.reconstruct(irradiance, camera, ...)`` is the entry point.
 """
 
+import os
+
+# The solver's parallel regions (numba on OpenMP) are short and alternate
+# with single-threaded work; OpenMP's default is to keep idle workers
+# spinning, which takes a whole core from the rest of the ROS graph for
+# nothing. Passive workers sleep between regions. Only applies when the
+# variable is unset and before the OpenMP runtime loads (first parallel call).
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
 from endo_sfs.relative_depth import SfsSolution, reconstruct, solve
 
 __all__ = ["SfsSolution", "reconstruct", "solve"]

@@ -898,46 +898,72 @@ def split_first_pass(
     n = ordered.size
     if n < 2:
         return ordered, 0, _NO_NODES
-    i_near, j_near = ordered[0] // nx, ordered[0] % nx
-    i_far, j_far = ordered[n - 1] // nx, ordered[n - 1] % nx
-    prefer_row = abs(j_far - j_near) >= abs(i_far - i_near)
+    rows = ordered // nx
+    columns = ordered - rows * nx
+    flow_is_horizontal = abs(columns[n - 1] - columns[0]) >= abs(rows[n - 1] - rows[0])
     for attempt in range(2):
-        by_row = prefer_row if attempt == 0 else not prefer_row
-        line = i_near if by_row else j_near
+        by_row = flow_is_horizontal if attempt == 0 else not flow_is_horizontal
+        coordinate = rows if by_row else columns
+        line = coordinate[0]
         first = 0
+        seam_count = 0
         for k in range(n):
-            coordinate = ordered[k] // nx if by_row else ordered[k] % nx
-            if coordinate < line:
+            if coordinate[k] < line:
                 first += 1
-        if MIN_SPLIT_SHARE * n <= first <= (1.0 - MIN_SPLIT_SHARE) * n:
-            out = np.empty(n, dtype=np.int64)
-            a = 0
-            b = first
-            seam_count = 0
-            for k in range(n):
-                coordinate = ordered[k] // nx if by_row else ordered[k] % nx
-                if coordinate < line:
-                    out[a] = ordered[k]
-                    a += 1
-                else:
-                    out[b] = ordered[k]
-                    b += 1
-                if line - reach <= coordinate < line + reach:
-                    seam_count += 1
-            seam = np.empty(seam_count, dtype=np.int64)
-            m = 0
-            for k in range(n):
-                coordinate = ordered[k] // nx if by_row else ordered[k] % nx
-                if line - reach <= coordinate < line + reach:
-                    seam[m] = ordered[k]
-                    m += 1
-            return out, first, seam
+            if line - reach <= coordinate[k] < line + reach:
+                seam_count += 1
+        if not MIN_SPLIT_SHARE * n <= first <= (1.0 - MIN_SPLIT_SHARE) * n:
+            continue
+        out = np.empty(n, dtype=np.int64)
+        seam = np.empty(seam_count, dtype=np.int64)
+        a = 0
+        b = first
+        m = 0
+        for k in range(n):
+            if coordinate[k] < line:
+                out[a] = ordered[k]
+                a += 1
+            else:
+                out[b] = ordered[k]
+                b += 1
+            if line - reach <= coordinate[k] < line + reach:
+                seam[m] = ordered[k]
+                m += 1
+        return out, first, seam
     return ordered, 0, _NO_NODES
 
 
 # --------------------------------------------------------------------------
 # Inputs of the sweeps, one pass over the image
 # --------------------------------------------------------------------------
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def log_ratio_samples(
+    intensity: np.ndarray,
+    valid: np.ndarray,
+    previous: np.ndarray,
+    previous_intensity: np.ndarray,
+    stride: int,
+) -> np.ndarray:
+    """ln(I/I_prev) at every ``stride``-th node in each direction known in both frames.
+
+    intensity, previous_intensity, previous: (ny, nx) float64; valid: (ny, nx)
+    bool. A node counts when valid, its previous v is finite and both
+    intensities are finite and positive. Returns (m,) float64.
+    """
+    ny, nx = intensity.shape
+    out = np.empty(((ny + stride - 1) // stride) * ((nx + stride - 1) // stride))
+    m = 0
+    for i in range(0, ny, stride):
+        for j in range(0, nx, stride):
+            now = intensity[i, j]
+            before = previous_intensity[i, j]
+            if valid[i, j] and np.isfinite(previous[i, j]) and now > 0.0 and before > 0.0 \
+                    and np.isfinite(now) and np.isfinite(before):
+                out[m] = np.log(now / before)
+                m += 1
+    return out[:m]
 
 
 @njit(cache=True, nogil=True, error_model="numpy", parallel=True)

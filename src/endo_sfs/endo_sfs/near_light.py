@@ -65,18 +65,16 @@ def global_shift(
     """
     if previous_intensity is None:
         return 0.0
-    with np.errstate(invalid="ignore"):
-        both = (
-            valid & np.isfinite(previous) & np.isfinite(previous_intensity)
-            & (previous_intensity > 0.0)
-        )
     # Every other node in each direction: the median of a quarter of the
     # nodes is as good a global shift and four times cheaper.
-    both[1::2] = False
-    both[:, 1::2] = False
-    if not both.any():
+    ratios = kernels.log_ratio_samples(
+        np.asarray(intensity, dtype=np.float64), np.asarray(valid, dtype=bool),
+        np.asarray(previous, dtype=np.float64),
+        np.asarray(previous_intensity, dtype=np.float64), 2,
+    )
+    if ratios.size == 0:
         return 0.0
-    return -0.5 * float(np.median(np.log(intensity[both] / previous_intensity[both])))
+    return -0.5 * float(np.median(ratios))
 
 
 def solve_near_light(
