@@ -841,6 +841,10 @@ def near_light_sweep(
             v, node, state, hx, hy, reflectance, order, tolerance, eps, table,
             int(REPAIR_BUDGET * first_pass.size),
         )
+        if _count_unlocked(state) == 0:
+            # Every node is consistent with its final stencil: a sweep
+            # would only confirm it.
+            return 0, 0.0, updates
     change = np.inf
     iterations = 0
     for _ in range(max_iterations):

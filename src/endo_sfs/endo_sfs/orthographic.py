@@ -44,7 +44,8 @@ _WENO_EPS_REL = 0.1
 class SolveInfo:
     """How a fast-sweeping solve ended.
 
-    iterations: full iterations (four sweeps each) in the last phase run;
+    iterations: full iterations (four sweeps each) in the last phase run
+    (0 when the near-light first pass and repair left no node to sweep);
     change: the largest node change of the last iteration (solution units);
     converged: change ≤ tolerance; updates: node updates computed over all
     phases (the work done; a warm start needs fewer).
