@@ -763,6 +763,7 @@ def near_light_sweep(
     first_pass: np.ndarray,
     split: int,
     seam: np.ndarray,
+    sweep_split: int,
 ) -> tuple[int, float, int]:
     """Fast sweeping of the near-light perspective SFS equation, in place.
 
@@ -794,6 +795,11 @@ def near_light_sweep(
     stencil reach of the boundary between them, solved again afterwards
     (see :func:`split_first_pass`). The result is the same fixed point, up to
     the tolerance.
+
+    sweep_split > 0: the sweeps first run on two threads, padded rows
+    [2, sweep_split) and [sweep_split, ny − 2) each until it settles, then
+    on one thread over the whole grid (nodes within the stencil reach of
+    the seam unlocked again first).
     Returns (iterations, last max change of v, node updates computed).
     """
     ny, nx = v.shape
@@ -804,7 +810,6 @@ def near_light_sweep(
                 active[i, j] = 1
     state = initial_state(active)
     reach = 1 if order == 1 else 2
-    causal = order != 3
     updates = 0
     if first_pass.size > 0:
         if split > 0:
@@ -845,6 +850,53 @@ def near_light_sweep(
             # Every node is consistent with its final stencil: a sweep
             # would only confirm it.
             return 0, 0.0, updates
+    if sweep_split > 0:
+        # Each half sweeps its own rows on its own thread until it settles;
+        # the halves unlock each other's nodes along the seam without
+        # synchronisation, so every node there is unlocked again and the
+        # sweeps below finish on one thread.
+        updates += _parallel_sweeps(
+            v, node, state, sweep_split, hx, hy, reflectance, order, tolerance,
+            max_iterations, eps, table,
+        )
+        for i in range(max(2, sweep_split - reach), min(ny - 2, sweep_split + reach)):
+            for j in range(2, nx - 2):
+                if state[i, j] == LOCKED:
+                    state[i, j] = UNLOCKED
+    iterations, change, more = _sweeps(
+        v, node, state, 2, ny - 2, hx, hy, reflectance, order, tolerance, max_iterations, eps,
+        table,
+    )
+    return iterations, change, updates + more
+
+
+@njit(cache=True, nogil=True, error_model="numpy", fastmath=_FAST)
+def _sweeps(
+    v: np.ndarray,
+    node: np.ndarray,
+    state: np.ndarray,
+    row_begin: int,
+    row_end: int,
+    hx: float,
+    hy: float,
+    reflectance: np.ndarray,
+    order: int,
+    tolerance: float,
+    max_iterations: int,
+    eps: float,
+    table: np.ndarray,
+) -> tuple[int, float, int]:
+    """Locked fast sweeping of the unlocked nodes of rows [row_begin, row_end), in place.
+
+    Four Gauss–Seidel sweeps per iteration with alternating orderings, until
+    no node changed by more than ``tolerance`` (or ``max_iterations``).
+    Returns (iterations, last max change, node solves).
+    """
+    nx = v.shape[1]
+    reach = 1 if order == 1 else 2
+    causal = order != 3
+    rows = row_end - row_begin
+    updates = 0
     change = np.inf
     iterations = 0
     for _ in range(max_iterations):
@@ -853,9 +905,9 @@ def near_light_sweep(
         for sweep in range(4):
             di = 1 if sweep < 2 else -1
             dj = 1 if (sweep == 0 or sweep == 3) else -1
-            i0 = 2 if di > 0 else ny - 3
+            i0 = row_begin if di > 0 else row_end - 1
             j0 = 2 if dj > 0 else nx - 3
-            for ii in range(ny - 4):
+            for ii in range(rows):
                 i = i0 + di * ii
                 for jj in range(nx - 4):
                     j = j0 + dj * jj
@@ -874,6 +926,34 @@ def near_light_sweep(
         if change <= tolerance:
             break
     return iterations, change, updates
+
+
+@njit(cache=True, nogil=True, error_model="numpy", fastmath=_FAST, parallel=True)
+def _parallel_sweeps(
+    v: np.ndarray,
+    node: np.ndarray,
+    state: np.ndarray,
+    split_row: int,
+    hx: float,
+    hy: float,
+    reflectance: np.ndarray,
+    order: int,
+    tolerance: float,
+    max_iterations: int,
+    eps: float,
+    table: np.ndarray,
+) -> int:
+    """:func:`_sweeps` of padded rows [2, split_row) and [split_row, ny − 2) on two threads."""
+    ny = v.shape[0]
+    counts = np.zeros(2, dtype=np.int64)
+    for half in prange(2):
+        begin = 2 if half == 0 else split_row
+        end = split_row if half == 0 else ny - 2
+        counts[half] = _sweeps(
+            v, node, state, begin, end, hx, hy, reflectance, order, tolerance, max_iterations,
+            eps, table,
+        )[2]
+    return counts[0] + counts[1]
 
 
 #: A half of the first pass must hold at least this share of the nodes;

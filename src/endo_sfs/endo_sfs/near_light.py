@@ -90,6 +90,7 @@ def solve_near_light(
     warm_start_intensity: np.ndarray | None = None,
     warm_start_slope: np.ndarray | None = None,
     threads: int = 1,
+    first_pass: bool = True,
 ) -> tuple[np.ndarray, np.ndarray, SolveInfo]:
     """Log-distance v = ln r per node of a stereographic solve grid.
 
@@ -106,6 +107,10 @@ def solve_near_light(
     (Newton seeds). threads: 2 runs the first pass of large grids as two
     halves at once (:func:`endo_sfs.kernels.split_first_pass`); the result
     then agrees with one thread's to the tolerance, not bit for bit.
+    first_pass: solve every node once in predicted value order before
+    sweeping (orders 1 and 2); False sweeps from the start, which is
+    cheaper when the predicted order is poor (see
+    :func:`endo_sfs.relative_depth.solve`, which chooses).
     Returns ((ny, nx) float64 v, NaN at invalid nodes; (ny, nx) float64
     F = tan θ, the angle between surface normal and ray, NaN at invalid
     nodes; info).
@@ -150,14 +155,20 @@ def solve_near_light(
     if order == 3 and warm_start is None:
         _, _, updates = kernels.near_light_sweep(
             v, node, valid_p, hx, hy, reflectance, 2, tolerance, max_iterations, eps, table,
-            ordered, 0, no_pass,
+            ordered, 0, no_pass, 0,
         )
+    sweep_split = 0
+    if not first_pass:
+        if threads > 1 and ordered.size >= MIN_PARALLEL_NODES:
+            # Sweeps alone: two halves of equal node count, split by rows.
+            sweep_split = int(np.searchsorted(np.cumsum(valid_p.sum(axis=1)), ordered.size // 2))
+        ordered = no_pass
     split, seam = 0, no_pass
     if order != 3 and threads > 1 and ordered.size >= MIN_PARALLEL_NODES:
         ordered, split, seam = kernels.split_first_pass(ordered, v.shape[1], 1 if order == 1 else 2)
     iterations, change, more = kernels.near_light_sweep(
         v, node, valid_p, hx, hy, reflectance, order, tolerance, max_iterations, eps, table,
-        ordered if order != 3 else no_pass, split, seam,
+        ordered if order != 3 else no_pass, split, seam, sweep_split,
     )
     info = SolveInfo(
         int(iterations), float(change), bool(change <= tolerance), int(updates + more)

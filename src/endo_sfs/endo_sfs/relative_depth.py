@@ -59,6 +59,10 @@ class SfsSolution:
     node_slope: near-light only, (ny, nx) float64 tan θ (angle between the
     surface normal and the ray) per node, NaN invalid; the next frame's
     Newton seeds.
+    ordered_work: near-light only, node solves per node the last time a
+    frame of this warm-start chain was solved with the value-ordered first
+    pass; frames_since_ordered: frames since then (see
+    :func:`_use_first_pass`).
     """
 
     depth: np.ndarray
@@ -69,6 +73,8 @@ class SfsSolution:
     info: SolveInfo
     model: str
     node_slope: np.ndarray | None = None
+    ordered_work: float | None = None
+    frames_since_ordered: int = 0
 
 
 def valid_pixels(
@@ -149,6 +155,30 @@ def _warm_nodes(
         log_r = np.log(depth / grid.pixel_rays[..., 2])
     log_r_nodes, ok = grid.to_nodes(np.nan_to_num(log_r), np.isfinite(log_r))
     return np.where(ok, log_r_nodes, np.nan), None, None
+
+
+#: A warm-start chain keeps the value-ordered first pass while it costs at
+#: most this many node solves per node; above it (a poorly predicted order:
+#: noisy texture, fast motion) frames are swept from the start, which costs
+#: about 3.3-3.9 solves per node whatever the order, and the ordered pass is
+#: tried again every RETRY_FIRST_PASS frames.
+FIRST_PASS_WORK_LIMIT = 2.5
+RETRY_FIRST_PASS = 10
+
+
+def _use_first_pass(warm_start: SfsSolution | np.ndarray | None) -> bool:
+    """Whether to solve this frame with the value-ordered first pass.
+
+    On the synthetic tube sequence the previous frame's order is nearly the
+    solution's (1.02-1.05 solves per node with it); on the textured, noisy
+    phantom video it is not (3.7-4.4, against 3.8 for sweeps alone, which
+    visit memory in order and cost less per solve).
+    """
+    if not isinstance(warm_start, SfsSolution) or warm_start.ordered_work is None:
+        return True
+    if warm_start.ordered_work <= FIRST_PASS_WORK_LIMIT:
+        return True
+    return warm_start.frames_since_ordered + 1 >= RETRY_FIRST_PASS
 
 
 def solve(
@@ -234,12 +264,21 @@ def _solve(
     nodes, node_valid = grid.to_nodes(smooth_irradiance(image, valid, smoothing), valid)
     if not node_valid.any():
         raise NoValidPixelsError("no usable pixel survives resampling to the solve grid")
+    ordered_work: float | None = None
+    frames_since_ordered = 0
     if model == "near_light":
         warm_log_r, warm_irradiance, warm_slope = _warm_nodes(warm_start, grid)
+        first_pass = _use_first_pass(warm_start)
         log_r, node_slope, info = solve_near_light(
             nodes, node_valid, grid.conformal_factor_sq, grid.spacing, roughness, order,
             tolerance, max_iterations, warm_log_r, warm_irradiance, warm_slope, threads,
+            first_pass,
         )
+        if first_pass:
+            ordered_work = info.updates / max(1, int(node_valid.sum()))
+        elif isinstance(warm_start, SfsSolution):
+            ordered_work = warm_start.ordered_work
+            frames_since_ordered = warm_start.frames_since_ordered + 1
         with np.errstate(invalid="ignore"):
             depth = np.exp(grid.to_pixels(log_r, valid)) * grid.pixel_rays[..., 2]
         node_solution = log_r
@@ -268,6 +307,8 @@ def _solve(
         info=info,
         model=model,
         node_slope=node_slope,
+        ordered_work=ordered_work,
+        frames_since_ordered=frames_since_ordered,
     )
 
 

@@ -161,14 +161,14 @@ def test_any_first_pass_order_reaches_the_fixed_point_of_the_sweeps(split):
     hx, hy = grid.spacing
     empty = np.empty(0, dtype=np.int64)
 
-    def run(first_pass: np.ndarray, parts: int, seam: np.ndarray) -> np.ndarray:
+    def run(first_pass: np.ndarray, parts: int, seam: np.ndarray, rows: int = 0) -> np.ndarray:
         v, node, valid_p, _ = kernels.near_light_inputs(
             intensity, valid, grid.conformal_factor_sq, np.empty((0, 0)), np.empty((0, 0)),
             0.0, reflectance,
         )
         _, change, _ = kernels.near_light_sweep(
             v, node, valid_p, hx, hy, reflectance, 2, 1e-9, 500, 0.0, table, first_pass,
-            parts, seam,
+            parts, seam, rows,
         )
         assert change <= 1e-9
         return v[2:-2, 2:-2]
@@ -188,3 +188,5 @@ def test_any_first_pass_order_reaches_the_fixed_point_of_the_sweeps(split):
     # Equal up to the per-node Newton accuracy (~1e-7), far below the default
     # sweep tolerance of 1e-5.
     np.testing.assert_allclose(run(scrambled, parts, seam), reference, atol=1e-6)
+    # Sweeps alone, the two halves of the rows first swept on two threads.
+    np.testing.assert_allclose(run(empty, 0, empty, ny // 2 + 2), reference, atol=1e-6)

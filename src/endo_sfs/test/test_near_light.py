@@ -203,3 +203,28 @@ def test_threads_must_be_positive():
     camera, mask, rendering = _scene("sphere", 0.0)
     with pytest.raises(SfsInputError, match="threads"):
         solve(rendering.irradiance, camera, mask=mask, threads=0)
+
+
+def test_a_poorly_predicted_order_switches_the_chain_to_sweeps_and_back():
+    from endo_sfs.relative_depth import FIRST_PASS_WORK_LIMIT, RETRY_FIRST_PASS
+
+    camera, mask, rendering = _scene("bumpy", 0.3)
+    rng = np.random.default_rng(5)
+    previous = solve(rendering.irradiance, camera, roughness=0.3, mask=mask)
+    assert previous.ordered_work is not None and previous.ordered_work < FIRST_PASS_WORK_LIMIT
+    # A previous frame whose order says nothing about this one: new noise
+    # on every frame scrambles the order of neighbouring nodes.
+    modes = []
+    for _ in range(RETRY_FIRST_PASS + 2):
+        image = rendering.irradiance * np.exp(rng.normal(0.0, 0.05, rendering.irradiance.shape))
+        solution = solve(image, camera, roughness=0.3, mask=mask, warm_start=previous,
+                         threads=2, tolerance=1e-8)
+        modes.append(solution.frames_since_ordered == 0)
+        fresh = solve(image, camera, roughness=0.3, mask=mask, tolerance=1e-8)
+        assert solution.info.converged
+        np.testing.assert_allclose(solution.depth, fresh.depth, rtol=1e-5)
+        previous = solution
+    assert previous.ordered_work > FIRST_PASS_WORK_LIMIT
+    # Ordered, then sweeps until the retry, then ordered again.
+    assert modes[0] and not modes[1] and modes[RETRY_FIRST_PASS]
+    assert not any(modes[1:RETRY_FIRST_PASS])
