@@ -18,6 +18,8 @@ Conventions:
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import Literal
 
@@ -32,7 +34,7 @@ from endo_sfs.errors import (
     SfsInputError,
     UnknownModelError,
 )
-from endo_sfs.grid import SolveGrid, solve_grid
+from endo_sfs.grid import Projection, SolveGrid, solve_grid
 from endo_sfs.highlights import detect_highlights
 from endo_sfs.near_light import MAX_ROUGHNESS, solve_near_light
 from endo_sfs.orthographic import SolveInfo, solve_orthographic
@@ -181,6 +183,17 @@ def _use_first_pass(warm_start: SfsSolution | np.ndarray | None) -> bool:
     return warm_start.frames_since_ordered + 1 >= RETRY_FIRST_PASS
 
 
+@contextmanager
+def _numba_threads(threads: int) -> Iterator[None]:
+    """Run the block with numba's parallel kernels on at most ``threads`` threads."""
+    previous = numba.get_num_threads()
+    numba.set_num_threads(min(threads, numba.config.NUMBA_NUM_THREADS))
+    try:
+        yield
+    finally:
+        numba.set_num_threads(previous)
+
+
 def solve(
     irradiance: np.ndarray,
     camera: CameraModel,
@@ -216,100 +229,70 @@ def solve(
         raise SfsInputError(f"order must be 1, 2 or 3, got {order}")
     if threads < 1:
         raise SfsInputError(f"threads must be >= 1, got {threads}")
-    previous_threads = numba.get_num_threads()
-    numba.set_num_threads(min(threads, numba.config.NUMBA_NUM_THREADS))
-    try:
-        return _solve(
-            irradiance, camera, model, roughness, mask, solve_scale, tolerance, max_iterations,
-            warm_start, order, dark_level, saturation, singular_tolerance, boundary_depth,
-            concave, smoothing, mask_highlights, threads,
-        )
-    finally:
-        numba.set_num_threads(previous_threads)
-
-
-def _solve(
-    irradiance: np.ndarray,
-    camera: CameraModel,
-    model: str,
-    roughness: float,
-    mask: np.ndarray | None,
-    solve_scale: float,
-    tolerance: float,
-    max_iterations: int,
-    warm_start: SfsSolution | np.ndarray | None,
-    order: int,
-    dark_level: float,
-    saturation: float | None,
-    singular_tolerance: float,
-    boundary_depth: np.ndarray | None,
-    concave: bool,
-    smoothing: float,
-    mask_highlights: bool,
-    threads: int,
-) -> SfsSolution:
-    """:func:`solve` once its scalar arguments are checked and the thread count set."""
-    image = _check_inputs(irradiance, camera, mask)
-    valid = valid_pixels(image, mask, dark_level, saturation)
-    if mask_highlights:
-        valid &= ~detect_highlights(image, mask, saturation)
-    grid = solve_grid(camera, "stereographic" if model == "near_light" else "gnomonic", solve_scale)
-    valid &= grid.pixel_has_ray
-    if not valid.any():
-        raise NoValidPixelsError(
-            "no usable pixel: the frame is all dark, saturated, NaN or masked"
-        )
     if smoothing < 0.0:
         raise SfsInputError(f"smoothing must be >= 0 pixels, got {smoothing}")
-    nodes, node_valid = grid.to_nodes(smooth_irradiance(image, valid, smoothing), valid)
-    if not node_valid.any():
-        raise NoValidPixelsError("no usable pixel survives resampling to the solve grid")
-    ordered_work: float | None = None
-    frames_since_ordered = 0
-    if model == "near_light":
-        warm_log_r, warm_irradiance, warm_slope = _warm_nodes(warm_start, grid)
-        first_pass = _use_first_pass(warm_start)
-        log_r, node_slope, info = solve_near_light(
-            nodes, node_valid, grid.conformal_factor_sq, grid.spacing, roughness, order,
-            tolerance, max_iterations, warm_log_r, warm_irradiance, warm_slope, threads,
-            first_pass,
+    # numba's thread count is per calling thread: set it for this call only.
+    with _numba_threads(threads):
+        image = _check_inputs(irradiance, camera, mask)
+        valid = valid_pixels(image, mask, dark_level, saturation)
+        if mask_highlights:
+            valid &= ~detect_highlights(image, mask, saturation)
+        projection: Projection = "stereographic" if model == "near_light" else "gnomonic"
+        grid = solve_grid(camera, projection, solve_scale)
+        valid &= grid.pixel_has_ray
+        if not valid.any():
+            raise NoValidPixelsError(
+                "no usable pixel: the frame is all dark, saturated, NaN or masked"
+            )
+        nodes, node_valid = grid.to_nodes(smooth_irradiance(image, valid, smoothing), valid)
+        if not node_valid.any():
+            raise NoValidPixelsError("no usable pixel survives resampling to the solve grid")
+        ordered_work: float | None = None
+        frames_since_ordered = 0
+        if model == "near_light":
+            warm_log_r, warm_irradiance, warm_slope = _warm_nodes(warm_start, grid)
+            first_pass = _use_first_pass(warm_start)
+            log_r, node_slope, info = solve_near_light(
+                nodes, node_valid, grid.conformal_factor_sq, grid.spacing, roughness, order,
+                tolerance, max_iterations, warm_log_r, warm_irradiance, warm_slope, threads,
+                first_pass,
+            )
+            if first_pass:
+                ordered_work = info.updates / max(1, int(node_valid.sum()))
+            elif isinstance(warm_start, SfsSolution):
+                ordered_work = warm_start.ordered_work
+                frames_since_ordered = warm_start.frames_since_ordered + 1
+            with np.errstate(invalid="ignore"):
+                depth = np.exp(grid.to_pixels(log_r, valid)) * grid.pixel_rays[..., 2]
+            node_solution = log_r
+        else:
+            node_slope = None
+            boundary_nodes = None
+            if boundary_depth is not None:
+                if boundary_depth.shape != image.shape:
+                    raise SfsInputError(
+                        f"boundary_depth has shape {boundary_depth.shape}, expected {image.shape}"
+                    )
+                known = np.isfinite(boundary_depth)
+                values, ok = grid.to_nodes(np.nan_to_num(boundary_depth), known)
+                boundary_nodes = np.where(ok, values, np.nan)
+            node_solution, info = solve_orthographic(
+                nodes, node_valid, grid.spacing, roughness, order, singular_tolerance,
+                boundary_nodes, concave, tolerance, max_iterations,
+            )
+            depth = grid.to_pixels(node_solution, valid)
+        return SfsSolution(
+            depth=depth.astype(np.float32),
+            node_solution=node_solution,
+            node_irradiance=nodes,
+            grid=grid,
+            valid=valid,
+            info=info,
+            model=model,
+            node_slope=node_slope,
+            ordered_work=ordered_work,
+            frames_since_ordered=frames_since_ordered,
         )
-        if first_pass:
-            ordered_work = info.updates / max(1, int(node_valid.sum()))
-        elif isinstance(warm_start, SfsSolution):
-            ordered_work = warm_start.ordered_work
-            frames_since_ordered = warm_start.frames_since_ordered + 1
-        with np.errstate(invalid="ignore"):
-            depth = np.exp(grid.to_pixels(log_r, valid)) * grid.pixel_rays[..., 2]
-        node_solution = log_r
-    else:
-        node_slope = None
-        boundary_nodes = None
-        if boundary_depth is not None:
-            if boundary_depth.shape != image.shape:
-                raise SfsInputError(
-                    f"boundary_depth has shape {boundary_depth.shape}, expected {image.shape}"
-                )
-            known = np.isfinite(boundary_depth)
-            values, ok = grid.to_nodes(np.nan_to_num(boundary_depth), known)
-            boundary_nodes = np.where(ok, values, np.nan)
-        node_solution, info = solve_orthographic(
-            nodes, node_valid, grid.spacing, roughness, order, singular_tolerance,
-            boundary_nodes, concave, tolerance, max_iterations,
-        )
-        depth = grid.to_pixels(node_solution, valid)
-    return SfsSolution(
-        depth=depth.astype(np.float32),
-        node_solution=node_solution,
-        node_irradiance=nodes,
-        grid=grid,
-        valid=valid,
-        info=info,
-        model=model,
-        node_slope=node_slope,
-        ordered_work=ordered_work,
-        frames_since_ordered=frames_since_ordered,
-    )
 
 
 def reconstruct(
