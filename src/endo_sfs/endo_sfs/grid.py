@@ -27,7 +27,7 @@ import numpy as np
 from scipy.ndimage import map_coordinates
 
 from endo_io.camera import CameraModel
-from endo_sfs import kernels
+from endo_sfs import resampling
 
 Projection = Literal["gnomonic", "stereographic"]
 
@@ -81,7 +81,7 @@ class SolveGrid:
         if self.identity:
             values = np.where(valid, image, np.nan).astype(np.float64)
             return values, valid.copy()
-        return kernels.sample_strict(
+        return resampling.sample_strict(
             np.ascontiguousarray(image, dtype=np.float64),
             np.ascontiguousarray(valid),
             self.node_pixel_x,
@@ -96,7 +96,7 @@ class SolveGrid:
         """
         if self.identity:
             return np.where(wanted & np.isfinite(values), values, np.nan)
-        return kernels.sample_weighted(
+        return resampling.sample_weighted(
             np.ascontiguousarray(values, dtype=np.float64),
             self.pixel_node_x,
             self.pixel_node_y,

@@ -1,4 +1,4 @@
-"""Numba kernels of the fast-sweeping solvers and of the grid resampling.
+"""Numba kernels of the fast-sweeping solvers (resampling: endo_sfs.resampling).
 
 Every kernel works in place on *padded* grids: two layers of invalid nodes
 surround the solve grid, so that the 5-point WENO stencils never leave the
@@ -23,7 +23,9 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
+from endo_sfs.heap import heap_pop, heap_push
 from endo_sfs.prefetch import prefetch
+from endo_sfs.visit_order import FIRST_PASS_BUCKETS, value_order
 
 #: LLVM fast-math flags that keep IEEE infinities and NaNs (the kernels rely
 #: on +inf for invalid nodes): contraction, reciprocal, reassociation.
@@ -444,7 +446,6 @@ REPAIR_BUDGET = 4.0
 #: REPAIR_ROUNDS, bucketed as the first pass with FIRST_PASS_BUCKETS).
 HEAP_REPAIR_SHARE = 0.05
 REPAIR_ROUNDS = 6
-FIRST_PASS_BUCKETS = 0.25
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
@@ -510,49 +511,6 @@ def _near_light_node(
     return abs(new - old)
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
-def value_order(v: np.ndarray, valid: np.ndarray, buckets_per_node: float) -> np.ndarray:
-    """Flat indices of the valid nodes of ``v``, roughly in increasing order of value.
-
-    A counting sort into about ``buckets_per_node`` × (number of nodes)
-    equal-width buckets between the smallest and largest finite value: O(N),
-    exact up to the order inside a bucket (which the sweeps that follow
-    repair). v: (ny, nx) float64; valid: (ny, nx) uint8. Returns (n,) int64.
-    """
-    ny, nx = v.shape
-    count = 0
-    low = np.inf
-    high = -np.inf
-    for i in range(ny):
-        for j in range(nx):
-            if valid[i, j] and np.isfinite(v[i, j]):
-                count += 1
-                if v[i, j] < low:
-                    low = v[i, j]
-                if v[i, j] > high:
-                    high = v[i, j]
-    out = np.empty(count, dtype=np.int64)
-    if count == 0:
-        return out
-    buckets = max(1, int(count * buckets_per_node))
-    scale = buckets / (high - low) if high > low else 0.0
-    start = np.zeros(buckets + 1, dtype=np.int64)
-    for i in range(ny):
-        for j in range(nx):
-            if valid[i, j] and np.isfinite(v[i, j]):
-                k = min(int((v[i, j] - low) * scale), buckets - 1)
-                start[k + 1] += 1
-    for k in range(buckets):
-        start[k + 1] += start[k]
-    for i in range(ny):
-        for j in range(nx):
-            if valid[i, j] and np.isfinite(v[i, j]):
-                k = min(int((v[i, j] - low) * scale), buckets - 1)
-                out[start[k]] = i * nx + j
-                start[k] += 1
-    return out
-
-
 #: Visits ahead whose stencil the ordered passes prefetch (value order jumps
 #: across the grid; ~100 ns of memory latency against ~100 ns per visit).
 PREFETCH_AHEAD = 4
@@ -568,9 +526,6 @@ def _prefetch_stencil(
     prefetch(state, flat - 2 * nx)
     prefetch(state, flat + 2 * nx)
     prefetch(node, flat * node.shape[2])
-
-
-_NO_NODES = np.empty(0, dtype=np.int64)
 
 
 @njit(cache=True, nogil=True, error_model="numpy", fastmath=_FAST)
@@ -613,46 +568,6 @@ def _ordered_pass(
     return updates
 
 
-@njit(cache=True, nogil=True, error_model="numpy", inline="always")
-def _heap_push(keys: np.ndarray, items: np.ndarray, size: int, key: float, item: int) -> int:
-    """Push onto the binary min-heap keys[:size]/items[:size] (capacity permitting); new size."""
-    k = size
-    while k > 0:
-        parent = (k - 1) >> 1
-        if keys[parent] <= key:
-            break
-        keys[k] = keys[parent]
-        items[k] = items[parent]
-        k = parent
-    keys[k] = key
-    items[k] = item
-    return size + 1
-
-
-@njit(cache=True, nogil=True, error_model="numpy", inline="always")
-def _heap_pop(keys: np.ndarray, items: np.ndarray, size: int) -> tuple[int, int]:
-    """Pop the smallest item of the heap keys[:size]/items[:size]; (item, new size)."""
-    top = items[0]
-    size -= 1
-    key = keys[size]
-    item = items[size]
-    k = 0
-    while True:
-        child = 2 * k + 1
-        if child >= size:
-            break
-        if child + 1 < size and keys[child + 1] < keys[child]:
-            child += 1
-        if keys[child] >= key:
-            break
-        keys[k] = keys[child]
-        items[k] = items[child]
-        k = child
-    keys[k] = key
-    items[k] = item
-    return top, size
-
-
 @njit(cache=True, nogil=True, error_model="numpy", fastmath=_FAST)
 def _repair(
     v: np.ndarray,
@@ -690,10 +605,10 @@ def _repair(
     for i in range(ny):
         for j in range(nx):
             if state[i, j] == UNLOCKED:
-                size = _heap_push(keys, items, size, v[i, j], i * nx + j)
+                size = heap_push(keys, items, size, v[i, j], i * nx + j)
     solves = 0
     while size > 0 and solves < budget:
-        flat, size = _heap_pop(keys, items, size)
+        flat, size = heap_pop(keys, items, size)
         i = flat // nx
         j = flat - i * nx
         if state[i, j] != UNLOCKED:
@@ -712,7 +627,7 @@ def _repair(
                     if size == keys.size:
                         keys = np.concatenate((keys, np.empty(keys.size)))
                         items = np.concatenate((items, np.empty(items.size, dtype=np.int64)))
-                    size = _heap_push(keys, items, size, v[ni, nj], ni * nx + nj)
+                    size = heap_push(keys, items, size, v[ni, nj], ni * nx + nj)
     return solves
 
 
@@ -956,67 +871,6 @@ def _parallel_sweeps(
     return counts[0] + counts[1]
 
 
-#: A half of the first pass must hold at least this share of the nodes;
-#: otherwise the pass runs on one thread.
-MIN_SPLIT_SHARE = 0.25
-
-
-@njit(cache=True, nogil=True, error_model="numpy")
-def split_first_pass(
-    ordered: np.ndarray, nx: int, reach: int
-) -> tuple[np.ndarray, int, np.ndarray]:
-    """Split a value-ordered first pass into two regions for :func:`near_light_sweep`.
-
-    ordered: (n,) int64 flat indices in increasing order of the predicted
-    value; nx: padded grid width; reach: stencil reach (1 or 2).
-    Information flows from low to high values, from the predicted nearest
-    point (ordered[0]) towards the farthest (ordered[-1]). The seam is the
-    grid line through the nearest point along that flow (a row when the flow
-    is mostly horizontal, else a column), so that few characteristics cross
-    it; the other orientation is tried when a side would hold less than
-    MIN_SPLIT_SHARE of the nodes. Returns (the two regions' nodes, each in
-    its value order, concatenated; the length of the first, 0 when no
-    balanced split exists; (m,) flat indices of the nodes within ``reach``
-    of the seam).
-    """
-    n = ordered.size
-    if n < 2:
-        return ordered, 0, _NO_NODES
-    rows = ordered // nx
-    columns = ordered - rows * nx
-    flow_is_horizontal = abs(columns[n - 1] - columns[0]) >= abs(rows[n - 1] - rows[0])
-    for attempt in range(2):
-        by_row = flow_is_horizontal if attempt == 0 else not flow_is_horizontal
-        coordinate = rows if by_row else columns
-        line = coordinate[0]
-        first = 0
-        seam_count = 0
-        for k in range(n):
-            if coordinate[k] < line:
-                first += 1
-            if line - reach <= coordinate[k] < line + reach:
-                seam_count += 1
-        if not MIN_SPLIT_SHARE * n <= first <= (1.0 - MIN_SPLIT_SHARE) * n:
-            continue
-        out = np.empty(n, dtype=np.int64)
-        seam = np.empty(seam_count, dtype=np.int64)
-        a = 0
-        b = first
-        m = 0
-        for k in range(n):
-            if coordinate[k] < line:
-                out[a] = ordered[k]
-                a += 1
-            else:
-                out[b] = ordered[k]
-                b += 1
-            if line - reach <= coordinate[k] < line + reach:
-                seam[m] = ordered[k]
-                m += 1
-        return out, first, seam
-    return ordered, 0, _NO_NODES
-
-
 # --------------------------------------------------------------------------
 # Inputs of the sweeps, one pass over the image
 # --------------------------------------------------------------------------
@@ -1177,91 +1031,3 @@ def orthographic_inputs(
     return t, speed, fixed, valid_p
 
 
-# --------------------------------------------------------------------------
-# Resampling between the pixel grid and the solve grid
-# --------------------------------------------------------------------------
-
-
-@njit(cache=True, nogil=True, error_model="numpy", parallel=True)
-def sample_strict(
-    image: np.ndarray, valid: np.ndarray, map_x: np.ndarray, map_y: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
-    """Bilinear samples of ``image`` at (map_x, map_y) pixel positions.
-
-    image: (H, W) float; valid: (H, W) bool. map_x, map_y: (h, w) float
-    column/row coordinates (pixel centres at integers). A sample is valid only
-    if all four pixels around it are valid; otherwise it is NaN.
-    Returns (values (h, w) float64, valid (h, w) bool).
-    """
-    height, width = image.shape
-    out = np.full(map_x.shape, np.nan)
-    ok = np.zeros(map_x.shape, dtype=np.bool_)
-    for r in prange(map_x.shape[0]):
-        for c in range(map_x.shape[1]):
-            x = map_x[r, c]
-            y = map_y[r, c]
-            if not (x >= 0.0 and y >= 0.0 and x <= width - 1 and y <= height - 1):
-                continue
-            x0 = min(int(x), width - 2) if width > 1 else 0
-            y0 = min(int(y), height - 2) if height > 1 else 0
-            fx = x - x0
-            fy = y - y0
-            x1 = min(x0 + 1, width - 1)
-            y1 = min(y0 + 1, height - 1)
-            if not (valid[y0, x0] and valid[y0, x1] and valid[y1, x0] and valid[y1, x1]):
-                continue
-            top = image[y0, x0] * (1.0 - fx) + image[y0, x1] * fx
-            bottom = image[y1, x0] * (1.0 - fx) + image[y1, x1] * fx
-            out[r, c] = top * (1.0 - fy) + bottom * fy
-            ok[r, c] = True
-    return out, ok
-
-
-@njit(cache=True, nogil=True, error_model="numpy", parallel=True)
-def sample_weighted(
-    grid: np.ndarray, map_x: np.ndarray, map_y: np.ndarray, wanted: np.ndarray
-) -> np.ndarray:
-    """Bilinear samples of ``grid`` over its finite nodes only.
-
-    grid: (h, w) float64 with NaN or inf at unusable nodes. map_x, map_y:
-    (H, W) node coordinates; wanted: (H, W) bool. The weights of the finite
-    nodes among the four are renormalised, so a pixel next to the edge of
-    the solved region still gets a value; NaN where no node is finite or the
-    pixel is not wanted. Returns (H, W) float64.
-    """
-    gh, gw = grid.shape
-    out = np.full(map_x.shape, np.nan)
-    for r in prange(map_x.shape[0]):
-        for c in range(map_x.shape[1]):
-            if not wanted[r, c]:
-                continue
-            x = map_x[r, c]
-            y = map_y[r, c]
-            if not (x > -1.0 and y > -1.0 and x < gw and y < gh):
-                continue
-            xf = np.floor(x)
-            yf = np.floor(y)
-            x0 = int(xf)
-            y0 = int(yf)
-            fx = x - xf
-            fy = y - yf
-            total = 0.0
-            weight = 0.0
-            for dy in range(2):
-                yy = y0 + dy
-                if yy < 0 or yy >= gh:
-                    continue
-                wy = fy if dy == 1 else 1.0 - fy
-                for dx in range(2):
-                    xx = x0 + dx
-                    if xx < 0 or xx >= gw:
-                        continue
-                    value = grid[yy, xx]
-                    if not np.isfinite(value):
-                        continue
-                    w = wy * (fx if dx == 1 else 1.0 - fx)
-                    total += w * value
-                    weight += w
-            if weight > 1e-6:
-                out[r, c] = total / weight
-    return out

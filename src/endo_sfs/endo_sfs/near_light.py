@@ -37,6 +37,7 @@ from endo_sfs import kernels
 from endo_sfs.errors import NoValidPixelsError, SfsInputError
 from endo_sfs.orthographic import SolveInfo
 from endo_sfs.reflectance import oren_nayar_coefficients
+from endo_sfs.visit_order import FIRST_PASS_BUCKETS, split_first_pass, value_order
 
 #: WENO smoothness regulariser, relative to the squared node spacing.
 _WENO_EPS_REL = 0.1
@@ -45,8 +46,6 @@ _WENO_EPS_REL = 0.1
 MAX_ROUGHNESS = 0.6
 
 
-#: Buckets per node of the ordering of the first pass (kernels.value_order).
-FIRST_PASS_BUCKETS = kernels.FIRST_PASS_BUCKETS
 #: Below this many nodes the first pass is not split across threads (the
 #: thread start-up and the seam cost more than they save).
 MIN_PARALLEL_NODES = 20000
@@ -105,7 +104,7 @@ def solve_near_light(
     :func:`global_shift` and :func:`endo_sfs.kernels.near_light_inputs`);
     warm_start_slope: that frame's (ny, nx) F = tan θ per node, if known
     (Newton seeds). threads: 2 runs the first pass of large grids as two
-    halves at once (:func:`endo_sfs.kernels.split_first_pass`); the result
+    halves at once (:func:`endo_sfs.visit_order.split_first_pass`); the result
     then agrees with one thread's to the tolerance, not bit for bit.
     first_pass: solve every node once in predicted value order before
     sweeping (orders 1 and 2); False sweeps from the start, which is
@@ -150,7 +149,7 @@ def solve_near_light(
     table = kernels.log_radiance_table(reflectance)
     # Causal schemes: one pass in increasing order of the start values first
     # (nearly the order of the solution), then sweeps repair the rest.
-    ordered = kernels.value_order(key, valid_p, FIRST_PASS_BUCKETS)
+    ordered = value_order(key, valid_p, FIRST_PASS_BUCKETS)
     no_pass = np.empty(0, dtype=np.int64)
     if order == 3 and warm_start is None:
         _, _, updates = kernels.near_light_sweep(
@@ -165,7 +164,9 @@ def solve_near_light(
         ordered = no_pass
     split, seam = 0, no_pass
     if order != 3 and threads > 1 and ordered.size >= MIN_PARALLEL_NODES:
-        ordered, split, seam = kernels.split_first_pass(ordered, v.shape[1], 1 if order == 1 else 2)
+        ordered, split, seam = split_first_pass(
+            ordered, v.shape[1], 1 if order == 1 else 2
+        )
     iterations, change, more = kernels.near_light_sweep(
         v, node, valid_p, hx, hy, reflectance, order, tolerance, max_iterations, eps, table,
         ordered if order != 3 else no_pass, split, seam, sweep_split,

@@ -10,6 +10,7 @@ from endo_sfs import kernels
 from endo_sfs.grid import build_solve_grid
 from endo_sfs.reflectance import colocated_cosine, colocated_radiance, oren_nayar_coefficients
 from endo_sfs.synthetic import scene_camera
+from endo_sfs.visit_order import split_first_pass, value_order
 
 
 def test_godunov_update_is_exact_for_planes():
@@ -126,7 +127,7 @@ def _bowl(ny: int, nx: int, centre: tuple[float, float]) -> tuple[np.ndarray, np
     values = np.hypot(i - centre[0], j - centre[1])
     valid = np.zeros((ny + 4, nx + 4), dtype=np.uint8)
     valid[2:-2, 2:-2] = 1
-    return values, kernels.value_order(np.where(valid, values, np.inf), valid, 1.0)
+    return values, value_order(np.where(valid, values, np.inf), valid, 1.0)
 
 
 def test_split_first_pass_cuts_through_the_nearest_point_along_the_flow():
@@ -134,7 +135,7 @@ def test_split_first_pass_cuts_through_the_nearest_point_along_the_flow():
     # Nearest point at the left edge, middle row: flow to the right, so the
     # seam is the row through it and both halves keep their value order.
     values, ordered = _bowl(ny, nx, (31.0, 2.0))
-    out, split, seam = kernels.split_first_pass(ordered, nx + 4, 2)
+    out, split, seam = split_first_pass(ordered, nx + 4, 2)
     rows = out // (nx + 4)
     assert 0.25 * ordered.size <= split <= 0.75 * ordered.size
     assert np.all(rows[:split] < 31) and np.all(rows[split:] >= 31)
@@ -144,7 +145,7 @@ def test_split_first_pass_cuts_through_the_nearest_point_along_the_flow():
     assert set((seam // (nx + 4)).tolist()) == {29, 30, 31, 32}
     # Nearest point in a corner: no balanced cut, one thread.
     _, corner = _bowl(ny, nx, (2.0, 2.0))
-    assert kernels.split_first_pass(corner, nx + 4, 2)[1] == 0
+    assert split_first_pass(corner, nx + 4, 2)[1] == 0
 
 
 @pytest.mark.parametrize("split", [False, True])
