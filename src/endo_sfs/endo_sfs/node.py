@@ -109,9 +109,10 @@ PARAMETERS: dict[str, tuple[object, ParameterDescriptor]] = {
     )),
     "threads": (2, ParameterDescriptor(
         type=ParameterType.PARAMETER_INTEGER,
-        description="CPU threads per frame (resampling, and the near_light first pass as two "
-        "halves at once on grids of 20000+ nodes); 1 leaves the other cores to the rest of the "
-        "graph and makes the output bit-reproducible",
+        description="CPU threads per frame (resampling; near_light on grids of 20000+ nodes: "
+        "the first pass, or the sweeps when the predicted order is poor, as two halves at "
+        "once); 1 leaves the other cores to the rest of the graph and makes the output "
+        "bit-reproducible",
         integer_range=_int_range(1, 64),
     )),
     "warm_start": (True, ParameterDescriptor(
