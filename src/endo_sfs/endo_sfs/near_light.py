@@ -149,27 +149,25 @@ def solve_near_light(
     table = kernels.log_radiance_table(reflectance)
     # Causal schemes: one pass in increasing order of the start values first
     # (nearly the order of the solution), then sweeps repair the rest.
-    ordered = value_order(key, valid_p, FIRST_PASS_BUCKETS)
     no_pass = np.empty(0, dtype=np.int64)
+    nodes = int(np.count_nonzero(valid_p))
     if order == 3 and warm_start is None:
         _, _, updates = kernels.near_light_sweep(
             v, node, valid_p, hx, hy, reflectance, 2, tolerance, max_iterations, eps, table,
-            ordered, 0, no_pass, 0,
+            value_order(key, valid_p, FIRST_PASS_BUCKETS), 0, no_pass, 0,
         )
-    sweep_split = 0
-    if not first_pass:
-        if threads > 1 and ordered.size >= MIN_PARALLEL_NODES:
-            # Sweeps alone: two halves of equal node count, split by rows.
-            sweep_split = int(np.searchsorted(np.cumsum(valid_p.sum(axis=1)), ordered.size // 2))
-        ordered = no_pass
-    split, seam = 0, no_pass
-    if order != 3 and threads > 1 and ordered.size >= MIN_PARALLEL_NODES:
-        ordered, split, seam = split_first_pass(
-            ordered, v.shape[1], 1 if order == 1 else 2
-        )
+    ordered, split, seam, sweep_split = no_pass, 0, no_pass, 0
+    parallel = threads > 1 and nodes >= MIN_PARALLEL_NODES
+    if order != 3 and first_pass:
+        ordered = value_order(key, valid_p, FIRST_PASS_BUCKETS)
+        if parallel:
+            ordered, split, seam = split_first_pass(ordered, v.shape[1], 1 if order == 1 else 2)
+    elif order != 3 and parallel:
+        # Sweeps alone: two halves of equal node count, split by rows.
+        sweep_split = int(np.searchsorted(np.cumsum(valid_p.sum(axis=1)), nodes // 2))
     iterations, change, more = kernels.near_light_sweep(
         v, node, valid_p, hx, hy, reflectance, order, tolerance, max_iterations, eps, table,
-        ordered if order != 3 else no_pass, split, seam, sweep_split,
+        ordered, split, seam, sweep_split,
     )
     info = SolveInfo(
         int(iterations), float(change), bool(change <= tolerance), int(updates + more)
