@@ -452,6 +452,36 @@ class CameraModel:
             self._cache["unit_rays"] = rays
         return rays
 
+    def depth_to_points(self, depth: np.ndarray) -> np.ndarray:
+        """Back-project a REP 118 depth image to points in the optical frame.
+
+        Each pixel's point is its unit ray scaled so that its z equals the
+        depth: ``p = depth / ray_z · ray`` (through :meth:`unit_rays`, so
+        distortion is undone exactly as everywhere else).
+
+        Args:
+            depth: (height, width) float depth along the optical axis, metres
+                (or any unit: the points come out in the same unit); NaN,
+                zero or negative where invalid.
+
+        Returns:
+            (height, width, 3) float64 points, NaN where the depth is invalid
+            or the pixel has no ray.
+
+        Raises:
+            CameraModelError: ``depth`` is not (height, width).
+        """
+        z = np.asarray(depth, dtype=np.float64)
+        if z.shape != (self.height, self.width):
+            raise CameraModelError(
+                f"depth is {z.shape[::-1] if z.ndim == 2 else z.shape}, camera is "
+                f"{self.width}x{self.height}"
+            )
+        rays = self.unit_rays()
+        with np.errstate(invalid="ignore", divide="ignore"):
+            length = np.where(z > 0.0, z / rays[..., 2], np.nan)
+        return length[..., None] * rays
+
     def project(self, points: np.ndarray) -> np.ndarray:
         """Project 3D points to distorted pixel coordinates.
 

@@ -43,3 +43,27 @@ class BagError(Endo3dError):
 
 class BagCorruptError(BagError):
     """A bag is truncated or damaged; everything before the damage was read."""
+
+
+class PoseLookupError(Endo3dError):
+    """No pose can be given at the asked stamp (see the subclasses for why)."""
+
+
+class PoseTooOldError(PoseLookupError):
+    """The stamp is older than every pose still held: it will never be answered."""
+
+
+class PoseNotYetError(PoseLookupError):
+    """The stamp is newer than the newest pose: the answer may still arrive."""
+
+
+class PoseGapError(PoseLookupError):
+    """The two poses around the stamp are further apart than the allowed gap."""
+
+
+class PoseOrderError(PoseError):
+    """A pose arrived with a stamp at or before the newest one held."""
+
+
+class ClockJumpError(Endo3dError):
+    """Time jumped (a bag loop, a driver restart): state kept over time was reset."""

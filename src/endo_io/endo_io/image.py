@@ -183,3 +183,37 @@ def array_to_image(
     # is one memcpy, whereas assigning any other sequence is checked per byte.
     msg.data = byte_array("B", packed.tobytes())
     return msg
+
+
+def irradiance_to_mono8(
+    irradiance: np.ndarray, *, white: float, gamma: float = 0.5
+) -> np.ndarray:
+    """Map linear irradiance (32FC1, NaN invalid) to 8-bit for feature tracking.
+
+    ``255 · clip(E / white, 0, 1) ** gamma``, NaN and negative values to 0.
+    A gamma below 1 spreads the dark far field, where 1/r² shading leaves
+    little contrast, over more codes; the mapping is fixed for a given
+    ``white``, so keeping ``white`` constant between frames keeps the
+    brightness constancy that Lucas–Kanade assumes.
+
+    Args:
+        irradiance: (H, W) float linear irradiance, image units.
+        white: irradiance mapped to 255 (> 0).
+        gamma: exponent of the tone curve (> 0).
+
+    Returns:
+        (H, W) uint8, C-contiguous.
+    """
+    if not (white > 0.0 and np.isfinite(white)):
+        raise ValueError(f"white must be positive and finite, got {white}")
+    if not gamma > 0.0:
+        raise ValueError(f"gamma must be positive, got {gamma}")
+    data = np.asarray(irradiance, dtype=np.float32)
+    if data.ndim != 2:
+        raise ImageLayoutError(f"irradiance must be (H, W), got shape {data.shape}")
+    with np.errstate(invalid="ignore"):
+        level = np.nan_to_num(data * np.float32(1.0 / white), nan=0.0)
+        np.clip(level, 0.0, 1.0, out=level)
+    if gamma != 1.0:
+        np.power(level, np.float32(gamma), out=level)
+    return np.ascontiguousarray((level * np.float32(255.0) + np.float32(0.5)).astype(np.uint8))

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import numpy as np
 from geometry_msgs.msg import PoseStamped
+from numpy.typing import ArrayLike
 
 from endo_io.errors import PoseError
 from endo_io.stamp import ns_to_stamp, stamp_to_ns
@@ -36,8 +37,20 @@ DEFAULT_TOLERANCE = 1e-3
 _SLERP_LINEAR_BELOW_RAD = 1e-9
 
 
-def _unit_quaternions(q_xyzw: np.ndarray, tolerance: float) -> np.ndarray:
-    """Validate (..., 4) quaternions and return them normalised (float64)."""
+def unit_quaternion(q_xyzw: np.ndarray, tolerance: float = DEFAULT_TOLERANCE) -> np.ndarray:
+    """Validate (..., 4) quaternions x, y, z, w and return them normalised.
+
+    Args:
+        q_xyzw: (..., 4) quaternions.
+        tolerance: allowed deviation of each norm from 1.
+
+    Returns:
+        (..., 4) float64 unit quaternions, same sign and component order.
+
+    Raises:
+        PoseError: wrong shape, NaN/inf, or a norm further than ``tolerance``
+            from 1.
+    """
     q = np.asarray(q_xyzw, dtype=np.float64)
     if q.shape[-1:] != (4,):
         raise PoseError(f"quaternion must have shape (..., 4) x,y,z,w, got {q.shape}")
@@ -79,7 +92,7 @@ def quaternion_to_matrix(q_xyzw: np.ndarray, *, tolerance: float = DEFAULT_TOLER
     Raises:
         PoseError: NaN/inf or a norm further than ``tolerance`` from 1.
     """
-    return _rotation_of_unit_quaternion(_unit_quaternions(q_xyzw, tolerance))
+    return _rotation_of_unit_quaternion(unit_quaternion(q_xyzw, tolerance))
 
 
 def _rotation_of_unit_quaternion(q: np.ndarray) -> np.ndarray:
@@ -96,7 +109,13 @@ def _rotation_of_unit_quaternion(q: np.ndarray) -> np.ndarray:
     return np.stack([np.stack(row, axis=-1) for row in rows], axis=-2)
 
 
-def _check_rotation(R: np.ndarray, tolerance: float) -> np.ndarray:
+def check_rotation(R: np.ndarray, tolerance: float = DEFAULT_TOLERANCE) -> np.ndarray:
+    """Validate (..., 3, 3) rotation matrices and return them as float64.
+
+    Raises:
+        PoseError: wrong shape, NaN/inf, ``max |RᵀR − I| > tolerance``, or a
+            reflection (det <= 0).
+    """
     rot = np.asarray(R, dtype=np.float64)
     if rot.shape[-2:] != (3, 3):
         raise PoseError(f"rotation matrix must have shape (..., 3, 3), got {rot.shape}")
@@ -125,7 +144,7 @@ def matrix_to_quaternion(R: np.ndarray, *, tolerance: float = DEFAULT_TOLERANCE)
     Raises:
         PoseError: NaN/inf, not orthonormal within ``tolerance``, or det <= 0.
     """
-    return _quaternion_of_rotation(_check_rotation(R, tolerance))
+    return _quaternion_of_rotation(check_rotation(R, tolerance))
 
 
 def _quaternion_of_rotation(rot: np.ndarray) -> np.ndarray:
@@ -165,7 +184,7 @@ def _check_transform(T: np.ndarray, tolerance: float, name: str = "transform") -
         raise PoseError(f"{name} contains NaN or infinity")
     if not np.array_equal(mat[3], [0.0, 0.0, 0.0, 1.0]):
         raise PoseError(f"{name} bottom row must be [0, 0, 0, 1], got {mat[3].tolist()}")
-    _check_rotation(mat[:3, :3], tolerance)
+    check_rotation(mat[:3, :3], tolerance)
     return mat
 
 
@@ -241,8 +260,8 @@ def slerp(
     Raises:
         PoseError: NaN/inf or a non-unit input quaternion.
     """
-    q0 = _unit_quaternions(q0_xyzw, tolerance)
-    q1 = _unit_quaternions(q1_xyzw, tolerance)
+    q0 = unit_quaternion(q0_xyzw, tolerance)
+    q1 = unit_quaternion(q1_xyzw, tolerance)
     if q0.shape != (4,) or q1.shape != (4,):
         raise PoseError(f"slerp needs two (4,) quaternions, got {q0.shape} and {q1.shape}")
     return _slerp_unit(q0, q1, alpha)
@@ -342,7 +361,7 @@ def _check_transforms(T: np.ndarray, tolerance: float, name: str) -> np.ndarray:
         raise PoseError(f"{name} contain NaN or infinity")
     if not np.array_equal(mat[:, 3], np.broadcast_to([0.0, 0.0, 0.0, 1.0], (len(mat), 4))):
         raise PoseError(f"{name}: every bottom row must be [0, 0, 0, 1]")
-    _check_rotation(mat[:, :3, :3], tolerance)
+    check_rotation(mat[:, :3, :3], tolerance)
     return mat
 
 
@@ -424,3 +443,85 @@ def interpolate_transforms(
         alpha = (t - stamps[b]) / (stamps[a] - stamps[b])  # exact int64 differences
         result[between] = _interpolate_rigid(samples[b], samples[a], alpha)
     return result, exact | between
+
+
+def rigid_transform(rotvec: ArrayLike, translation: ArrayLike) -> np.ndarray:
+    """Build a rigid transform from a rotation vector and a translation.
+
+    Args:
+        rotvec: (3,) axis × angle, radians (scipy's ``Rotation.from_rotvec``).
+        translation: (3,) metres (or whatever unit the caller's points use).
+
+    Returns:
+        (4, 4) float64 transform ``[[R, t], [0, 0, 0, 1]]``.
+
+    Raises:
+        PoseError: a wrong shape or a non-finite value.
+    """
+    axis_angle = np.asarray(rotvec, dtype=np.float64)
+    offset = np.asarray(translation, dtype=np.float64)
+    if axis_angle.shape != (3,) or offset.shape != (3,):
+        raise PoseError(
+            f"rotvec and translation must have shape (3,), got {axis_angle.shape} "
+            f"and {offset.shape}"
+        )
+    if not (np.all(np.isfinite(axis_angle)) and np.all(np.isfinite(offset))):
+        raise PoseError("rotvec or translation contains NaN or infinity")
+    T = np.eye(4)
+    # Rodrigues' formula; below 1e-12 rad the rotation is the identity to
+    # double precision.
+    angle = float(np.linalg.norm(axis_angle))
+    if angle > 1e-12:
+        k = axis_angle / angle
+        K = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
+        T[:3, :3] = np.eye(3) + np.sin(angle) * K + (1.0 - np.cos(angle)) * (K @ K)
+    T[:3, 3] = offset
+    return T
+
+
+def transform_points(T: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Apply a rigid transform to points: ``R @ p + t`` for every point.
+
+    Args:
+        T: (4, 4) rigid transform from the points' frame to the target frame.
+        points: (..., 3) points, e.g. (N, 3) or an (H, W, 3) image of points;
+            NaN points stay NaN.
+
+    Returns:
+        (..., 3) float64 points in the target frame (a float32 input gives a
+        float64 output; cast back where the memory matters).
+
+    Raises:
+        PoseError: ``T`` not (4, 4) or ``points`` not (..., 3).
+    """
+    mat = np.asarray(T, dtype=np.float64)
+    if mat.shape != (4, 4):
+        raise PoseError(f"transform must have shape (4, 4), got {mat.shape}")
+    xyz = np.asarray(points)
+    if xyz.shape[-1:] != (3,):
+        raise PoseError(f"points must have shape (..., 3), got {xyz.shape}")
+    return xyz @ mat[:3, :3].T + mat[:3, 3]
+
+
+def rotation_angle(R: np.ndarray) -> np.ndarray:
+    """Rotation angle of (..., 3, 3) rotation matrices, radians in [0, π].
+
+    Computed as ``atan2(|vee(R − Rᵀ)| / 2, (tr R − 1) / 2)``, which stays
+    accurate for angles near 0 and near π, where ``acos`` of the trace does
+    not. Returns a float64 scalar array for one matrix, (...,) for many.
+    The matrices are not checked (:func:`check_rotation` does that).
+    """
+    rot = np.asarray(R, dtype=np.float64)
+    if rot.shape[-2:] != (3, 3):
+        raise PoseError(f"rotation matrix must have shape (..., 3, 3), got {rot.shape}")
+    skew = np.stack(
+        [
+            rot[..., 2, 1] - rot[..., 1, 2],
+            rot[..., 0, 2] - rot[..., 2, 0],
+            rot[..., 1, 0] - rot[..., 0, 1],
+        ],
+        axis=-1,
+    )
+    sin_angle = 0.5 * np.linalg.norm(skew, axis=-1)
+    cos_angle = 0.5 * (np.trace(rot, axis1=-2, axis2=-1) - 1.0)
+    return np.arctan2(sin_angle, cos_angle)

@@ -46,6 +46,7 @@ from endo_io.image import array_to_image, image_to_array
 from endo_io.process import run_node
 from endo_io.qos import SENSOR_DATA_QOS, create_reliable_publisher
 from endo_io.stamp import NS_PER_S, stamp_to_ns
+from endo_io.stamp_matching import StampMatcher
 from endo_sfs.errors import NoValidPixelsError, SfsInputError
 from endo_sfs.near_light import MAX_ROUGHNESS
 from endo_sfs.relative_depth import (
@@ -56,7 +57,6 @@ from endo_sfs.relative_depth import (
     solve,
     surface_normals,
 )
-from endo_sfs.stamp_matching import StampMatcher
 from endo_sfs.synthetic import near_light_surface, render_near_light, scene_camera
 
 #: Side of the synthetic image solved at start-up to load the kernels.

@@ -375,8 +375,7 @@ def surface_normals(depth: np.ndarray, camera: CameraModel) -> np.ndarray:
     where a neighbour is missing.
     """
     rays = camera.unit_rays()
-    with np.errstate(invalid="ignore", divide="ignore"):
-        points = (np.asarray(depth, dtype=np.float64) / rays[..., 2])[..., None] * rays
+    points = camera.depth_to_points(depth)
     du = np.full_like(points, np.nan)
     dv = np.full_like(points, np.nan)
     du[:, 1:-1] = points[:, 2:] - points[:, :-2]

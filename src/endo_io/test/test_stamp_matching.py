@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from endo_sfs.stamp_matching import StampMatcher
+from endo_io.stamp_matching import StampMatcher
 
 
 def test_pairs_come_out_in_either_arrival_order():

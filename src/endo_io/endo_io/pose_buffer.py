@@ -1,0 +1,173 @@
+"""A bounded, time-ordered buffer of stamped rigid transforms, queried by interpolation.
+
+The tracker bridge publishes ``T_world_camera`` at tracker rate; a consumer
+needs the pose at each image's stamp. :class:`PoseBuffer` keeps the most
+recent poses (a fixed capacity, so memory is bounded when nobody asks) and
+answers a query by :func:`endo_io.pose.interpolate_transforms` (linear
+translation, SLERP rotation) between the two poses around the stamp. It
+never extrapolates and never hands out a stale pose: a query it cannot
+answer raises why, so the caller can wait (:class:`PoseNotYetError`) or
+give up (:class:`PoseTooOldError`, :class:`PoseGapError`).
+
+Time that goes backwards by more than ``jump_tolerance_ns`` (a bag that
+loops, a tracker that restarts) clears the buffer, keeps the new pose and
+raises :class:`ClockJumpError` so that the caller logs and counts the reset.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+
+import numpy as np
+
+from endo_io.errors import (
+    ClockJumpError,
+    PoseError,
+    PoseGapError,
+    PoseNotYetError,
+    PoseOrderError,
+    PoseTooOldError,
+)
+from endo_io.pose import DEFAULT_TOLERANCE, check_rotation, interpolate_transforms
+from endo_io.stamp import NS_PER_S
+
+
+class PoseBuffer:
+    """Stamped (4, 4) rigid transforms in stamp order, at most ``capacity`` of them.
+
+    Parameters
+    ----------
+    capacity:
+        Poses kept; the oldest go first (at 60 Hz, 600 is ten seconds).
+    max_gap_ns:
+        Longest interval between the two poses around a query that is
+        bridged by interpolation, integer nanoseconds.
+    jump_tolerance_ns:
+        A pose stamped more than this before the newest one is taken for a
+        clock jump (the buffer resets); one stamped less before it, or at the
+        same stamp, is out of order and refused.
+    rotation_tolerance:
+        Allowed deviation of each rotation from orthonormal.
+    """
+
+    def __init__(
+        self,
+        *,
+        capacity: int = 600,
+        max_gap_ns: int = NS_PER_S // 10,
+        jump_tolerance_ns: int = NS_PER_S,
+        rotation_tolerance: float = DEFAULT_TOLERANCE,
+    ) -> None:
+        if capacity < 2:
+            raise ValueError(f"capacity must be at least 2, got {capacity}")
+        if max_gap_ns < 0 or jump_tolerance_ns < 0:
+            raise ValueError("max_gap_ns and jump_tolerance_ns must be >= 0")
+        self.capacity = capacity
+        self.max_gap_ns = int(max_gap_ns)
+        self.jump_tolerance_ns = int(jump_tolerance_ns)
+        self.rotation_tolerance = rotation_tolerance
+        self._stamps: deque[int] = deque(maxlen=capacity)
+        self._poses: deque[np.ndarray] = deque(maxlen=capacity)
+
+    def __len__(self) -> int:
+        return len(self._stamps)
+
+    @property
+    def oldest_ns(self) -> int | None:
+        """Stamp of the oldest pose held, or None when empty."""
+        return self._stamps[0] if self._stamps else None
+
+    @property
+    def newest_ns(self) -> int | None:
+        """Stamp of the newest pose held, or None when empty."""
+        return self._stamps[-1] if self._stamps else None
+
+    def clear(self) -> None:
+        """Forget every pose."""
+        self._stamps.clear()
+        self._poses.clear()
+
+    def insert(self, stamp_ns: int, T: np.ndarray) -> None:
+        """Add the (4, 4) transform ``T`` at ``stamp_ns`` (integer ns).
+
+        Raises:
+            PoseError: ``T`` is not a finite rigid transform (nothing stored).
+            PoseOrderError: ``stamp_ns`` is at or before the newest pose, within
+                the jump tolerance (nothing stored).
+            ClockJumpError: ``stamp_ns`` is more than the jump tolerance before
+                the newest pose; the buffer was cleared and now holds this pose.
+        """
+        mat = np.array(T, dtype=np.float64)
+        if mat.shape != (4, 4) or not np.all(np.isfinite(mat)):
+            raise PoseError(f"pose at {stamp_ns} ns is not a finite (4, 4) transform")
+        check_rotation(mat[:3, :3], self.rotation_tolerance)
+        newest = self.newest_ns
+        if newest is not None and stamp_ns <= newest:
+            back_ns = newest - stamp_ns
+            if back_ns <= self.jump_tolerance_ns:
+                raise PoseOrderError(
+                    f"pose at {stamp_ns} ns is {back_ns / 1e6:.3f} ms before or at the "
+                    f"newest {newest} ns"
+                )
+            self.clear()
+            self._append(stamp_ns, mat)
+            raise ClockJumpError(
+                f"pose time jumped back {back_ns / NS_PER_S:.3f} s (from {newest} to "
+                f"{stamp_ns} ns); pose buffer reset"
+            )
+        self._append(stamp_ns, mat)
+
+    def _append(self, stamp_ns: int, mat: np.ndarray) -> None:
+        self._stamps.append(int(stamp_ns))
+        self._poses.append(mat)
+
+    def query(self, stamp_ns: int, *, tolerance_ns: int = 0) -> np.ndarray:
+        """The (4, 4) float64 transform at ``stamp_ns``, interpolated.
+
+        A stamp equal to a held pose's gives that pose; one between two held
+        poses at most ``max_gap_ns`` apart gives their interpolation. A stamp
+        within ``tolerance_ns`` outside the held span gives the end pose
+        (a zero-order hold that short, never longer).
+
+        Raises:
+            PoseNotYetError: the stamp is newer than the newest pose, or the
+                buffer is empty (the poses may not have arrived yet).
+            PoseTooOldError: the stamp is older than the oldest pose held.
+            PoseGapError: the poses around the stamp are too far apart.
+        """
+        if not self._stamps:
+            raise PoseNotYetError(f"no pose yet for the stamp {stamp_ns} ns")
+        oldest, newest = self._stamps[0], self._stamps[-1]
+        if stamp_ns > newest:
+            if stamp_ns - newest <= tolerance_ns:
+                return self._poses[-1].copy()
+            raise PoseNotYetError(
+                f"stamp {stamp_ns} ns is {(stamp_ns - newest) / 1e6:.1f} ms after the "
+                "newest pose"
+            )
+        if stamp_ns < oldest:
+            if oldest - stamp_ns <= tolerance_ns:
+                return self._poses[0].copy()
+            raise PoseTooOldError(
+                f"stamp {stamp_ns} ns is {(oldest - stamp_ns) / 1e6:.1f} ms before the "
+                "oldest pose held"
+            )
+        stamps = np.fromiter(self._stamps, dtype=np.int64, count=len(self._stamps))
+        after = int(np.searchsorted(stamps, stamp_ns, side="right"))
+        if stamps[after - 1] != stamp_ns:
+            gap_ns = int(stamps[after] - stamps[after - 1])
+            if gap_ns > self.max_gap_ns:
+                raise PoseGapError(
+                    f"stamp {stamp_ns} ns falls in a {gap_ns / 1e6:.1f} ms gap between "
+                    f"poses (longest bridged {self.max_gap_ns / 1e6:.1f} ms)"
+                )
+        lo = max(after - 1, 0)
+        hi = min(after + 1, len(stamps))
+        poses = np.stack([self._poses[i] for i in range(lo, hi)])
+        result, valid = interpolate_transforms(
+            stamps[lo:hi], poses, np.array([stamp_ns], dtype=np.int64), self.max_gap_ns,
+            tolerance=self.rotation_tolerance,
+        )
+        if not valid[0]:  # unreachable after the checks above; kept as a guard
+            raise PoseGapError(f"no pose can be interpolated at {stamp_ns} ns")
+        return result[0]
