@@ -41,6 +41,7 @@ import skfmm
 
 from endo_io.camera import CameraModel
 from endo_sfs.evaluation import depth_error
+from endo_sfs.options import SfsOptions
 from endo_sfs.orthographic import eikonal_speed, solve_orthographic
 from endo_sfs.reflectance import colocated_cosine, colocated_radiance
 from endo_sfs.relative_depth import solve
@@ -92,14 +93,14 @@ def bench_near_light(frames: int) -> list[str]:
         mask = camera.fov_mask(0.5 * width)
         sequence = tube_frames(camera, frames, roughness)
         for scale, threads in ((1.0, 1), (1.0, 2), (0.5, 1), (0.5, 2)):
-            options = {"roughness": roughness, "mask": mask, "solve_scale": scale,
-                       "threads": threads}
-            solve(sequence[0].irradiance, camera, **options)  # grid and kernels cached
+            options = SfsOptions(roughness=roughness, solve_scale=scale, threads=threads)
+            solve(sequence[0].irradiance, camera, options, mask=mask)  # grid, kernels cached
             previous = None
             warm_times, warm_cpu, cold_times, errors, updates = [], [], [], [], []
             for rendering in sequence:
                 start, start_cpu = time.perf_counter(), time.process_time()
-                solution = solve(rendering.irradiance, camera, warm_start=previous, **options)
+                solution = solve(rendering.irradiance, camera, options, mask=mask,
+                                 warm_start=previous)
                 warm_times.append(time.perf_counter() - start)
                 warm_cpu.append(time.process_time() - start_cpu)
                 if previous is not None:
@@ -107,7 +108,7 @@ def bench_near_light(frames: int) -> list[str]:
                         solution.node_solution).sum())
                 previous = solution
                 start = time.perf_counter()
-                solve(rendering.irradiance, camera, **options)
+                solve(rendering.irradiance, camera, options, mask=mask)
                 cold_times.append(time.perf_counter() - start)
                 errors.append(depth_error(solution.depth, rendering.depth, mask).abs_rel)
             warm = np.array(warm_times[1:]) * 1e3
@@ -147,7 +148,7 @@ def bench_orthographic(repeats: int) -> list[str]:
     singular_tolerance = 1e-4
 
     def ours(order: int):
-        return lambda: solve_orthographic(image, valid, (h, h), 0.0, order=order,
+        return lambda: solve_orthographic(image, valid, (h, h), roughness=0.0, order=order,
                                           singular_tolerance=singular_tolerance)[0]
 
     def skfmm_inputs():
@@ -221,14 +222,14 @@ def accuracy_table(seeds: int = 3, smoothing: float = 0.0) -> list[str]:
                 if model == "near_light":
                     rendering = render_near_light(camera, near_light_surface(name), roughness)
                     region, peak = mask, 0.95
-                    extra: dict[str, object] = {}
+                    boundary, concave = None, False
                 else:
                     scene = orthographic_scene(name, camera)
                     rendering = render_orthographic(
                         scene.height, scene.gradient_x, scene.gradient_y, roughness
                     )
                     region = None
-                    extra = {"boundary_depth": scene.boundary_depth, "concave": scene.concave}
+                    boundary, concave = scene.boundary_depth, scene.concave
                     peak = 1.0
                 cells = []
                 for noise_dn in (None, 1.0, 3.0):
@@ -238,11 +239,13 @@ def accuracy_table(seeds: int = 3, smoothing: float = 0.0) -> list[str]:
                         if noise_dn is not None:
                             rng = np.random.default_rng(seed)
                             image = quantise_8bit(image, rng, noise_dn, peak)
-                        if model == "orthographic":
-                            extra["singular_tolerance"] = 1e-4 if noise_dn is None else 1e-3
-                        depth = solve(image, camera, model=model, roughness=roughness,
-                                      mask=region, smoothing=smoothing if noise_dn else 0.0,
-                                      **extra).depth
+                        options = SfsOptions(
+                            model=model, roughness=roughness, concave=concave,
+                            smoothing=smoothing if noise_dn else 0.0,
+                            singular_tolerance=1e-4 if noise_dn is None else 1e-3,
+                        )
+                        depth = solve(image, camera, options, mask=region,
+                                      boundary_depth=boundary).depth
                         errors.append(depth_error(depth, rendering.depth, region).abs_rel)
                         if model == "orthographic":
                             truth = rendering.depth
@@ -275,12 +278,13 @@ def convergence_table() -> list[str]:
         depth_range = np.nanmax(scene.height) - np.nanmin(scene.height)
         cells = []
         for order in (1, 2, 3):
-            depth = solve(rendering.irradiance, camera, mask=mask, order=order,
-                          tolerance=1e-9, max_iterations=300).depth
+            options = SfsOptions(order=order, tolerance=1e-9, max_iterations=300)
+            depth = solve(rendering.irradiance, camera, options, mask=mask).depth
             cells.append(f"{100 * depth_error(depth, rendering.depth, interior).abs_rel:.4f} %")
         for order in (1, 2, 3):
-            depth = solve(ortho.irradiance, camera, model="orthographic", order=order,
-                          singular_tolerance=1e-6, tolerance=1e-10, max_iterations=300).depth
+            options = SfsOptions(model="orthographic", order=order, singular_tolerance=1e-6,
+                                 tolerance=1e-10, max_iterations=300)
+            depth = solve(ortho.irradiance, camera, options).depth
             both = np.isfinite(depth) & np.isfinite(scene.height)
             error = np.mean(np.abs(depth[both] - scene.height[both])) / depth_range
             cells.append(f"{100 * error:.4f} %")
@@ -309,6 +313,8 @@ def phantom(bag: str, calibration: str, roughness: float, mask_highlights: bool,
     camera = CameraModel.from_camera_info(infos[stamps[0]])
     mask = camera.fov_mask(fov_radius)
     previous = None
+    options = SfsOptions(roughness=roughness, solve_scale=solve_scale,
+                         mask_highlights=mask_highlights, threads=threads)
     errors, scales, coverage, wall, updates = [], [], [], [], []
     # Every frame in order, warm-started from the previous one as the node
     # does; the error on the frames with ground truth.
@@ -317,9 +323,7 @@ def phantom(bag: str, calibration: str, roughness: float, mask_highlights: bool,
         irradiance = correction.luminance(correction.correct(raw))
         start = time.perf_counter()
         warm = previous is not None
-        previous = solve(irradiance, camera, roughness=roughness, warm_start=previous,
-                         mask=mask, solve_scale=solve_scale, mask_highlights=mask_highlights,
-                         threads=threads)
+        previous = solve(irradiance, camera, options, warm_start=previous, mask=mask)
         if warm:
             wall.append(time.perf_counter() - start)
             updates.append(previous.info.updates / np.isfinite(previous.node_solution).sum())

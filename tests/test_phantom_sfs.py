@@ -28,6 +28,7 @@ from endo_io.camera import CameraModel
 from endo_io.image import image_to_array
 from endo_io.stamp import stamp_to_ns
 from endo_sfs.evaluation import depth_error
+from endo_sfs.options import SfsOptions
 from endo_sfs.relative_depth import solve
 
 BAGS = Path(__file__).resolve().parents[1] / "bags"
@@ -79,11 +80,12 @@ def test_phantom_median_scaled_abs_rel_meets_the_target(
         ]
     )
     errors = []
+    options = SfsOptions(roughness=0.3, mask_highlights=True)
     for raw, truth, info in frames:
         camera = CameraModel.from_camera_info(info)
         irradiance = calibration.luminance(calibration.correct(raw))
         mask = camera.fov_mask(fov_radius)
-        depth = solve(irradiance, camera, roughness=0.3, mask=mask, mask_highlights=True).depth
+        depth = solve(irradiance, camera, options, mask=mask).depth
         error = depth_error(depth, truth, scaling="median")
         # Highlights and saturated pixels are a few per cent of the view.
         assert error.coverage > 0.8

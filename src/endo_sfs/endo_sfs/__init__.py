@@ -2,7 +2,8 @@
 
 Oren–Nayar / Lambertian reflectance, the orthographic Eikonal model of the
 seed paper and the near-light perspective model of Prados & Faugeras.
-``endo_sfs.reconstruct(irradiance, camera, ...)`` is the entry point.
+``endo_sfs.reconstruct(irradiance, camera, SfsOptions(...), mask=...)`` is
+the entry point.
 """
 
 import os
@@ -14,6 +15,7 @@ import os
 # variable is unset and before the OpenMP runtime loads (first parallel call).
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
+from endo_sfs.options import SfsOptions
 from endo_sfs.relative_depth import SfsSolution, reconstruct, solve
 
-__all__ = ["SfsSolution", "reconstruct", "solve"]
+__all__ = ["SfsOptions", "SfsSolution", "reconstruct", "solve"]

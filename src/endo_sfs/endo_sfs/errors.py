@@ -17,6 +17,10 @@ class CameraMismatchError(SfsInputError):
     """The camera model's image size differs from the irradiance image's size."""
 
 
+class InvalidOptionError(SfsInputError):
+    """A solver setting (:class:`endo_sfs.SfsOptions`) is out of its range."""
+
+
 class NoValidPixelsError(SfsInputError):
     """No pixel is usable: the frame is all dark, all saturated, NaN or masked."""
 

@@ -81,6 +81,7 @@ def solve_near_light(
     valid: np.ndarray,
     conformal_factor_sq: np.ndarray,
     spacing: tuple[float, float],
+    *,
     roughness: float = 0.0,
     order: int = 1,
     tolerance: float = 1e-6,

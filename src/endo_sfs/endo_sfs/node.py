@@ -47,16 +47,10 @@ from endo_io.process import run_node
 from endo_io.qos import SENSOR_DATA_QOS, create_reliable_publisher
 from endo_io.stamp import NS_PER_S, stamp_to_ns
 from endo_io.stamp_matching import StampMatcher
-from endo_sfs.errors import NoValidPixelsError, SfsInputError
+from endo_sfs.errors import NoValidPixelsError, SfsError, SfsInputError
 from endo_sfs.near_light import MAX_ROUGHNESS
-from endo_sfs.relative_depth import (
-    DEFAULT_MAX_ITERATIONS,
-    DEFAULT_TOLERANCE,
-    MODELS,
-    SfsSolution,
-    solve,
-    surface_normals,
-)
+from endo_sfs.options import DEFAULT_MAX_ITERATIONS, DEFAULT_TOLERANCE, MODELS, SfsOptions
+from endo_sfs.relative_depth import SfsSolution, solve, surface_normals
 from endo_sfs.synthetic import near_light_surface, render_near_light, scene_camera
 
 #: Side of the synthetic image solved at start-up to load the kernels.
@@ -160,6 +154,13 @@ PARAMETERS: dict[str, tuple[object, ParameterDescriptor]] = {
 }
 
 
+#: The node parameters that are :class:`SfsOptions` fields of the same name.
+_OPTION_PARAMETERS = (
+    "model", "roughness", "solve_scale", "tolerance", "max_iterations", "order", "threads",
+    "dark_level", "smoothing", "mask_highlights",
+)
+
+
 def warm_up_kernels() -> float:
     """Solve a tiny synthetic frame with every model and order; returns seconds taken.
 
@@ -171,14 +172,15 @@ def warm_up_kernels() -> float:
     rendering = render_near_light(camera, near_light_surface("sphere"))
     image = rendering.irradiance.astype(np.float32)
     for order in (1, 2, 3):
-        previous = solve(image, camera, model="near_light", order=order)
-        solve(image, camera, model="near_light", order=order, warm_start=previous)
-        solve(image, camera, model="orthographic", order=order, solve_scale=0.5)
+        near_light = SfsOptions(model="near_light", order=order)
+        previous = solve(image, camera, near_light)
+        solve(image, camera, near_light, warm_start=previous)
+        solve(image, camera, SfsOptions(model="orthographic", order=order, solve_scale=0.5))
     surface_normals(previous.depth, camera)
     # The two-thread first pass only runs on grids of near_light.MIN_PARALLEL_NODES+.
     camera = scene_camera(_WARM_UP_PARALLEL_SIZE)
     image = render_near_light(camera, near_light_surface("tilted_plane")).irradiance
-    solve(image, camera, model="near_light", threads=2)
+    solve(image, camera, SfsOptions(model="near_light", threads=2))
     return time.perf_counter() - start
 
 
@@ -193,6 +195,7 @@ class SfsNode(Node):
         if model not in MODELS:
             self.get_logger().error(f"model {model!r} is not one of {MODELS}; using near_light")
             self.set_parameters([Parameter("model", value="near_light")])
+        self._options = self._solver_options({})
         self.add_on_set_parameters_callback(self._on_parameters)
         seconds = warm_up_kernels()
         self.get_logger().info(f"shape-from-shading kernels ready in {seconds:.2f} s")
@@ -221,12 +224,29 @@ class SfsNode(Node):
     def _tolerance_ns(self) -> int:
         return round(float(self._value("stamp_tolerance")) * NS_PER_S)
 
+    @property
+    def options(self) -> SfsOptions:
+        """The solver settings every frame uses, rebuilt when a parameter changes."""
+        return self._options
+
+    def _solver_options(self, changes: dict[str, Any]) -> SfsOptions:
+        """The solver settings from the parameters, with ``changes`` (name -> value) applied.
+
+        Raises:
+            SfsError: a value out of its range (UnknownModelError,
+                InvalidOptionError), named in the message.
+        """
+        values = {name: self._value(name) for name in _OPTION_PARAMETERS}
+        values.update({k: v for k, v in changes.items() if k in _OPTION_PARAMETERS})
+        return SfsOptions(**values)
+
     def _on_parameters(self, parameters: list[Parameter]) -> SetParametersResult:
-        for parameter in parameters:
-            if parameter.name == "model" and parameter.value not in MODELS:
-                return SetParametersResult(
-                    successful=False, reason=f"model must be one of {MODELS}"
-                )
+        changes = {parameter.name: parameter.value for parameter in parameters}
+        try:
+            options = self._solver_options(changes)
+        except SfsError as error:
+            return SetParametersResult(successful=False, reason=str(error))
+        self._options = options
         for parameter in parameters:
             if parameter.name in ("model", "roughness", "solve_scale"):
                 self._previous = None  # the old solution no longer seeds this problem
@@ -273,25 +293,11 @@ class SfsNode(Node):
         camera = self._camera_model(info)
         stamp_ns = stamp_to_ns(image_msg.header.stamp)
         frame_id = image_msg.header.frame_id
-        model = str(self._value("model"))
         warm = self._previous if bool(self._value("warm_start")) else None
         start = time.perf_counter()
         try:
             solution = solve(
-                irradiance,
-                camera,
-                model=model,
-                roughness=float(self._value("roughness")),
-                mask=self._mask(camera),
-                solve_scale=float(self._value("solve_scale")),
-                tolerance=float(self._value("tolerance")),
-                max_iterations=int(self._value("max_iterations")),
-                warm_start=warm,
-                order=int(self._value("order")),
-                dark_level=float(self._value("dark_level")),
-                smoothing=float(self._value("smoothing")),
-                mask_highlights=bool(self._value("mask_highlights")),
-                threads=int(self._value("threads")),
+                irradiance, camera, self._options, mask=self._mask(camera), warm_start=warm
             )
         except NoValidPixelsError:
             # Nothing to reconstruct: say so downstream with an all-NaN depth,

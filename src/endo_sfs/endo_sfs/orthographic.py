@@ -132,6 +132,7 @@ def solve_orthographic(
     intensity: np.ndarray,
     valid: np.ndarray,
     spacing: tuple[float, float],
+    *,
     roughness: float = 0.0,
     order: int = 3,
     singular_tolerance: float = 1e-3,

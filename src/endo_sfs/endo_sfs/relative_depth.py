@@ -21,31 +21,21 @@ from __future__ import annotations
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
-from typing import Literal
 
 import cv2
 import numba
 import numpy as np
 
 from endo_io.camera import CameraModel
-from endo_sfs.errors import (
-    CameraMismatchError,
-    NoValidPixelsError,
-    SfsInputError,
-    UnknownModelError,
-)
+from endo_sfs.errors import CameraMismatchError, NoValidPixelsError, SfsInputError
 from endo_sfs.grid import Projection, SolveGrid, solve_grid
 from endo_sfs.highlights import detect_highlights
-from endo_sfs.near_light import MAX_ROUGHNESS, solve_near_light
+from endo_sfs.near_light import solve_near_light
+from endo_sfs.options import SfsOptions
 from endo_sfs.orthographic import SolveInfo, solve_orthographic
 
-Model = Literal["near_light", "orthographic"]
-MODELS: tuple[str, ...] = ("near_light", "orthographic")
-
-#: Default stopping tolerance of the near-light sweeps: largest change of
-#: ln r in a full iteration (a relative depth change of 1e-5).
-DEFAULT_TOLERANCE = 1e-5
-DEFAULT_MAX_ITERATIONS = 60
+#: The settings a solve uses when none are given.
+DEFAULT_OPTIONS = SfsOptions()
 
 
 @dataclass(frozen=True)
@@ -197,54 +187,36 @@ def _numba_threads(threads: int) -> Iterator[None]:
 def solve(
     irradiance: np.ndarray,
     camera: CameraModel,
-    model: str = "near_light",
-    roughness: float = 0.0,
+    options: SfsOptions = DEFAULT_OPTIONS,
+    *,
     mask: np.ndarray | None = None,
-    solve_scale: float = 1.0,
-    tolerance: float = DEFAULT_TOLERANCE,
-    max_iterations: int = DEFAULT_MAX_ITERATIONS,
     warm_start: SfsSolution | np.ndarray | None = None,
-    order: int = 2,
-    dark_level: float = 0.0,
-    saturation: float | None = None,
-    singular_tolerance: float = 1e-3,
     boundary_depth: np.ndarray | None = None,
-    concave: bool = False,
-    smoothing: float = 0.0,
-    mask_highlights: bool = False,
-    threads: int = 1,
 ) -> SfsSolution:
     """Shape from shading of one frame; see :func:`reconstruct` for the arguments.
 
     Returns an :class:`SfsSolution` (its ``depth`` is what ``reconstruct``
     returns; pass the whole solution as the next frame's ``warm_start``).
     """
-    if model not in MODELS:
-        raise UnknownModelError(f"unknown model {model!r}; expected one of {MODELS}")
-    if not 0.0 <= roughness <= MAX_ROUGHNESS:
-        raise SfsInputError(f"roughness must be in [0, {MAX_ROUGHNESS}] rad, got {roughness}")
-    if not 0.0 < solve_scale <= 1.0:
-        raise SfsInputError(f"solve_scale must be in (0, 1], got {solve_scale}")
-    if order not in (1, 2, 3):
-        raise SfsInputError(f"order must be 1, 2 or 3, got {order}")
-    if threads < 1:
-        raise SfsInputError(f"threads must be >= 1, got {threads}")
-    if smoothing < 0.0:
-        raise SfsInputError(f"smoothing must be >= 0 pixels, got {smoothing}")
+    if not isinstance(options, SfsOptions):
+        raise SfsInputError(f"options must be an SfsOptions, got {type(options).__name__}")
+    model = options.model
     # numba's thread count is per calling thread: set it for this call only.
-    with _numba_threads(threads):
+    with _numba_threads(options.threads):
         image = _check_inputs(irradiance, camera, mask)
-        valid = valid_pixels(image, mask, dark_level, saturation)
-        if mask_highlights:
-            valid &= ~detect_highlights(image, mask, saturation)
+        valid = valid_pixels(image, mask, options.dark_level, options.saturation)
+        if options.mask_highlights:
+            valid &= ~detect_highlights(image, mask, options.saturation)
         projection: Projection = "stereographic" if model == "near_light" else "gnomonic"
-        grid = solve_grid(camera, projection, solve_scale)
+        grid = solve_grid(camera, projection, options.solve_scale)
         valid &= grid.pixel_has_ray
         if not valid.any():
             raise NoValidPixelsError(
                 "no usable pixel: the frame is all dark, saturated, NaN or masked"
             )
-        nodes, node_valid = grid.to_nodes(smooth_irradiance(image, valid, smoothing), valid)
+        nodes, node_valid = grid.to_nodes(
+            smooth_irradiance(image, valid, options.smoothing), valid
+        )
         if not node_valid.any():
             raise NoValidPixelsError("no usable pixel survives resampling to the solve grid")
         ordered_work: float | None = None
@@ -253,9 +225,11 @@ def solve(
             warm_log_r, warm_irradiance, warm_slope = _warm_nodes(warm_start, grid)
             first_pass = _use_first_pass(warm_start)
             log_r, node_slope, info = solve_near_light(
-                nodes, node_valid, grid.conformal_factor_sq, grid.spacing, roughness, order,
-                tolerance, max_iterations, warm_log_r, warm_irradiance, warm_slope, threads,
-                first_pass,
+                nodes, node_valid, grid.conformal_factor_sq, grid.spacing,
+                roughness=options.roughness, order=options.order,
+                tolerance=options.tolerance, max_iterations=options.max_iterations,
+                warm_start=warm_log_r, warm_start_intensity=warm_irradiance,
+                warm_start_slope=warm_slope, threads=options.threads, first_pass=first_pass,
             )
             if first_pass:
                 ordered_work = info.updates / max(1, int(node_valid.sum()))
@@ -277,8 +251,10 @@ def solve(
                 values, ok = grid.to_nodes(np.nan_to_num(boundary_depth), known)
                 boundary_nodes = np.where(ok, values, np.nan)
             node_solution, info = solve_orthographic(
-                nodes, node_valid, grid.spacing, roughness, order, singular_tolerance,
-                boundary_nodes, concave, tolerance, max_iterations,
+                nodes, node_valid, grid.spacing, roughness=options.roughness,
+                order=options.order, singular_tolerance=options.singular_tolerance,
+                boundary_depth=boundary_nodes, concave=options.concave,
+                tolerance=options.tolerance, max_iterations=options.max_iterations,
             )
             depth = grid.to_pixels(node_solution, valid)
         return SfsSolution(
@@ -298,59 +274,35 @@ def solve(
 def reconstruct(
     irradiance: np.ndarray,
     camera: CameraModel,
-    model: str = "near_light",
-    roughness: float = 0.0,
+    options: SfsOptions = DEFAULT_OPTIONS,
+    *,
     mask: np.ndarray | None = None,
-    solve_scale: float = 1.0,
-    tolerance: float = DEFAULT_TOLERANCE,
-    max_iterations: int = DEFAULT_MAX_ITERATIONS,
     warm_start: SfsSolution | np.ndarray | None = None,
-    order: int = 2,
-    dark_level: float = 0.0,
-    saturation: float | None = None,
-    singular_tolerance: float = 1e-3,
     boundary_depth: np.ndarray | None = None,
-    concave: bool = False,
-    smoothing: float = 0.0,
-    mask_highlights: bool = False,
-    threads: int = 1,
 ) -> np.ndarray:
     """Relative depth from one linear irradiance image by shape from shading.
 
+    Example::
+
+        options = SfsOptions(roughness=0.3, mask_highlights=True)
+        depth = reconstruct(irradiance, camera, options, mask=camera.fov_mask(200.0))
+
     Args:
         irradiance: (H, W) float linear irradiance per unit albedo × light
-            (see the module docstring). NaN, values ≤ ``dark_level`` and
-            values ≥ ``saturation`` are not data.
+            (see the module docstring). NaN, values ≤ ``options.dark_level``
+            and values ≥ ``options.saturation`` are not data.
         camera: the image's camera model (same size as the image); its
             per-pixel ray table handles distortion.
-        model: "near_light" (Prados–Faugeras perspective, light at the
-            optical centre, 1/r² fall-off) or "orthographic" (the seed
-            paper's Eikonal model).
-        roughness: Oren–Nayar σ in radians, 0 (Lambertian) to 0.6.
+        options: the solver settings (:class:`endo_sfs.SfsOptions`: model,
+            roughness, solve_scale, tolerance, order, ...), validated when
+            built.
         mask: optional (H, W) bool of pixels to use (e.g. the circular FOV).
-        solve_scale: solve-grid density relative to the pixels, (0, 1]; the
-            result is resampled back to (H, W).
-        tolerance: stop when a full iteration changes no node by more than
-            this (near-light: ln r, i.e. relative depth; orthographic: depth).
-        max_iterations: cap on full iterations (four sweeps each).
         warm_start: the previous frame's :class:`SfsSolution` (cheapest) or
             its (H, W) depth, or None. Used by the near-light model only.
-        order: 1 first-order Godunov, 2 second-order upwind, 3 WENO3 Godunov.
-        dark_level, saturation: data range, in irradiance units.
-        singular_tolerance, boundary_depth, concave: orthographic sources,
-            see :func:`endo_sfs.orthographic.solve_orthographic`;
-            ``boundary_depth`` is (H, W) relative depth, NaN where unknown.
-        smoothing: Gaussian σ in pixels applied to the valid irradiance
-            before solving (:func:`smooth_irradiance`); 0 for none.
-        mask_highlights: detect specular highlights and their shoulders
-            (:func:`endo_sfs.highlights.detect_highlights`, with ``mask``
-            and ``saturation``) and give them no data term: the surface
-            around them is solved from the diffuse data, and they come out
-            NaN, like every other masked pixel.
-        threads: CPU threads for the resampling and, with the near-light
-            model on large grids, for the first pass of the solver (two
-            halves at once). 1 gives bit-identical results run to run; 2
-            gives results equal to those to the tolerance.
+        boundary_depth: orthographic model only: (H, W) relative depth
+            where known, NaN elsewhere; the Eikonal's sources instead of the
+            singular points (see
+            :func:`endo_sfs.orthographic.solve_orthographic`).
 
     Returns:
         (H, W) float32 relative depth along the optical axis, NaN invalid.
@@ -358,12 +310,12 @@ def reconstruct(
     Raises:
         CameraMismatchError: the camera's size differs from the image's.
         NoValidPixelsError: no usable pixel (all dark, saturated, NaN).
-        SfsInputError, UnknownModelError: bad arguments.
+        SfsInputError: bad arrays (shape, dtype) or ``options`` not an
+            :class:`SfsOptions`.
     """
     return solve(
-        irradiance, camera, model, roughness, mask, solve_scale, tolerance, max_iterations,
-        warm_start, order, dark_level, saturation, singular_tolerance, boundary_depth, concave,
-        smoothing, mask_highlights, threads,
+        irradiance, camera, options, mask=mask, warm_start=warm_start,
+        boundary_depth=boundary_depth,
     ).depth
 
 

@@ -14,6 +14,7 @@ import pytest
 
 from endo_sfs.errors import SfsInputError
 from endo_sfs.evaluation import depth_error
+from endo_sfs.options import SfsOptions
 from endo_sfs.relative_depth import reconstruct, solve
 from endo_sfs.synthetic import (
     SCENE_NAMES,
@@ -42,7 +43,7 @@ def _scene(name: str, roughness: float, size: int = SIZE, distortion: float = 0.
 @pytest.mark.parametrize("name", SCENE_NAMES)
 def test_noise_free_relative_depth_error_is_below_one_percent(name, roughness):
     camera, mask, rendering = _scene(name, roughness)
-    depth = reconstruct(rendering.irradiance, camera, roughness=roughness, mask=mask)
+    depth = reconstruct(rendering.irradiance, camera, SfsOptions(roughness=roughness), mask=mask)
     assert depth.shape == (SIZE, SIZE) and depth.dtype == np.float32
     error = depth_error(depth, rendering.depth, mask)
     assert error.coverage > 0.999
@@ -57,7 +58,7 @@ def test_noise_free_relative_depth_error_is_below_one_percent(name, roughness):
 def test_8bit_noisy_relative_depth_error_is_below_three_percent(name, roughness):
     camera, mask, rendering = _scene(name, roughness)
     noisy = quantise_8bit(rendering.irradiance, np.random.default_rng(7), noise_dn=1.0)
-    depth = reconstruct(noisy, camera, roughness=roughness, mask=mask)
+    depth = reconstruct(noisy, camera, SfsOptions(roughness=roughness), mask=mask)
     error = depth_error(depth, rendering.depth, mask)
     assert error.coverage > 0.99
     assert error.abs_rel < 0.03
@@ -77,10 +78,10 @@ def test_masked_highlights_restore_the_diffuse_solution(name):
     image = np.where(rendering.irradiance >= 2.0 * np.nanmax(diffuse[mask]), np.nan,
                      rendering.irradiance)
     assert np.isnan(image[mask]).any()  # the highlight saturates
-    ignored = depth_error(reconstruct(image, camera, roughness=0.3, mask=mask),
+    ignored = depth_error(reconstruct(image, camera, SfsOptions(roughness=0.3), mask=mask),
                           rendering.depth, mask)
     masked = depth_error(
-        reconstruct(image, camera, roughness=0.3, mask=mask, mask_highlights=True),
+        reconstruct(image, camera, SfsOptions(roughness=0.3, mask_highlights=True), mask=mask),
         rendering.depth, mask,
     )
     assert ignored.abs_rel > 0.04
@@ -91,10 +92,14 @@ def test_masked_highlights_restore_the_diffuse_solution(name):
 def test_wrong_roughness_gives_a_larger_error():
     # The roughness matters: solving a σ = 0.3 image as Lambertian is worse.
     camera, mask, rendering = _scene("bumpy", 0.3)
-    right = depth_error(reconstruct(rendering.irradiance, camera, roughness=0.3, mask=mask),
-                        rendering.depth, mask)
-    wrong = depth_error(reconstruct(rendering.irradiance, camera, roughness=0.0, mask=mask),
-                        rendering.depth, mask)
+    right = depth_error(
+        reconstruct(rendering.irradiance, camera, SfsOptions(roughness=0.3), mask=mask),
+        rendering.depth, mask,
+    )
+    wrong = depth_error(
+        reconstruct(rendering.irradiance, camera, SfsOptions(roughness=0.0), mask=mask),
+        rendering.depth, mask,
+    )
     assert wrong.abs_rel > 5 * right.abs_rel
 
 
@@ -103,13 +108,13 @@ def test_lens_distortion_is_handled_through_the_ray_table(name):
     camera, mask, rendering = _scene(name, 0.3, distortion=-0.25)
     assert np.any(camera.D)
     handled = depth_error(
-        reconstruct(rendering.irradiance, camera, roughness=0.3, mask=mask),
+        reconstruct(rendering.irradiance, camera, SfsOptions(roughness=0.3), mask=mask),
         rendering.depth, mask,
     )
     assert handled.abs_rel < 0.001 and handled.coverage > 0.999
     # Ignoring the distortion (same K, no D) is several times worse.
     pinhole = _camera(SIZE, 0.0)
-    ignored = reconstruct(rendering.irradiance, pinhole, roughness=0.3, mask=mask)
+    ignored = reconstruct(rendering.irradiance, pinhole, SfsOptions(roughness=0.3), mask=mask)
     assert depth_error(ignored, rendering.depth, mask).abs_rel > 4 * handled.abs_rel
 
 
@@ -124,8 +129,8 @@ def test_error_falls_with_grid_refinement_and_order():
         with np.errstate(invalid="ignore"):
             interior = mask & (rendering.irradiance * distance**2 > 0.3)
         for order in (1, 2, 3):
-            depth = reconstruct(rendering.irradiance, camera, mask=mask, order=order,
-                                tolerance=1e-9, max_iterations=300)
+            options = SfsOptions(order=order, tolerance=1e-9, max_iterations=300)
+            depth = reconstruct(rendering.irradiance, camera, options, mask=mask)
             errors[size, order] = depth_error(depth, rendering.depth, interior).abs_rel
     for order in (1, 2, 3):
         assert errors[64, order] > errors[128, order] > errors[256, order]
@@ -146,25 +151,25 @@ def test_albedo_scales_depth_by_inverse_square_root_only():
 
 def test_warm_start_reaches_the_same_depth_with_less_work():
     camera, mask, rendering = _scene("bumpy", 0.3)
-    cold = solve(rendering.irradiance, camera, roughness=0.3, mask=mask, tolerance=1e-7)
+    options = SfsOptions(roughness=0.3, tolerance=1e-7)
+    cold = solve(rendering.irradiance, camera, options, mask=mask)
     # The next frame: the camera moved 1 % closer (irradiance × 1.0201).
     moved = rendering.irradiance * 1.01**2
-    warm = solve(moved, camera, roughness=0.3, mask=mask, tolerance=1e-7, warm_start=cold)
-    fresh = solve(moved, camera, roughness=0.3, mask=mask, tolerance=1e-7)
+    warm = solve(moved, camera, options, mask=mask, warm_start=cold)
+    fresh = solve(moved, camera, options, mask=mask)
     assert warm.info.converged and fresh.info.converged
     np.testing.assert_allclose(warm.depth, fresh.depth, rtol=1e-5)
     np.testing.assert_allclose(warm.depth, cold.depth / 1.01, rtol=1e-5)
     assert warm.info.updates <= 1.05 * fresh.info.updates
     # A warm start given as the previous (H, W) depth works the same way.
-    from_depth = solve(moved, camera, roughness=0.3, mask=mask, tolerance=1e-7,
-                       warm_start=cold.depth)
+    from_depth = solve(moved, camera, options, mask=mask, warm_start=cold.depth)
     np.testing.assert_allclose(from_depth.depth, fresh.depth, rtol=1e-5)
 
 
 def test_solve_scale_solves_a_coarser_grid_and_upsamples():
     camera, mask, rendering = _scene("bumpy", 0.0)
     full = solve(rendering.irradiance, camera, mask=mask)
-    half = solve(rendering.irradiance, camera, mask=mask, solve_scale=0.5)
+    half = solve(rendering.irradiance, camera, SfsOptions(solve_scale=0.5), mask=mask)
     assert half.node_solution.size < 0.3 * full.node_solution.size
     assert half.depth.shape == (SIZE, SIZE)
     assert depth_error(half.depth, rendering.depth, mask).abs_rel < 0.01
@@ -186,15 +191,14 @@ def test_masked_pixels_are_nan_and_get_no_data():
 def test_two_threads_reach_the_same_depth_as_one():
     # 256² with the circular mask is ~51 000 nodes: the first pass is split.
     camera, mask, rendering = _scene("bumpy", 0.3)
-    one = solve(rendering.irradiance, camera, roughness=0.3, mask=mask, tolerance=1e-7)
-    two = solve(rendering.irradiance, camera, roughness=0.3, mask=mask, tolerance=1e-7,
-                threads=2)
+    one = solve(rendering.irradiance, camera, SfsOptions(roughness=0.3, tolerance=1e-7), mask=mask)
+    two_threads = SfsOptions(roughness=0.3, tolerance=1e-7, threads=2)
+    two = solve(rendering.irradiance, camera, two_threads, mask=mask)
     assert np.isfinite(two.node_solution).sum() >= 20000
     assert one.info.converged and two.info.converged
     np.testing.assert_allclose(two.depth, one.depth, rtol=1e-5)
     moved = rendering.irradiance * 1.01**2
-    warm = solve(moved, camera, roughness=0.3, mask=mask, tolerance=1e-7, warm_start=two,
-                 threads=2)
+    warm = solve(moved, camera, two_threads, mask=mask, warm_start=two)
     np.testing.assert_allclose(warm.depth, one.depth / 1.01, rtol=1e-5)
     assert depth_error(warm.depth, rendering.depth, mask).abs_rel < 0.01
 
@@ -202,7 +206,7 @@ def test_two_threads_reach_the_same_depth_as_one():
 def test_threads_must_be_positive():
     camera, mask, rendering = _scene("sphere", 0.0)
     with pytest.raises(SfsInputError, match="threads"):
-        solve(rendering.irradiance, camera, mask=mask, threads=0)
+        solve(rendering.irradiance, camera, SfsOptions(threads=0), mask=mask)
 
 
 def test_a_poorly_predicted_order_switches_the_chain_to_sweeps_and_back():
@@ -210,17 +214,17 @@ def test_a_poorly_predicted_order_switches_the_chain_to_sweeps_and_back():
 
     camera, mask, rendering = _scene("bumpy", 0.3)
     rng = np.random.default_rng(5)
-    previous = solve(rendering.irradiance, camera, roughness=0.3, mask=mask)
+    previous = solve(rendering.irradiance, camera, SfsOptions(roughness=0.3), mask=mask)
     assert previous.ordered_work is not None and previous.ordered_work < FIRST_PASS_WORK_LIMIT
     # A previous frame whose order says nothing about this one: new noise
     # on every frame scrambles the order of neighbouring nodes.
     modes = []
     for _ in range(RETRY_FIRST_PASS + 2):
         image = rendering.irradiance * np.exp(rng.normal(0.0, 0.05, rendering.irradiance.shape))
-        solution = solve(image, camera, roughness=0.3, mask=mask, warm_start=previous,
-                         threads=2, tolerance=1e-8)
+        solution = solve(image, camera, SfsOptions(roughness=0.3, threads=2, tolerance=1e-8),
+                         mask=mask, warm_start=previous)
         modes.append(solution.frames_since_ordered == 0)
-        fresh = solve(image, camera, roughness=0.3, mask=mask, tolerance=1e-8)
+        fresh = solve(image, camera, SfsOptions(roughness=0.3, tolerance=1e-8), mask=mask)
         assert solution.info.converged
         np.testing.assert_allclose(solution.depth, fresh.depth, rtol=1e-5)
         previous = solution

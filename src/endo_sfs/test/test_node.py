@@ -17,6 +17,7 @@ from endo_io.qos import SENSOR_DATA_QOS, reliable_qos
 from endo_io.stamp import ns_to_stamp, stamp_to_ns
 from endo_sfs.evaluation import depth_error
 from endo_sfs.node import PARAMETERS, SfsNode
+from endo_sfs.options import SfsOptions
 from endo_sfs.relative_depth import solve
 from endo_sfs.synthetic import near_light_surface, render_near_light, scene_camera
 
@@ -75,7 +76,9 @@ def test_parameters_are_declared_with_descriptions_and_ranges(graph):
             assert descriptor.integer_range
     assert not sfs.set_parameters([Parameter("roughness", value=2.0)])[0].successful
     assert not sfs.set_parameters([Parameter("model", value="stereo")])[0].successful
+    assert sfs.options.roughness == 0.0  # a refused change leaves the solver settings alone
     assert sfs.set_parameters([Parameter("roughness", value=0.3)])[0].successful
+    assert sfs.options.roughness == 0.3 and sfs.options.mask_highlights
 
 
 def test_matched_frames_give_the_library_depth_and_bad_frames_do_not_stop_the_node(graph):
@@ -94,7 +97,8 @@ def test_matched_frames_give_the_library_depth_and_bad_frames_do_not_stop_the_no
     assert out.encoding == "32FC1" and stamp_to_ns(out.header.stamp) == stamp
     assert out.header.frame_id == "endoscope_optical_frame"
     depth = image_to_array(out)
-    np.testing.assert_array_equal(depth, solve(image, camera, mask_highlights=True).depth)
+    expected = solve(image, camera, SfsOptions(mask_highlights=True)).depth
+    np.testing.assert_array_equal(depth, expected)
     assert depth_error(depth, rendering.depth).abs_rel < 0.02
     assert spin_until(lambda: len(received["normals"]) == 1)
     assert received["normals"][0].encoding == "32FC3"

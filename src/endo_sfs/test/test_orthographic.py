@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from endo_sfs.evaluation import depth_error
+from endo_sfs.options import SfsOptions
 from endo_sfs.relative_depth import reconstruct, solve
 from endo_sfs.synthetic import (
     SCENE_NAMES,
@@ -28,14 +29,13 @@ def _scene(name: str, roughness: float, size: int = SIZE):
     return camera, scene, rendering
 
 
-def _solve(name, roughness, image=None, size=SIZE, **kwargs):
+def _solve(name, roughness, image=None, size=SIZE, **settings):
     camera, scene, rendering = _scene(name, roughness, size)
-    kwargs.setdefault("singular_tolerance", 1e-4)
-    return reconstruct(
-        rendering.irradiance if image is None else image, camera, model="orthographic",
-        roughness=roughness, boundary_depth=scene.boundary_depth, concave=scene.concave,
-        **kwargs,
-    )
+    settings.setdefault("singular_tolerance", 1e-4)
+    options = SfsOptions(model="orthographic", roughness=roughness, concave=scene.concave,
+                         **settings)
+    return reconstruct(rendering.irradiance if image is None else image, camera, options,
+                       boundary_depth=scene.boundary_depth)
 
 
 def _height_error(depth, scene):
@@ -111,14 +111,15 @@ def test_orientation_decides_bump_or_trough():
     # The same trough image read as convex comes out mirrored: wrong.
     _, scene, rendering = _scene("tube", 0.0)
     camera = scene_camera(SIZE)
-    wrong = reconstruct(rendering.irradiance, camera, model="orthographic",
-                        singular_tolerance=1e-4, concave=False)
+    wrong = reconstruct(rendering.irradiance, camera,
+                        SfsOptions(model="orthographic", singular_tolerance=1e-4, concave=False))
     assert _height_error(wrong, scene)[0] > 0.3
 
 
 def test_solution_reports_sweep_statistics():
     camera, _, rendering = _scene("bumpy", 0.0)
-    solution = solve(rendering.irradiance, camera, model="orthographic", order=3,
-                     singular_tolerance=1e-4, tolerance=1e-9, max_iterations=200)
+    options = SfsOptions(model="orthographic", order=3, singular_tolerance=1e-4, tolerance=1e-9,
+                         max_iterations=200)
+    solution = solve(rendering.irradiance, camera, options)
     assert solution.info.converged and solution.info.updates > 0
     assert solution.grid.identity  # undistorted camera: nodes are the pixels

@@ -2,12 +2,15 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
 import endo_sfs
 from endo_sfs.errors import (
     CameraMismatchError,
+    InvalidOptionError,
     NoValidPixelsError,
     SfsInputError,
     UnknownModelError,
@@ -40,7 +43,8 @@ def test_all_dark_all_saturated_and_all_nan_frames_raise_a_named_error(scene):
         with pytest.raises(NoValidPixelsError, match="all dark, saturated, NaN"):
             endo_sfs.reconstruct(frame, camera)
     with pytest.raises(NoValidPixelsError):
-        endo_sfs.reconstruct(np.full((SIZE, SIZE), 1.0), camera, saturation=1.0)
+        endo_sfs.reconstruct(np.full((SIZE, SIZE), 1.0), camera,
+                             endo_sfs.SfsOptions(saturation=1.0))
 
 
 def test_nan_and_saturated_pixels_are_excluded_not_fatal(scene):
@@ -48,7 +52,7 @@ def test_nan_and_saturated_pixels_are_excluded_not_fatal(scene):
     image = rendering.irradiance.copy()
     image[40:44, 40:44] = np.nan
     image[60:62, 30:34] = 9.0
-    depth = endo_sfs.reconstruct(image, camera, mask=mask, saturation=5.0)
+    depth = endo_sfs.reconstruct(image, camera, endo_sfs.SfsOptions(saturation=5.0), mask=mask)
     assert np.all(np.isnan(depth[40:44, 40:44])) and np.all(np.isnan(depth[60:62, 30:34]))
     assert np.isfinite(depth[mask]).mean() > 0.98
 
@@ -60,19 +64,36 @@ def test_camera_of_a_different_size_is_rejected(scene):
 
 
 @pytest.mark.parametrize(
-    ("kwargs", "error"),
+    ("settings", "mask", "error"),
     [
-        ({"model": "photometric_stereo"}, UnknownModelError),
-        ({"roughness": 0.9}, SfsInputError),
-        ({"solve_scale": 0.0}, SfsInputError),
-        ({"order": 4}, SfsInputError),
-        ({"mask": np.ones((3, 3), bool)}, SfsInputError),
+        ({"model": "photometric_stereo"}, None, UnknownModelError),
+        ({"roughness": 0.9}, None, SfsInputError),
+        ({"solve_scale": 0.0}, None, SfsInputError),
+        ({"order": 4}, None, SfsInputError),
+        ({}, np.ones((3, 3), bool), SfsInputError),
     ],
 )
-def test_bad_arguments_raise_named_errors(scene, kwargs, error):
+def test_bad_arguments_raise_named_errors(scene, settings, mask, error):
     camera, _, rendering = scene
     with pytest.raises(error):
-        endo_sfs.reconstruct(rendering.irradiance, camera, **kwargs)
+        endo_sfs.reconstruct(rendering.irradiance, camera, endo_sfs.SfsOptions(**settings),
+                             mask=mask)
+
+
+def test_options_are_frozen_validated_when_built_and_take_integers_for_floats():
+    options = endo_sfs.SfsOptions(solve_scale=1, roughness=0)
+    assert isinstance(options.solve_scale, float) and isinstance(options.roughness, float)
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        options.roughness = 0.3  # type: ignore[misc]
+    assert dataclasses.replace(options, roughness=0.3).roughness == 0.3
+    with pytest.raises(InvalidOptionError, match=r"solve_scale must be in \(0, 1\], got 5.0"):
+        dataclasses.replace(options, solve_scale=5.0)
+    with pytest.raises(InvalidOptionError, match="order must be an integer"):
+        endo_sfs.SfsOptions(order=2.5)  # type: ignore[arg-type]
+    with pytest.raises(InvalidOptionError, match="saturation must exceed dark_level"):
+        endo_sfs.SfsOptions(dark_level=2.0, saturation=1.0)
+    with pytest.raises(SfsInputError, match="options must be an SfsOptions"):
+        endo_sfs.solve(np.ones((SIZE, SIZE)), scene_camera(SIZE), {"roughness": 0.3})
 
 
 def test_non_float_and_colour_images_are_rejected(scene):

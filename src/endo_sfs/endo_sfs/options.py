@@ -1,0 +1,144 @@
+"""The solver settings of one shape-from-shading problem, in one frozen object.
+
+:class:`SfsOptions` holds every setting of :func:`endo_sfs.solve` that is
+not a per-frame array (those are ``mask``, ``warm_start`` and
+``boundary_depth``). It is validated once, when built: a solve never starts
+with a setting out of range, and the ``sfs`` node builds a new one only when
+a parameter changes, not per frame. Change a setting with
+``dataclasses.replace(options, roughness=0.3)`` (validated again).
+"""
+
+from __future__ import annotations
+
+import math
+import operator
+from dataclasses import dataclass
+
+from endo_sfs.errors import InvalidOptionError, UnknownModelError
+from endo_sfs.near_light import MAX_ROUGHNESS
+
+#: The reflectance geometries :func:`endo_sfs.solve` implements.
+MODELS: tuple[str, ...] = ("near_light", "orthographic")
+#: Upwind schemes: 1 first-order Godunov, 2 second-order, 3 WENO3 Godunov.
+ORDERS: tuple[int, ...] = (1, 2, 3)
+#: Default stopping tolerance of the near-light sweeps: largest change of
+#: ln r in a full iteration (a relative depth change of 1e-5).
+DEFAULT_TOLERANCE = 1e-5
+DEFAULT_MAX_ITERATIONS = 60
+
+
+@dataclass(frozen=True)
+class SfsOptions:
+    """Settings of :func:`endo_sfs.solve` and :func:`endo_sfs.reconstruct`.
+
+    Attributes:
+        model: "near_light" (Prados–Faugeras perspective, light at the
+            optical centre, 1/r² fall-off) or "orthographic" (the seed
+            paper's Eikonal model).
+        roughness: Oren–Nayar σ in radians, 0 (Lambertian) to 0.6.
+        solve_scale: solve-grid density relative to the pixels, (0, 1]; the
+            result is resampled back to (H, W).
+        tolerance: stop when a full iteration changes no node by more than
+            this (near-light: ln r, i.e. relative depth; orthographic:
+            depth), > 0.
+        max_iterations: cap on full iterations (four sweeps each), ≥ 1.
+        order: 1 first-order Godunov, 2 second-order upwind, 3 WENO3 Godunov.
+        dark_level: irradiance at or below this is not data, ≥ 0.
+        saturation: irradiance at or above this is not data; None: no upper
+            limit. Must exceed ``dark_level``.
+        singular_tolerance: orthographic only: nodes with
+            c ≥ max(c) − this are singular points (sources of the Eikonal)
+            when no ``boundary_depth`` is given, in [0, 1).
+        concave: orthographic only: the singular points are depth maxima.
+        smoothing: Gaussian σ in pixels applied to the valid irradiance
+            before solving (:func:`endo_sfs.relative_depth.smooth_irradiance`);
+            0 for none.
+        mask_highlights: detect specular highlights and their shoulders
+            (:func:`endo_sfs.highlights.detect_highlights`) and give them no
+            data term; they come out NaN, like every other masked pixel.
+        threads: CPU threads for the resampling and, with the near-light
+            model on large grids, for the first pass of the solver (two
+            halves at once), ≥ 1. 1 gives bit-identical results run to
+            run; 2 gives results equal to those to the tolerance.
+
+    Raises:
+        UnknownModelError: ``model`` is not one of :data:`MODELS`.
+        InvalidOptionError: another setting is out of its range; the
+            message names it, its range and the value given.
+    """
+
+    model: str = "near_light"
+    roughness: float = 0.0
+    solve_scale: float = 1.0
+    tolerance: float = DEFAULT_TOLERANCE
+    max_iterations: int = DEFAULT_MAX_ITERATIONS
+    order: int = 2
+    dark_level: float = 0.0
+    saturation: float | None = None
+    singular_tolerance: float = 1e-3
+    concave: bool = False
+    smoothing: float = 0.0
+    mask_highlights: bool = False
+    threads: int = 1
+
+    def __post_init__(self) -> None:
+        # Plain Python numbers from here on (an int for a float, numpy
+        # scalars): numba specialises its kernels on the argument types.
+        for name in _FLOATS:
+            _coerce(self, name, float)
+        for name in _INTEGERS:
+            _coerce(self, name, int)
+        if self.saturation is not None:
+            _coerce(self, "saturation", float)
+        object.__setattr__(self, "concave", bool(self.concave))
+        object.__setattr__(self, "mask_highlights", bool(self.mask_highlights))
+        if self.model not in MODELS:
+            raise UnknownModelError(
+                f"unknown model {self.model!r}; expected one of {', '.join(MODELS)}"
+            )
+        _check_range("roughness", self.roughness, 0.0, MAX_ROUGHNESS, "rad")
+        if not (math.isfinite(self.solve_scale) and 0.0 < self.solve_scale <= 1.0):
+            raise InvalidOptionError(f"solve_scale must be in (0, 1], got {self.solve_scale}")
+        if not (math.isfinite(self.tolerance) and self.tolerance > 0.0):
+            raise InvalidOptionError(f"tolerance must be > 0, got {self.tolerance}")
+        if self.max_iterations < 1:
+            raise InvalidOptionError(f"max_iterations must be >= 1, got {self.max_iterations}")
+        if self.order not in ORDERS:
+            raise InvalidOptionError(f"order must be 1, 2 or 3, got {self.order}")
+        _check_range("dark_level", self.dark_level, 0.0, math.inf, "irradiance units")
+        if self.saturation is not None and not self.saturation > self.dark_level:
+            raise InvalidOptionError(
+                f"saturation must exceed dark_level ({self.dark_level}), got {self.saturation}"
+            )
+        if not 0.0 <= self.singular_tolerance < 1.0:  # also False for NaN
+            raise InvalidOptionError(
+                f"singular_tolerance must be in [0, 1), got {self.singular_tolerance}"
+            )
+        _check_range("smoothing", self.smoothing, 0.0, math.inf, "pixels")
+        if self.threads < 1:
+            raise InvalidOptionError(f"threads must be >= 1, got {self.threads}")
+
+
+_FLOATS = ("roughness", "solve_scale", "tolerance", "dark_level", "singular_tolerance",
+           "smoothing")
+_INTEGERS = ("max_iterations", "order", "threads")
+
+
+def _coerce(options: SfsOptions, name: str, kind: type[float] | type[int]) -> None:
+    """Set ``options.name`` to its plain float or int; a bool or a float for an int is refused."""
+    value = getattr(options, name)
+    converted: float | int
+    try:
+        if isinstance(value, bool):
+            raise TypeError(name)
+        converted = operator.index(value) if kind is int else float(value)
+    except (TypeError, ValueError):
+        what = "an integer" if kind is int else "a number"
+        raise InvalidOptionError(f"{name} must be {what}, got {value!r}") from None
+    object.__setattr__(options, name, converted)
+
+
+def _check_range(name: str, value: float, low: float, high: float, unit: str) -> None:
+    if not low <= value <= high:  # also False for NaN
+        bound = f">= {low:g}" if math.isinf(high) else f"in [{low:g}, {high:g}]"
+        raise InvalidOptionError(f"{name} must be {bound} {unit}, got {value}")
