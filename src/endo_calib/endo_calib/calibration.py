@@ -44,6 +44,8 @@ PNG_SCALE = 65535.0
 LIGHT_SOURCES = ("model", "pixels")
 #: Rec. 709 luminance weights of linear R, G, B.
 LUMINANCE_WEIGHTS = (0.2126, 0.7152, 0.0722)
+#: What :func:`select_channel` picks from a corrected frame.
+OUTPUT_CHANNELS = ("luminance", "red", "green", "blue", "rgb")
 
 
 @dataclass(frozen=True, eq=False)
@@ -82,7 +84,6 @@ class PhotometricCalibration:
     light_source: "model" (divide by the smooth light model inside the field of
         view) or "pixels" (divide by the per-pixel map).
     fit_summary: diagnostics of the fit, stored in the YAML (free-form mapping).
-    fit_report: the in-memory fit diagnostics when this came from ``fit_gray_card``.
     """
 
     def __init__(
@@ -92,7 +93,6 @@ class PhotometricCalibration:
         saturation_value: int | None = None,
         light_source: str = "model",
         fit_summary: dict[str, Any] | None = None,
-        fit_report: FitReport | None = None,
     ) -> None:
         if not channels:
             raise CalibrationError("a calibration needs at least one channel")
@@ -118,7 +118,6 @@ class PhotometricCalibration:
         self.saturation_value = top if saturation_value is None else int(saturation_value)
         self.light_source = light_source
         self.fit_summary = dict(fit_summary or {})
-        self.fit_report = fit_report
         self._correctors: dict[tuple[int, int], _Corrector] = {}
 
     # ----------------------------------------------------------------- views
@@ -255,7 +254,17 @@ class PhotometricCalibration:
     # ------------------------------------------------------------ construction
     @classmethod
     def from_fit(cls, report: FitReport, light_source: str = "model") -> PhotometricCalibration:
-        """Build from the result of :func:`endo_calib.fit.fit_gray_card`."""
+        """The calibration of a gray-card fit.
+
+        Args:
+            report: what :func:`endo_calib.fit.fit_gray_card` returned.
+            light_source: "model" (divide by the smooth light model) or
+                "pixels" (by the per-pixel light map).
+
+        Returns:
+            The calibration; its ``fit_summary`` holds the fit's diagnostics
+            as they are saved to the YAML.
+        """
         channels = [
             ChannelCalibration(name, fit.inverse_response, fit.light_map, fit.light_model)
             for name, fit in report.channels.items()
@@ -275,9 +284,7 @@ class PhotometricCalibration:
                 for name, fit in report.channels.items()
             },
         }
-        return cls(
-            channels, report.fov_mask, report.saturation_value, light_source, summary, report
-        )
+        return cls(channels, report.fov_mask, report.saturation_value, light_source, summary)
 
     # ----------------------------------------------------------------- files
     def save(self, path: str | Path) -> Path:
@@ -408,6 +415,35 @@ class PhotometricCalibration:
             str(light.get("source", "model" if model_doc else "pixels")),
             document.get("fit") or {},
         )
+
+
+def select_channel(
+    calibration: PhotometricCalibration, corrected: NDArray[np.float32], channel: str
+) -> NDArray[np.float32]:
+    """Pick one output channel from a corrected frame.
+
+    Args:
+        calibration: the calibration that corrected the frame.
+        corrected: (H, W) or (H, W, 3) float32 from ``calibration.correct``.
+        channel: one of ``OUTPUT_CHANNELS``; "luminance" of a mono calibration
+            is its only channel.
+
+    Returns:
+        (H, W) float32, or (H, W, 3) for "rgb".
+
+    Raises:
+        CalibrationError: the calibration has no such channel.
+    """
+    names = calibration.channel_names
+    if channel == "luminance":
+        return calibration.luminance(corrected)
+    if channel == "rgb":
+        if corrected.ndim != 3:
+            raise CalibrationError("channel 'rgb' needs a colour calibration")
+        return corrected
+    if channel not in names:
+        raise CalibrationError(f"channel {channel!r} is not in the calibration's channels {names}")
+    return np.ascontiguousarray(corrected[:, :, names.index(channel)])
 
 
 def _model_document(channels: list[ChannelCalibration]) -> dict[str, Any] | None:

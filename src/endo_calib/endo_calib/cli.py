@@ -34,9 +34,10 @@ from numpy.typing import NDArray
 
 from endo_calib.calibration import LIGHT_SOURCES, PhotometricCalibration
 from endo_calib.dso import export_dso, import_dso
-from endo_calib.errors import InsufficientLevelsError, ManifestError
-from endo_calib.fit import GrayCardAccumulator, fit_gray_card
+from endo_calib.errors import CalibrationError, InsufficientLevelsError, ManifestError
+from endo_calib.fit import FitReport, fit_gray_card
 from endo_calib.geometry import CardPose
+from endo_calib.gray_levels import GrayCardAccumulator
 from endo_calib.raw_image import to_raw_frame
 from endo_io.camera import CameraModel
 from endo_io.errors import Endo3dError
@@ -236,6 +237,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def run(args: argparse.Namespace) -> PhotometricCalibration:
     """Execute a parsed command line; returns the calibration written."""
+    report: FitReport | None = None
     if args.import_dso is not None:
         calibration = import_dso(args.import_dso)
     else:
@@ -268,15 +270,13 @@ def run(args: argparse.Namespace) -> PhotometricCalibration:
                 "no camera model: pass --camera-info (or record camera_info in the bag)"
             )
         started = time.monotonic()
-        calibration = fit_gray_card(
+        report = fit_gray_card(
             accumulator,
             camera,
             saturation_value=args.saturation_value,
             light_model_degree=args.light_degree,
         )
-        calibration.light_source = args.light_source
-        report = calibration.fit_report
-        assert report is not None
+        calibration = PhotometricCalibration.from_fit(report, args.light_source)
         for level in report.levels:
             print(
                 f"level {level['reflectance']:.3g}: {level['frames']} frames, "
@@ -292,9 +292,11 @@ def run(args: argparse.Namespace) -> PhotometricCalibration:
     written = calibration.save(args.output)
     print(f"wrote {written}")
     if args.report is not None:
+        if report is None:
+            raise CalibrationError("--report needs a gray-card fit; a DSO import has none")
         from endo_calib.report import write_report
 
-        print(f"wrote {write_report(calibration, args.report)}")
+        print(f"wrote {write_report(report, args.report, light_source=args.light_source)}")
     if args.export_dso is not None:
         pcalib, vignette = export_dso(calibration, args.export_dso, args.dso_channel)
         print(f"wrote {pcalib} and {vignette}")

@@ -20,14 +20,12 @@ from __future__ import annotations
 
 import sys
 
-import numpy as np
-from numpy.typing import NDArray
 from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from sensor_msgs.msg import Image
 
-from endo_calib.calibration import PhotometricCalibration
+from endo_calib.calibration import OUTPUT_CHANNELS, PhotometricCalibration, select_channel
 from endo_calib.errors import CalibrationError, CalibrationFileError
 from endo_calib.raw_image import to_raw_frame
 from endo_io.diagnostics import InputHealth
@@ -36,33 +34,9 @@ from endo_io.process import run_node
 from endo_io.qos import SENSOR_DATA_QOS, create_reliable_publisher
 from endo_io.stamp import stamp_to_ns
 
-#: Values of the ``channel`` parameter.
-CHANNELS = ("luminance", "red", "green", "blue", "rgb")
-
 
 class CalibrationNotLoadedError(CalibrationFileError):
     """No usable calibration is loaded, so frames cannot be corrected."""
-
-
-def select_channel(
-    calibration: PhotometricCalibration, corrected: NDArray[np.float32], channel: str
-) -> NDArray[np.float32]:
-    """Pick the published channel from a corrected frame.
-
-    corrected: (H, W) or (H, W, 3) float32 from ``calibration.correct``.
-    channel: one of ``CHANNELS``; "luminance" of a mono calibration is its only channel.
-    Returns (H, W) float32, or (H, W, 3) for "rgb".
-    """
-    names = calibration.channel_names
-    if channel == "luminance":
-        return calibration.luminance(corrected)
-    if channel == "rgb":
-        if corrected.ndim != 3:
-            raise CalibrationError("channel 'rgb' needs a colour calibration")
-        return corrected
-    if channel not in names:
-        raise CalibrationError(f"channel {channel!r} is not in the calibration's channels {names}")
-    return np.ascontiguousarray(corrected[:, :, names.index(channel)])
 
 
 class PhotometricCorrectionNode(Node):
@@ -88,9 +62,9 @@ class PhotometricCorrectionNode(Node):
         self.calibration: PhotometricCalibration | None = None
         self.load_error = "calibration_file is not set"
         self.channel = str(self.get_parameter("channel").value)
-        if self.channel not in CHANNELS:
+        if self.channel not in OUTPUT_CHANNELS:
             self.get_logger().error(
-                f"channel {self.channel!r} not one of {CHANNELS}; using luminance"
+                f"channel {self.channel!r} not one of {OUTPUT_CHANNELS}; using luminance"
             )
             self.channel = "luminance"
         self._load(str(self.get_parameter("calibration_file").value))
@@ -133,9 +107,9 @@ class PhotometricCorrectionNode(Node):
         for parameter in parameters:
             if parameter.name == "channel":
                 channel = str(parameter.value)
-                if channel not in CHANNELS:
+                if channel not in OUTPUT_CHANNELS:
                     return SetParametersResult(
-                        successful=False, reason=f"channel must be one of {CHANNELS}"
+                        successful=False, reason=f"channel must be one of {OUTPUT_CHANNELS}"
                     )
             elif parameter.name == "calibration_file":
                 new_path = str(parameter.value)

@@ -26,6 +26,7 @@ from numpy.typing import NDArray
 
 from endo_calib.calibration import PhotometricCalibration
 from endo_calib.errors import CalibrationError
+from endo_calib.fit import FitReport
 
 _COLOURS = {"mono": "k", "red": "tab:red", "green": "tab:green", "blue": "tab:blue"}
 
@@ -55,19 +56,24 @@ def card_nonuniformity(
 
 
 def write_report(
-    calibration: PhotometricCalibration,
+    report: FitReport,
     path: str | Path,
+    *,
+    light_source: str = "model",
     truth_inverse_response: NDArray[np.float64] | None = None,
 ) -> Path:
-    """Draw the report of a freshly fitted calibration into a PNG at ``path``.
+    """Draw the report of a gray-card fit into a PNG.
 
-    calibration: the result of ``fit_gray_card`` (its ``fit_report`` is needed).
-    truth_inverse_response: optional (2^bits,) known g to overlay (simulations).
-    Returns the path written.
+    Args:
+        report: what :func:`endo_calib.fit.fit_gray_card` returned.
+        path: the PNG to write (parent directories are created).
+        light_source: the light map shown, as the calibration will use it:
+            "model" or "pixels" (see ``PhotometricCalibration``).
+        truth_inverse_response: optional (2^bits,) known g to overlay (simulations).
+
+    Returns:
+        The path written.
     """
-    report = calibration.fit_report
-    if report is None:
-        raise CalibrationError("the report needs a calibration fresh from fit_gray_card")
     out = Path(path)
     out.parent.mkdir(parents=True, exist_ok=True)
     fov = report.fov_mask
@@ -134,7 +140,7 @@ def write_report(
     ax_g.set(xlabel="raw value v (DN)", ylabel="linear irradiance g(v)", title="inverse response")
     ax_g.legend(fontsize=8)
 
-    light = calibration.light_map
+    light = PhotometricCalibration.from_fit(report, light_source).light_map
     light_view = light if light.ndim == 2 else light.mean(axis=-1)
     _image(fig, ax_light, np.where(fov, light_view, np.nan), "light map L(x)", "jet")
 

@@ -12,8 +12,8 @@ from dataclasses import dataclass
 import numpy as np
 import pytest
 
-from endo_calib.fit import GrayLevel
 from endo_calib.geometry import CardPose, geometry_term
+from endo_calib.gray_levels import GrayLevel
 from endo_io.camera import CameraModel
 
 LEVELS = (0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8)
@@ -126,8 +126,12 @@ def gamma_card() -> SyntheticCard:
 
 @pytest.fixture(scope="session")
 def gamma_fit(gamma_card):
-    """A calibration fitted once on synthetic gamma data (shared by several tests)."""
-    from endo_calib.fit import fit_gray_card
+    """A calibration fitted once on synthetic gamma data (shared by several tests).
+
+    (calibration, levels, fit report).
+    """
+    from endo_calib import PhotometricCalibration, fit_gray_card
 
     levels = gamma_card.levels(10, np.random.default_rng(1))
-    return fit_gray_card(levels, gamma_card.camera), levels
+    report = fit_gray_card(levels, gamma_card.camera)
+    return PhotometricCalibration.from_fit(report), levels, report

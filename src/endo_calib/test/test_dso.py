@@ -8,7 +8,7 @@ from endo_calib.errors import DsoFormatError
 
 
 def test_dso_files_follow_the_tum_conventions(gamma_fit, tmp_path):
-    cal, _ = gamma_fit
+    cal, _, _ = gamma_fit
     pcalib, vignette = export_dso(cal, tmp_path)
     lines = pcalib.read_text().splitlines()
     values = np.array([float(x) for x in lines[0].split()])
@@ -23,7 +23,7 @@ def test_dso_files_follow_the_tum_conventions(gamma_fit, tmp_path):
 
 
 def test_dso_round_trip(gamma_fit, tmp_path):
-    cal, _ = gamma_fit
+    cal, _, _ = gamma_fit
     export_dso(cal, tmp_path)
     back = import_dso(tmp_path)
     assert back.channel_names == ("mono",) and back.light_source == "pixels"

@@ -8,13 +8,13 @@ saturating at its centre (the protocol of docs/calibration.md).
 import numpy as np
 import pytest
 
+from endo_calib import GrayCardAccumulator, GrayLevel, PhotometricCalibration, fit_gray_card
 from endo_calib.errors import (
     FitError,
     ImageSizeMismatchError,
     InsufficientLevelsError,
     SaturatedCardError,
 )
-from endo_calib.fit import GrayCardAccumulator, GrayLevel, fit_gray_card
 from endo_calib.geometry import CardPose, geometry_term
 from endo_calib.report import card_nonuniformity
 
@@ -36,11 +36,11 @@ def _errors(cal, card, resp, true_inverse):
 
 
 def test_gamma_response_and_light_map_are_recovered(gamma_fit, gamma_card, synth):
-    cal, levels = gamma_fit
+    cal, levels, report = gamma_fit
     g_err, l_err = _errors(cal, gamma_card, synth.gamma_response, synth.true_inverse)
     assert g_err < 0.006
     assert l_err < 0.006
-    assert cal.fit_report.channels["mono"].converged
+    assert report.channels["mono"].converged
     # corrected card, divided by G, is flat; the raw one is not
     g = geometry_term(gamma_card.camera, CardPose())
     mask = cal.fov_mask & gamma_card.fov
@@ -53,7 +53,8 @@ def test_gamma_response_and_light_map_are_recovered(gamma_fit, gamma_card, synth
 
 def test_s_shaped_response_is_recovered(synth):
     card = synth.make_card(synth.s_response, peak=1.0)
-    cal = fit_gray_card(card.levels(10, np.random.default_rng(5)), card.camera)
+    report = fit_gray_card(card.levels(10, np.random.default_rng(5)), card.camera)
+    cal = PhotometricCalibration.from_fit(report)
     g_err, l_err = _errors(cal, card, synth.s_response, synth.true_inverse)
     # the top of an S-curve is extrapolated (where it meets full scale is not
     # observable in 8-bit codes), which costs most of this error
@@ -63,7 +64,8 @@ def test_s_shaped_response_is_recovered(synth):
 
 def test_colour_channels_are_fitted_separately(synth):
     card = synth.make_card(width=96, height=72, colour=True, peak=1.0)
-    cal = fit_gray_card(card.levels(6, np.random.default_rng(2)), card.camera)
+    report = fit_gray_card(card.levels(6, np.random.default_rng(2)), card.camera)
+    cal = PhotometricCalibration.from_fit(report)
     assert cal.channel_names == ("red", "green", "blue")
     assert cal.inverse_response.shape == (256, 3)
     assert cal.light_map.shape == (72, 96, 3)
@@ -75,7 +77,7 @@ def test_twelve_bit_input_in_sixteen_bit_containers(synth):
     card = synth.make_card(width=96, height=72, bits=12, peak=1.0)
     levels = card.levels(6, np.random.default_rng(4))
     assert levels[0].frames[0].dtype == np.uint16
-    cal = fit_gray_card(levels, card.camera, bit_depth=12)
+    cal = PhotometricCalibration.from_fit(fit_gray_card(levels, card.camera, bit_depth=12))
     assert cal.bit_depth == 12 and cal.inverse_response.shape == (4096,)
     truth = synth.true_inverse(synth.gamma_response, 12)
     assert np.max(np.abs(cal.inverse_response - truth)[80:4016]) < 0.01
@@ -90,7 +92,7 @@ def test_levels_at_different_distances_use_their_geometry(synth):
     near, far = CardPose(distance_m=0.05), CardPose(distance_m=0.05 * np.sqrt(2.0))
     levels = [GrayLevel(r, card.frames(r, 6, rng, near), near) for r in (0.3, 0.5, 0.8)]
     levels += [GrayLevel(r, card.frames(r, 6, rng, far), far) for r in (0.3, 0.5, 0.8)]
-    cal = fit_gray_card(levels, card.camera)
+    cal = PhotometricCalibration.from_fit(fit_gray_card(levels, card.camera))
     g_err, l_err = _errors(cal, card, synth.gamma_response, synth.true_inverse)
     assert g_err < 0.01 and l_err < 0.01
 

@@ -3,10 +3,13 @@
 Oren–Nayar / Lambertian reflectance, the orthographic Eikonal model of the
 seed paper and the near-light perspective model of Prados & Faugeras.
 ``endo_sfs.reconstruct(irradiance, camera, SfsOptions(...), mask=...)`` is
-the entry point.
+the entry point; the names below are imported on first use.
 """
 
 import os
+from typing import TYPE_CHECKING
+
+from endo_io.lazy_exports import lazy_exports
 
 # The solver's parallel regions (numba on OpenMP) are short and alternate
 # with single-threaded work; OpenMP's default is to keep idle workers
@@ -15,7 +18,23 @@ import os
 # variable is unset and before the OpenMP runtime loads (first parallel call).
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
-from endo_sfs.options import SfsOptions
-from endo_sfs.relative_depth import SfsSolution, reconstruct, solve
+if TYPE_CHECKING:
+    from endo_sfs.errors import SfsError, SfsInputError
+    from endo_sfs.evaluation import DepthError, depth_error
+    from endo_sfs.node import SfsNode
+    from endo_sfs.options import SfsOptions
+    from endo_sfs.relative_depth import SfsSolution, reconstruct, solve, surface_normals
 
-__all__ = ["SfsOptions", "SfsSolution", "reconstruct", "solve"]
+__all__ = [
+    "DepthError",
+    "SfsError",
+    "SfsInputError",
+    "SfsNode",
+    "SfsOptions",
+    "SfsSolution",
+    "depth_error",
+    "reconstruct",
+    "solve",
+    "surface_normals",
+]
+__getattr__, __dir__ = lazy_exports(__name__)
