@@ -17,12 +17,12 @@ Run by hand: ``.venv/bin/python bench/bench_bag_read.py``.
 from __future__ import annotations
 
 import platform
-import subprocess
 import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
+from machine import cpu_model
 from mcap.reader import make_reader
 from rclpy.serialization import serialize_message
 from sensor_msgs.msg import Image
@@ -88,14 +88,7 @@ def read_ours(path: Path, validate_crcs: bool = True) -> int:
 
 
 def machine() -> str:
-    try:
-        out = subprocess.run(["lscpu"], capture_output=True, text=True, check=True).stdout
-        model = next(
-            line.split(":", 1)[1].strip() for line in out.splitlines() if "Model name" in line
-        )
-    except (OSError, subprocess.CalledProcessError, StopIteration):
-        model = platform.processor() or "unknown CPU"
-    return f"{model}, 2 cores shared"
+    return f"{cpu_model()}, 2 cores shared"
 
 
 def main() -> None:

@@ -8,11 +8,10 @@ Markdown table for docs/benchmarks.md. Run: .venv/bin/python bench/bench_calib.p
 
 from __future__ import annotations
 
-import platform
-import subprocess
 import time
 
 import numpy as np
+from machine import cpu_model
 
 from endo_calib.calibration import ChannelCalibration, PhotometricCalibration
 from endo_calib.light_map import fit_light_model, normalised_grid
@@ -41,17 +40,6 @@ def time_ms(fn, repeats: int = 200) -> tuple[float, float]:
         fn()
         samples.append((time.perf_counter() - t0) * 1e3)
     return float(np.median(samples)), float(np.percentile(samples, 90))
-
-
-def cpu_model() -> str:
-    try:
-        out = subprocess.run(["lscpu"], capture_output=True, text=True, check=True).stdout
-        for line in out.splitlines():
-            if line.startswith("Model name"):
-                return line.split(":", 1)[1].strip()
-    except (OSError, subprocess.CalledProcessError):
-        pass
-    return platform.processor() or "unknown"
 
 
 def main() -> None:

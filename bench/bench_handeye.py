@@ -17,7 +17,6 @@ into docs/benchmarks.md under "endo_tracker_bridge hand–eye".
 from __future__ import annotations
 
 import platform
-import subprocess
 import time
 from pathlib import Path
 
@@ -25,80 +24,33 @@ import cv2
 import numpy as np
 import scipy
 import yaml
-from scipy.spatial.transform import Rotation
+from machine import cpu_model
 
-from endo_io.camera import CameraModel
-from endo_tracker_bridge.composition import invert_transform
 from endo_tracker_bridge.conventions import LengthUnit
 from endo_tracker_bridge.handeye import (
     METHODS,
+    MS,
     Checkerboard,
     OffsetSearch,
-    board_view,
     calibrate_hand_eye,
     marker_poses_at,
     solve_hand_eye,
 )
 from endo_tracker_bridge.handeye_cli import read_observations
-
-ROOT = Path(__file__).resolve().parents[1]
-MS = 1_000_000
-BOARD = Checkerboard(9, 6, 0.005)
-CAMERA = CameraModel.pinhole(
-    640, 480, 520.0, 515.0, 322.0, 241.0, D=np.array([-0.2, 0.05, 0.001, -0.001, 0.0])
+from endo_tracker_bridge.synthetic import (
+    BOARD,
+    CAMERA,
+    T_MARKER_CAMERA,
+    synthetic_recording,
+    transform_error,
 )
 
-
-def _transform(rotvec, translation):
-    T = np.eye(4)
-    T[:3, :3] = Rotation.from_rotvec(rotvec).as_matrix()
-    T[:3, 3] = translation
-    return T
+ROOT = Path(__file__).resolve().parents[1]
 
 
-X_TRUE = _transform([0.3, -2.5, 0.4], [0.012, -0.008, -0.24])
-W_TRUE = _transform([0.1, 0.2, -0.3], [0.1, -0.05, -1.2])
-
-
-def _camera_pose(t):
-    centre = W_TRUE[:3, :3] @ np.array([0.02, 0.0125, 0.0]) + W_TRUE[:3, 3]
-    angles = [
-        0.5 * np.sin(2 * np.pi * t / 7.0),
-        0.4 * np.sin(2 * np.pi * t / 5.0 + 0.5),
-        0.6 * np.sin(2 * np.pi * t / 9.0),
-    ]
-    R = W_TRUE[:3, :3] @ Rotation.from_euler("yxz", angles).as_matrix()
-    T = np.eye(4)
-    T[:3, :3], T[:3, 3] = R, centre - R[:, 2] * (0.06 + 0.01 * np.sin(2 * np.pi * t / 3.0))
-    return T
-
-
-def _synthetic(duration_s, seed=0, latency_ms=23.4):
-    rng = np.random.default_rng(seed)
-    t_tracker = np.arange(0.0, duration_s, 1 / 60)
-    t_tracker = t_tracker[rng.random(len(t_tracker)) > 0.03]
-    poses = []
-    for t in t_tracker:
-        A = _camera_pose(t) @ invert_transform(X_TRUE)
-        A[:3, 3] += rng.normal(0.0, 0.25e-3 / np.sqrt(3), 3)
-        wobble = rng.normal(0.0, np.radians(0.1) / np.sqrt(3), 3)
-        A[:3, :3] = A[:3, :3] @ Rotation.from_rotvec(wobble).as_matrix()
-        poses.append(A)
-    stamps = np.round((t_tracker + latency_ms * 1e-3) * 1e9).astype(np.int64)
-    P = BOARD.object_points()
-    views = []
-    for t in np.arange(0.1, duration_s - 0.1, 1 / 30):
-        B = invert_transform(_camera_pose(t)) @ W_TRUE
-        uv = CAMERA.project(P @ B[:3, :3].T + B[:3, 3]) + rng.normal(0.0, 0.1, (len(P), 2))
-        views.append(board_view(round(t * 1e9), uv, BOARD, CAMERA))
-    return views, stamps, np.stack(poses)
-
-
-def _errors(X_true, X):
-    delta = invert_transform(X_true) @ X
-    return 1e3 * np.linalg.norm(delta[:3, 3]), np.degrees(
-        Rotation.from_matrix(delta[:3, :3]).magnitude()
-    )
+def _synthetic(duration_s):
+    """The tests' synthetic scene, the tracker clock at phase 0, stamps from 0."""
+    return synthetic_recording(duration_s=duration_s, random_phase=False, epoch_ns=0)
 
 
 def bench_synthetic():
@@ -110,7 +62,7 @@ def bench_synthetic():
         start = time.perf_counter()
         result = calibrate_hand_eye(views, stamps, poses, BOARD, CAMERA, OffsetSearch())
         elapsed = time.perf_counter() - start
-        t_err, r_err = _errors(X_TRUE, result.T_marker_camera)
+        t_err, r_err = transform_error(T_MARKER_CAMERA, result.T_marker_camera)
         print(
             f"| {len(views)} | {elapsed:.2f} | {t_err:.3f} | {r_err:.3f} | "
             f"{result.time_offset_ns / MS - 23.4:+.3f} |"
@@ -137,7 +89,7 @@ def bench_closed_forms():
             for _ in range(repeats):
                 X = solve_hand_eye(A[pick], B[pick], method)
             elapsed_ms = 1e3 * (time.perf_counter() - start) / repeats
-            t_err, r_err = _errors(X_TRUE, X)
+            t_err, r_err = transform_error(T_MARKER_CAMERA, X)
             cells.append(f"{elapsed_ms:.1f}, {t_err:.3f}, {r_err:.4f}")
         print(f"| {len(pick)} | " + " | ".join(cells) + " |")
 
@@ -161,7 +113,7 @@ def bench_bag(bag: Path):
     )
     solve_s = time.perf_counter() - start
     X_true = np.asarray(truth["tracker"]["T_marker_camera"], dtype=np.float64).reshape(4, 4)
-    t_err, r_err = _errors(X_true, result.T_marker_camera)
+    t_err, r_err = transform_error(X_true, result.T_marker_camera)
     latency_s = float(truth["tracker"]["latency_s"])
     print(f"## {bag.name}")
     print(
@@ -178,12 +130,8 @@ def bench_bag(bag: Path):
 
 
 def main():
-    cpu = subprocess.run(["lscpu"], capture_output=True, text=True).stdout
-    model = next(
-        (line.split(":", 1)[1].strip() for line in cpu.splitlines() if "Model name" in line), "?"
-    )
     print(
-        f"machine: {model}, Python {platform.python_version()}, numpy {np.__version__}, "
+        f"machine: {cpu_model()}, Python {platform.python_version()}, numpy {np.__version__}, "
         f"scipy {scipy.__version__}, OpenCV {cv2.__version__}"
     )
     bench_synthetic()

@@ -13,13 +13,12 @@ waiting for a core, so "fps if the cores are free" = threads / CPU time.
 from __future__ import annotations
 
 import os
-import platform
 import statistics
-import subprocess
 import time
 from typing import Any
 
 import numpy as np
+from machine import cpu_model
 
 from endo_io.image import array_to_image
 from endo_sim import bands
@@ -27,17 +26,6 @@ from endo_sim.sequences import SimulationConfig, build_sequence
 from endo_sim.surface import SurfaceHits
 
 FRAMES = 60
-
-
-def cpu_model() -> str:
-    try:
-        out = subprocess.run(["lscpu"], capture_output=True, text=True, check=True).stdout
-        for line in out.splitlines():
-            if line.startswith("Model name"):
-                return line.split(":", 1)[1].strip()
-    except (OSError, subprocess.CalledProcessError):
-        pass
-    return platform.processor() or "unknown"
 
 
 def bench_scene(scene: str, workers: int, channels: int = 1) -> dict[str, float]:

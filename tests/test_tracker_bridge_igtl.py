@@ -28,9 +28,8 @@ import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped
 from rclpy.executors import SingleThreadedExecutor
-from scipy.spatial.transform import Rotation
 
-from endo_io.pose import pose_to_matrix
+from endo_io.pose import pose_to_matrix, rigid_transform
 from endo_tracker_bridge.handeye_file import HandEyeCalibration
 
 pytestmark = pytest.mark.ros
@@ -41,20 +40,14 @@ OFFSET_NS = 17_250_000  # tracker stamps 17.25 ms late
 EPOCH_S = 1_800_000_000
 
 
-def _transform(rotvec, translation):
-    T = np.eye(4)
-    T[:3, :3] = Rotation.from_rotvec(rotvec).as_matrix()
-    T[:3, 3] = translation
-    return T
 
-
-T_MARKER_CAMERA = _transform([0.2, -2.6, 0.3], [0.011, -0.007, -0.245])
-T_WORLD_TRACKER = _transform([0.0, 0.0, np.pi / 2], [0.5, -0.25, 1.0])
+T_MARKER_CAMERA = rigid_transform([0.2, -2.6, 0.3], [0.011, -0.007, -0.245])
+T_WORLD_TRACKER = rigid_transform([0.0, 0.0, np.pi / 2], [0.5, -0.25, 1.0])
 
 
 def _marker_pose_mm(k: int) -> np.ndarray:
     """Marker pose k in millimetres, moving slowly (well inside the speed limits)."""
-    T = _transform([0.3 + 0.002 * k, -0.1, 0.05], [100.0 + 0.2 * k, -50.0, -1400.0 + 0.1 * k])
+    T = rigid_transform([0.3 + 0.002 * k, -0.1, 0.05], [100.0 + 0.2 * k, -50.0, -1400.0 + 0.1 * k])
     return T
 
 

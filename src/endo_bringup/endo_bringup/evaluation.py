@@ -17,7 +17,7 @@ import numpy as np
 
 from endo_io.bag import BagReader, deserialize
 from endo_io.image import image_to_array
-from endo_io.pose import interpolate_transforms, pose_to_matrix
+from endo_io.pose import interpolate_transforms, pose_to_matrix, rotation_angle
 from endo_io.stamp import stamp_to_ns
 from endo_sfs.evaluation import DepthError, depth_error
 
@@ -103,8 +103,7 @@ def transform_errors(estimated: np.ndarray, truth: np.ndarray) -> tuple[np.ndarr
     """
     position_mm = 1e3 * np.linalg.norm(estimated[:, :3, 3] - truth[:, :3, 3], axis=1)
     relative = np.einsum("nji,njk->nik", truth[:, :3, :3], estimated[:, :3, :3])
-    cos_angle = np.clip((np.trace(relative, axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0)
-    return position_mm, np.degrees(np.arccos(cos_angle))
+    return position_mm, np.degrees(rotation_angle(relative))
 
 
 @dataclass(frozen=True)

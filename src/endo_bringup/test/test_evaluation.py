@@ -7,7 +7,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from scipy.spatial.transform import Rotation
 
 from endo_bringup.evaluation import (
     compare_poses,
@@ -21,16 +20,13 @@ from endo_bringup.evaluation import (
 )
 from endo_io.bag import BagWriter
 from endo_io.image import array_to_image
-from endo_io.pose import matrix_to_pose
+from endo_io.pose import matrix_to_pose, rigid_transform
 
 MS = 1_000_000
 
 
 def rigid(rotvec_deg: tuple[float, float, float], translation_m: tuple[float, float, float]):
-    transform = np.eye(4)
-    transform[:3, :3] = Rotation.from_rotvec(rotvec_deg, degrees=True).as_matrix()
-    transform[:3, 3] = translation_m
-    return transform
+    return rigid_transform(np.radians(rotvec_deg), translation_m)
 
 
 def test_transform_errors_of_a_known_offset():

@@ -57,10 +57,12 @@ def unit_quaternion(q_xyzw: np.ndarray, tolerance: float = DEFAULT_TOLERANCE) ->
     if not np.all(np.isfinite(q)):
         raise PoseError("quaternion contains NaN or infinity")
     norm = np.linalg.norm(q, axis=-1, keepdims=True)
-    worst = float(np.max(np.abs(norm - 1.0))) if norm.size else 0.0
-    if worst > tolerance:
+    deviation = np.abs(norm - 1.0)
+    worst = int(np.argmax(deviation)) if norm.size else 0
+    if norm.size and deviation.flat[worst] > tolerance:
         raise PoseError(
-            f"quaternion norm deviates from 1 by {worst:.3g} > tolerance {tolerance:g}"
+            f"quaternion norm deviates from 1 by {deviation.flat[worst]:.3g} > tolerance "
+            f"{tolerance:g} (norm {norm.flat[worst]:.6f})"
         )
     return q / norm
 

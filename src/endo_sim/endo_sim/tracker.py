@@ -30,36 +30,18 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from endo_io.pose import invert_transform, rigid_transform
 from endo_sim.errors import SimulationParameterError
 from endo_sim.trajectory import NS_PER_S, Trajectory, compose
 
 TRACKER_UNITS = ("m", "mm")
 
 
-def _transform(
-    rotvec: tuple[float, float, float], translation: tuple[float, float, float]
-) -> np.ndarray:
-    out = np.eye(4)
-    out[:3, :3] = Rotation.from_rotvec(rotvec).as_matrix()
-    out[:3, 3] = translation
-    return out
-
-
 #: Default hand–eye transform: the camera at the tip of a 30 cm rigid scope,
 #: seen from a marker clamped to its head, tilted arbitrarily (metres).
-DEFAULT_T_MARKER_CAMERA = _transform((0.35, -0.20, 1.10), (0.012, -0.035, 0.300))
+DEFAULT_T_MARKER_CAMERA = rigid_transform((0.35, -0.20, 1.10), (0.012, -0.035, 0.300))
 #: Default tracker placement: the camera unit 1.3 m from the patient, looking at it.
-DEFAULT_T_TRACKER_WORLD = _transform((2.30, 0.25, -0.40), (0.10, -0.15, 1.30))
-
-
-def invert(transform: np.ndarray) -> np.ndarray:
-    """Inverse of rigid transform(s) (..., 4, 4)."""
-    rotation = transform[..., :3, :3]
-    out = np.zeros_like(transform)
-    out[..., :3, :3] = np.swapaxes(rotation, -1, -2)
-    out[..., :3, 3] = -np.einsum("...ji,...j->...i", rotation, transform[..., :3, 3])
-    out[..., 3, 3] = 1.0
-    return out
+DEFAULT_T_TRACKER_WORLD = rigid_transform((2.30, 0.25, -0.40), (0.10, -0.15, 1.30))
 
 
 @dataclass(frozen=True, eq=False)
@@ -125,7 +107,7 @@ class TrackerModel:
 
     def true_marker_poses(self, camera_poses: np.ndarray) -> np.ndarray:
         """T_tracker_marker (N, 4, 4) metres from T_world_camera (N, 4, 4), noise-free."""
-        return self.T_tracker_world @ camera_poses @ invert(self.T_marker_camera)
+        return self.T_tracker_world @ camera_poses @ invert_transform(self.T_marker_camera)
 
     def visibility(self, times_ns: np.ndarray, rng: np.random.Generator) -> np.ndarray:
         """(N,) bool: False while the marker is occluded (alternating exponential spells)."""

@@ -7,9 +7,9 @@ import math
 import cv2
 import numpy as np
 import pytest
-from scipy.spatial.transform import Rotation
 
 from endo_io.camera import CameraModel
+from endo_io.pose import rigid_transform
 from endo_sim.abdomen import AbdomenGeometry, AbdomenScene
 from endo_sim.colon import ColonGeometry, ColonScene
 from endo_sim.handeye import centred_board
@@ -23,19 +23,12 @@ CAMERA = CameraModel.pinhole(160, 120, 80.0, 80.0, 79.5, 59.5)
 FLAT = Photometry(noise=False)
 
 
-def pose(rotvec, position) -> np.ndarray:
-    out = np.eye(4)
-    out[:3, :3] = Rotation.from_rotvec(rotvec).as_matrix()
-    out[:3, 3] = position
-    return out
-
-
 def grey_texture(period) -> Texture:
     return Texture(np.full((8, 8, 1), 0.4, np.float32), period)
 
 
 def test_tilted_plane_depth_matches_pinhole_geometry() -> None:
-    camera_pose = pose([0.1, -0.2, 0.3], [0.01, 0.02, -0.03])
+    camera_pose = rigid_transform([0.1, -0.2, 0.3], [0.01, 0.02, -0.03])
     normal_world = np.array([0.2, 0.1, -1.0]) / np.linalg.norm([0.2, 0.1, -1.0])
     point_world = np.array([0.0, 0.0, 0.02])
     scene = PlaneScene(point_world, normal_world, 0.5)
@@ -57,7 +50,7 @@ def test_cylinder_depth_matches_closed_form() -> None:
         radius_m=radius, taenia_modulation=0.0, fold_height_m=0.0, bend_amplitude_m=0.0
     )
     scene = ColonScene(geometry, grey_texture((0.2, 2 * math.pi * radius)), seed=3)
-    camera_pose = pose([0.25, 0.4, 0.1], [0.004, -0.006, 0.05])
+    camera_pose = rigid_transform([0.25, 0.4, 0.1], [0.004, -0.006, 0.05])
     renderer = Renderer(CAMERA, FLAT)
     frame = renderer.render(scene, camera_pose)
     rays = renderer.rays @ camera_pose[:3, :3].T
@@ -145,7 +138,7 @@ def test_rendered_points_project_back_to_their_pixels(k1: float) -> None:
     camera = CameraModel.pinhole(
         320, 240, 200.0, 200.0, 159.5, 119.5, D=np.array([k1, 0.0, 0.0, 0.0, 0.0])
     )
-    camera_pose = pose([0.2, -0.1, 0.3], [0.001, 0.002, -0.04])
+    camera_pose = rigid_transform([0.2, -0.1, 0.3], [0.001, 0.002, -0.04])
     scene = PlaneScene(np.zeros(3), np.array([0.1, 0.0, -1.0]), 0.5)
     renderer = Renderer(camera, FLAT, fov_radius_px=115.0)
     hits = scene.trace(camera_pose, renderer.rays, renderer.mask)
@@ -162,7 +155,7 @@ def test_projected_checkerboard_corners_land_where_the_camera_model_says(k1: flo
         320, 240, 200.0, 200.0, 159.5, 119.5, D=np.array([k1, 0.0, 0.0, 0.0, 0.0])
     )
     board = centred_board()
-    camera_pose = pose([0.15, -0.1, 0.4], [0.002, -0.001, -0.05])
+    camera_pose = rigid_transform([0.15, -0.1, 0.4], [0.002, -0.001, -0.05])
     image = Renderer(camera, FLAT).render(board, camera_pose).image
     found, corners = cv2.findChessboardCorners(image, board.inner_corners)
     assert found

@@ -8,15 +8,14 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from endo_io.pose import invert_transform, rigid_transform
 from endo_sim.errors import SimulationParameterError
-from endo_sim.tracker import TrackerModel, invert, simulate_tracker
+from endo_sim.tracker import TrackerModel, simulate_tracker
 from endo_sim.trajectory import NS_PER_S, StationTrajectory
 
 
 def static_trajectory(seconds: float) -> StationTrajectory:
-    pose = np.eye(4)
-    pose[:3, :3] = Rotation.from_rotvec([0.2, -0.4, 1.0]).as_matrix()
-    pose[:3, 3] = [0.01, -0.02, 0.05]
+    pose = rigid_transform([0.2, -0.4, 1.0], [0.01, -0.02, 0.05])
     return StationTrajectory(pose[None], round(seconds * NS_PER_S), 1)
 
 
@@ -53,7 +52,7 @@ def test_latency_rate_and_the_hand_eye_chain() -> None:
     periods = np.diff(samples.sample_ns)
     assert np.all(np.abs(periods - NS_PER_S / 60) <= 1)
     # Marker pose composed back with the hand–eye gives the camera in the world.
-    camera = invert(model.T_tracker_world) @ samples.poses[0] @ model.T_marker_camera
+    camera = invert_transform(model.T_tracker_world) @ samples.poses[0] @ model.T_marker_camera
     np.testing.assert_allclose(camera, trajectory.pose_at(0), atol=1e-12)
 
 

@@ -4,27 +4,29 @@ Every rejected tracker sample raises one of the :class:`TrackerSampleError`
 subclasses; the node counts them by class name on ``/diagnostics``. Problems
 with a whole source (a malformed log file, an unknown option) and with the
 hand–eye calibration have their own branches so that a caller can tell what
-went wrong from the class alone.
+went wrong from the class alone. The three rejections of a bad pose value
+are also :class:`endo_io.errors.PoseError` subclasses: the bridge's checks are
+endo_io's (:mod:`endo_io.pose`), re-raised under the bridge's names.
 """
 
 from __future__ import annotations
 
-from endo_io.errors import Endo3dError
+from endo_io.errors import Endo3dError, PoseError
 
 
 class TrackerSampleError(Endo3dError, ValueError):
     """One tracker sample was rejected; the stream goes on."""
 
 
-class NonFinitePoseError(TrackerSampleError):
+class NonFinitePoseError(TrackerSampleError, PoseError):
     """A pose holds NaN or infinity."""
 
 
-class NonUnitQuaternionError(TrackerSampleError):
+class NonUnitQuaternionError(TrackerSampleError, PoseError):
     """A quaternion's norm differs from 1 by more than the tolerance."""
 
 
-class NonOrthonormalRotationError(TrackerSampleError):
+class NonOrthonormalRotationError(TrackerSampleError, PoseError):
     """A rotation matrix is not orthonormal with determinant +1 within the tolerance."""
 
 

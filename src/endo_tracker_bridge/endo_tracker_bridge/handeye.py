@@ -42,7 +42,12 @@ from scipy.optimize import least_squares, minimize_scalar
 from scipy.spatial.transform import Rotation
 
 from endo_io.camera import CameraModel
-from endo_io.pose import interpolate_transforms, invert_transform
+from endo_io.pose import (
+    interpolate_transforms,
+    invert_transform,
+    rigid_transform,
+    rotation_angle,
+)
 from endo_tracker_bridge.errors import HandEyeError
 
 #: The closed forms: OpenCV's flag for each method name.
@@ -396,12 +401,11 @@ def _pack(X: np.ndarray, W: np.ndarray) -> np.ndarray:
 
 
 def _unpack(params: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    X, W = np.eye(4), np.eye(4)
-    X[:3, :3] = Rotation.from_rotvec(params[0:3]).as_matrix()
-    X[:3, 3] = params[3:6] * 1e-3
-    W[:3, :3] = Rotation.from_rotvec(params[6:9]).as_matrix()
-    W[:3, 3] = params[9:12] * 1e-3
-    return X, W
+    # the inverse of _pack: rotation vectors (rad) and translations (mm)
+    return (
+        rigid_transform(params[0:3], params[3:6] * 1e-3),
+        rigid_transform(params[6:9], params[9:12] * 1e-3),
+    )
 
 
 def refine_hand_eye(
@@ -695,4 +699,4 @@ def calibrate_hand_eye(
 def _rotation_span_deg(T: np.ndarray) -> float:
     """Largest rotation angle (degrees) between the first view and any other."""
     relative = np.swapaxes(T[:1, :3, :3], -1, -2) @ T[:, :3, :3]
-    return float(np.degrees(np.max(Rotation.from_matrix(relative).magnitude())))
+    return float(np.degrees(np.max(rotation_angle(relative))))

@@ -21,6 +21,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from endo_io.errors import PoseError
+from endo_io.pose import DEFAULT_TOLERANCE, check_rotation, rotation_angle, unit_quaternion
 from endo_tracker_bridge.errors import (
     NonFinitePoseError,
     NonOrthonormalRotationError,
@@ -31,10 +33,10 @@ from endo_tracker_bridge.errors import (
 )
 from endo_tracker_bridge.sample import ToolStatus, TrackerSample
 
-#: Default tolerance on | |q| - 1 | and on the orthonormality of rotation
-#: matrices. Trackers send float32 (OpenIGTLink) or 4-decimal text (NDI TX),
-#: which is good to ~1e-4; a real fault is far larger.
-DEFAULT_ROTATION_TOLERANCE = 1e-3
+#: Tolerance on | |q| - 1 | and on the orthonormality of rotation matrices:
+#: endo_io's one constant. Trackers send float32 (OpenIGTLink) or 4-decimal
+#: text (NDI TX), which is good to ~1e-4; a real fault is far larger.
+DEFAULT_ROTATION_TOLERANCE = DEFAULT_TOLERANCE
 
 
 def check_finite(values: np.ndarray, what: str) -> None:
@@ -46,50 +48,56 @@ def check_finite(values: np.ndarray, what: str) -> None:
         )
 
 
-def check_unit_quaternion(
-    q: np.ndarray, tolerance: float = DEFAULT_ROTATION_TOLERANCE
-) -> np.ndarray:
+def check_unit_quaternion(q: np.ndarray, tolerance: float = DEFAULT_TOLERANCE) -> np.ndarray:
     """Check a quaternion (4,) (any component order) and return it normalised.
 
-    Raises :class:`NonFinitePoseError` on NaN/inf and
-    :class:`NonUnitQuaternionError` when ``| |q| - 1 | > tolerance``.
-    Returns (4,) float64 with norm 1, same component order.
+    :func:`endo_io.pose.unit_quaternion` with the bridge's error classes, so
+    that each rejected sample is counted under its own name.
+
+    Args:
+        q: (4,) quaternion, any component order.
+        tolerance: allowed ``| |q| - 1 |``.
+
+    Returns:
+        (4,) float64 with norm 1, same component order.
+
+    Raises:
+        NonFinitePoseError: NaN or inf.
+        NonUnitQuaternionError: ``| |q| - 1 | > tolerance``.
     """
     quaternion = np.asarray(q, dtype=np.float64).reshape(4)
     check_finite(quaternion, "quaternion")
-    norm = float(np.linalg.norm(quaternion))
-    if abs(norm - 1.0) > tolerance:
-        raise NonUnitQuaternionError(
-            f"quaternion norm {norm:.6f} differs from 1 by more than {tolerance:g}"
-        )
-    return quaternion / norm
+    try:
+        return unit_quaternion(quaternion, tolerance)
+    except PoseError as error:
+        raise NonUnitQuaternionError(str(error)) from None
 
 
-def check_rotation_matrix(
-    R: np.ndarray, tolerance: float = DEFAULT_ROTATION_TOLERANCE
-) -> np.ndarray:
+def check_rotation_matrix(R: np.ndarray, tolerance: float = DEFAULT_TOLERANCE) -> np.ndarray:
     """Check a rotation matrix (3,3) and return the nearest exact rotation.
 
-    Raises :class:`NonFinitePoseError` on NaN/inf and
-    :class:`NonOrthonormalRotationError` when ``max |RᵀR − I| > tolerance`` or
-    ``det R < 0``. The returned (3,3) float64 is the SVD projection onto SO(3).
+    :func:`endo_io.pose.check_rotation` with the bridge's error classes.
+
+    Args:
+        R: (3, 3) matrix.
+        tolerance: allowed ``max |RᵀR − I|``.
+
+    Returns:
+        (3, 3) float64, the SVD projection of ``R`` onto SO(3).
+
+    Raises:
+        NonFinitePoseError: NaN or inf.
+        NonOrthonormalRotationError: not orthonormal within ``tolerance``, or
+            ``det R <= 0``.
     """
     rotation = np.asarray(R, dtype=np.float64).reshape(3, 3)
     check_finite(rotation, "rotation matrix")
-    deviation = float(np.max(np.abs(rotation.T @ rotation - np.eye(3))))
-    if deviation > tolerance or np.linalg.det(rotation) <= 0.0:
-        raise NonOrthonormalRotationError(
-            f"rotation matrix is not orthonormal (max |RᵀR − I| = {deviation:.2e}, "
-            f"det = {np.linalg.det(rotation):.4f}, tolerance {tolerance:g})"
-        )
+    try:
+        check_rotation(rotation, tolerance)
+    except PoseError as error:
+        raise NonOrthonormalRotationError(str(error)) from None
     u, _, vt = np.linalg.svd(rotation)
     return u @ vt
-
-
-def rotation_angle_rad(R: np.ndarray) -> float:
-    """Angle of a rotation matrix (3,3), radians in [0, π]."""
-    cos_angle = (float(np.trace(R)) - 1.0) / 2.0
-    return math.acos(min(1.0, max(-1.0, cos_angle)))
 
 
 @dataclass(frozen=True)
@@ -144,7 +152,7 @@ class SampleGate:
                     f"in {dt_s * 1e3:.1f} ms "
                     f"({distance_m / dt_s:.2f} m/s > limit {self.limits.linear_m_s:g} m/s)"
                 )
-            angle_deg = math.degrees(rotation_angle_rad(previous.rotation.T @ sample.rotation))
+            angle_deg = math.degrees(rotation_angle(previous.rotation.T @ sample.rotation))
             if angle_deg / dt_s > self.limits.angular_deg_s:
                 raise SpeedLimitError(
                     f"tool '{sample.tool_id}' turned {angle_deg:.1f}° in {dt_s * 1e3:.1f} ms "

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from endo_io.pose import rigid_transform
 from endo_tracker_bridge.composition import (
     compose_camera_pose,
     corrected_stamp_ns,
@@ -18,13 +19,6 @@ from endo_tracker_bridge.conventions import (
     transform_from_quaternion,
 )
 from endo_tracker_bridge.errors import StampCorrectionError, TrackerSourceError
-
-
-def _transform(rotvec, translation):
-    T = np.eye(4)
-    T[:3, :3] = Rotation.from_rotvec(rotvec).as_matrix()
-    T[:3, 3] = translation
-    return T
 
 
 def test_millimetres_become_metres():
@@ -77,9 +71,9 @@ def test_w_first_quaternion_is_reordered_to_xyzw():
 
 
 def test_composition_order_world_tracker_marker_camera():
-    T_world_tracker = _transform([0.0, 0.0, np.pi / 2], [1.0, 2.0, 0.5])
-    T_tracker_marker = _transform([0.3, -0.2, 0.1], [0.10, -0.05, 0.90])
-    T_marker_camera = _transform([np.pi, 0.0, 0.0], [0.0, 0.02, -0.15])
+    T_world_tracker = rigid_transform([0.0, 0.0, np.pi / 2], [1.0, 2.0, 0.5])
+    T_tracker_marker = rigid_transform([0.3, -0.2, 0.1], [0.10, -0.05, 0.90])
+    T_marker_camera = rigid_transform([np.pi, 0.0, 0.0], [0.0, 0.02, -0.15])
     T_world_camera = compose_camera_pose(T_world_tracker, T_tracker_marker, T_marker_camera)
 
     # Follow a point on the camera's optical axis through each frame by hand.
@@ -99,7 +93,7 @@ def test_composition_order_world_tracker_marker_camera():
 
 
 def test_identity_world_tracker_and_hand_eye_give_the_marker_pose():
-    T_tracker_marker = _transform([0.1, 0.2, 0.3], [0.01, 0.02, 0.03])
+    T_tracker_marker = rigid_transform([0.1, 0.2, 0.3], [0.01, 0.02, 0.03])
     np.testing.assert_allclose(
         compose_camera_pose(np.eye(4), T_tracker_marker, np.eye(4)), T_tracker_marker
     )

@@ -5,16 +5,14 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import yaml
-from scipy.spatial.transform import Rotation
 
+from endo_io.pose import rigid_transform
 from endo_tracker_bridge.errors import HandEyeFileError
 from endo_tracker_bridge.handeye_file import HandEyeCalibration
 
 
 def test_round_trip(tmp_path):
-    T = np.eye(4)
-    T[:3, :3] = Rotation.from_rotvec([0.1, -2.0, 0.5]).as_matrix()
-    T[:3, 3] = [0.012, -0.003, 0.151]
+    T = rigid_transform([0.1, -2.0, 0.5], [0.012, -0.003, 0.151])
     calibration = HandEyeCalibration(
         T_marker_camera=T,
         time_offset_ns=-21_437_000,

@@ -13,14 +13,12 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from endo_io.camera import CameraModel
-from endo_io.pose import invert_transform
+from endo_io.pose import invert_transform, rigid_transform
 from endo_tracker_bridge.errors import HandEyeError
 from endo_tracker_bridge.handeye import (
     CLOSED_FORM_MAX_VIEWS,
     METHODS,
     MS,
-    Checkerboard,
     OffsetSearch,
     board_view,
     calibrate_hand_eye,
@@ -28,79 +26,25 @@ from endo_tracker_bridge.handeye import (
     marker_poses_at,
     solve_hand_eye,
 )
-
-EPOCH_NS = 1_700_000_000 * 1_000_000_000
-BOARD = Checkerboard(9, 6, 0.005)
-CAMERA = CameraModel.pinhole(
-    640, 480, 520.0, 515.0, 322.0, 241.0, D=np.array([-0.2, 0.05, 0.001, -0.001, 0.0])
+from endo_tracker_bridge.synthetic import (
+    BOARD,
+    CAMERA,
+    EPOCH_NS,
+    T_MARKER_CAMERA,
+    T_TRACKER_TARGET,
+    board_pose,
+    camera_pose,
+    synthetic_recording,
+    transform_error,
 )
 
-
-def _transform(rotvec, translation):
-    T = np.eye(4)
-    T[:3, :3] = Rotation.from_rotvec(rotvec).as_matrix()
-    T[:3, 3] = translation
-    return T
-
-
-X_TRUE = _transform([0.3, -2.5, 0.4], [0.012, -0.008, -0.24])  # T_marker_camera
-W_TRUE = _transform([0.1, 0.2, -0.3], [0.1, -0.05, -1.2])  # T_tracker_target
-
-
-def _camera_pose(t_s, scale=1.0):
-    """T_tracker_camera at time t: looking at the board from 5-7 cm, swinging and rolling."""
-    centre = W_TRUE[:3, :3] @ np.array([0.02, 0.0125, 0.0]) + W_TRUE[:3, 3]
-    angles = scale * np.array(
-        [
-            0.5 * np.sin(2 * np.pi * t_s / 7.0),
-            0.4 * np.sin(2 * np.pi * t_s / 5.0 + 0.5),
-            0.6 * np.sin(2 * np.pi * t_s / 9.0),
-        ]
-    )
-    distance = 0.06 + 0.01 * np.sin(2 * np.pi * t_s / 3.0)
-    R = W_TRUE[:3, :3] @ Rotation.from_euler("yxz", angles).as_matrix()
-    T = np.eye(4)
-    T[:3, :3], T[:3, 3] = R, centre - R[:, 2] * distance
-    return T
-
-
-def _scenario(
-    seed=0,
-    latency_ms=23.4,
-    duration_s=10.0,
-    fps=30.0,
-    noise_mm=0.25,
-    noise_deg=0.1,
-    pixel_noise=0.1,
-    motion_scale=1.0,
-):
-    rng = np.random.default_rng(seed)
-    t_tracker = np.arange(0.0, duration_s, 1 / 60) + rng.uniform(0, 1 / 60)
-    t_tracker = t_tracker[rng.random(len(t_tracker)) > 0.03]  # dropouts
-    poses = []
-    for t in t_tracker:
-        A = _camera_pose(t, motion_scale) @ invert_transform(X_TRUE)
-        A[:3, 3] += rng.normal(0.0, noise_mm * 1e-3 / np.sqrt(3), 3)
-        wobble = rng.normal(0.0, np.radians(noise_deg) / np.sqrt(3), 3)
-        A[:3, :3] = A[:3, :3] @ Rotation.from_rotvec(wobble).as_matrix()
-        poses.append(A)
-    tracker_stamps = EPOCH_NS + np.round((t_tracker + latency_ms * 1e-3) * 1e9).astype(np.int64)
-    P = BOARD.object_points()
-    views = []
-    for t in np.arange(0.1, duration_s - 0.1, 1 / fps):
-        B = invert_transform(_camera_pose(t, motion_scale)) @ W_TRUE
-        uv = CAMERA.project(P @ B[:3, :3].T + B[:3, 3])
-        uv += rng.normal(0.0, pixel_noise, uv.shape)
-        views.append(board_view(EPOCH_NS + round(t * 1e9), uv, BOARD, CAMERA))
-    return views, tracker_stamps, np.stack(poses)
+# AX = XB notation: X the hand–eye transform, W the board in the tracker frame
+X_TRUE = T_MARKER_CAMERA
+W_TRUE = T_TRACKER_TARGET
 
 
 def _errors(T_estimated):
-    delta = invert_transform(X_TRUE) @ T_estimated
-    return (
-        1e3 * np.linalg.norm(delta[:3, 3]),
-        np.degrees(Rotation.from_matrix(delta[:3, :3]).magnitude()),
-    )
+    return transform_error(X_TRUE, T_estimated)
 
 
 def _noise_free_views(count, seed=3, spread_rad=0.5):
@@ -108,7 +52,7 @@ def _noise_free_views(count, seed=3, spread_rad=0.5):
     rng = np.random.default_rng(seed)
     A = np.stack(
         [
-            _transform(
+            rigid_transform(
                 rng.normal(0, spread_rad, 3), rng.normal(0, 0.1, 3) + np.array([0.0, 0.0, -1.0])
             )
             for _ in range(count)
@@ -123,7 +67,7 @@ def _noise_free_views(count, seed=3, spread_rad=0.5):
     [(12, 0.5), (12, 1.5), (CLOSED_FORM_MAX_VIEWS + 30, 0.5)],
     ids=["12-views", "12-views-large-rotations", "subsampled"],
 )
-def test_each_opencv_method_recovers_the_true_transform(method, count, spread_rad):
+def test_each_opencv_method_recovers_the_truerigid_transform(method, count, spread_rad):
     A, B = _noise_free_views(count, spread_rad=spread_rad)
     X = solve_hand_eye(A, B, method)
     translation_mm, rotation_deg = _errors(X)
@@ -144,7 +88,7 @@ def test_closed_form_refusals():
     # rotations about one axis only leave X free to turn about it
     turns = np.stack(
         [
-            _transform([0.0, 0.0, angle], A[k, :3, 3])
+            rigid_transform([0.0, 0.0, angle], A[k, :3, 3])
             for k, angle in enumerate(np.linspace(-0.6, 0.6, 12))
         ]
     )
@@ -161,7 +105,7 @@ def test_closed_form_refusals():
 
 
 def test_board_pose_from_projected_corners_is_exact():
-    B = invert_transform(_camera_pose(1.3)) @ W_TRUE
+    B = board_pose(1.3)
     P = BOARD.object_points()
     view = board_view(0, CAMERA.project(P @ B[:3, :3].T + B[:3, 3]), BOARD, CAMERA)
     np.testing.assert_allclose(view.T_camera_target, B, atol=1e-9)
@@ -169,7 +113,7 @@ def test_board_pose_from_projected_corners_is_exact():
 
 
 def test_interpolated_marker_poses_and_gaps():
-    T0, T1 = _transform([0, 0, 0], [0, 0, 0]), _transform([0, 0, np.pi / 2], [0.01, 0, 0])
+    T0, T1 = rigid_transform([0, 0, 0], [0, 0, 0]), rigid_transform([0, 0, np.pi / 2], [0.01, 0, 0])
     stamps = np.array([0, 16 * MS, 200 * MS, 216 * MS], dtype=np.int64)
     poses = np.stack([T0, T1, T0, T1])
     query = np.array([8 * MS, 16 * MS, 100 * MS, 300 * MS], dtype=np.int64)
@@ -183,7 +127,7 @@ def test_interpolated_marker_poses_and_gaps():
 
 
 def test_calibration_with_tracker_noise_latency_and_dropouts():
-    views, stamps, poses = _scenario(seed=1)
+    views, stamps, poses = synthetic_recording(seed=1)
     result = calibrate_hand_eye(views[::2], stamps, poses, BOARD, CAMERA)
     translation_mm, rotation_deg = _errors(result.T_marker_camera)
     offset_error_ms = result.time_offset_ns / MS - 23.4
@@ -202,13 +146,13 @@ def test_calibration_with_tracker_noise_latency_and_dropouts():
 
 
 def test_outlier_views_are_rejected():
-    views, stamps, poses = _scenario(seed=2, duration_s=6.0)
+    views, stamps, poses = synthetic_recording(seed=2, duration_s=6.0)
     views = views[::2]
     rng = np.random.default_rng(5)
     bad = rng.choice(len(views), size=len(views) // 10, replace=False)
     for k in bad:
         # a wrong board pose, e.g. a mis-ordered detection
-        wrong = views[k].T_camera_target @ _transform([0.0, 0.0, 0.2], [0.004, -0.003, 0.0])
+        wrong = views[k].T_camera_target @ rigid_transform([0.0, 0.0, 0.2], [0.004, -0.003, 0.0])
         views[k] = type(views[k])(views[k].stamp_ns, views[k].corners, wrong, 0.1)
     result = calibrate_hand_eye(views, stamps, poses, BOARD, CAMERA)
     translation_mm, rotation_deg = _errors(result.T_marker_camera)
@@ -219,13 +163,13 @@ def test_outlier_views_are_rejected():
 
 
 def test_fixed_offset_and_refusals():
-    views, stamps, poses = _scenario(seed=4, duration_s=4.0, latency_ms=0.0)
+    views, stamps, poses = synthetic_recording(seed=4, duration_s=4.0, latency_ms=0.0)
     result = calibrate_hand_eye(views[::3], stamps, poses, BOARD, CAMERA, OffsetSearch(0, 0))
     assert result.time_offset_ns == 0
     assert _errors(result.T_marker_camera)[0] < 0.5
     with pytest.raises(HandEyeError, match="at least 5"):
         calibrate_hand_eye(views[:4], stamps, poses, BOARD, CAMERA)
-    still, stamps, poses = _scenario(seed=4, duration_s=4.0, motion_scale=0.05)
+    still, stamps, poses = synthetic_recording(seed=4, duration_s=4.0, motion_scale=0.05)
     with pytest.raises(HandEyeError, match="marker rotation"):
         calibrate_hand_eye(still[::3], stamps, poses, BOARD, CAMERA, OffsetSearch(0, 0))
 
@@ -262,7 +206,7 @@ def _render_board(B, supersample=3):
 
 
 def test_corners_detected_in_a_rendered_image_give_the_true_pose():
-    B = invert_transform(_camera_pose(2.0)) @ W_TRUE
+    B = board_pose(2.0)
     corners = detect_checkerboard(_render_board(B), BOARD)
     assert corners is not None
     truth = CAMERA.project(BOARD.object_points() @ B[:3, :3].T + B[:3, 3])
@@ -290,12 +234,12 @@ def test_endo_handeye_cli_on_a_rendered_bag(tmp_path):
     with BagWriter(bag_path) as bag:
         bag.write_message("/endoscope/camera_info", CAMERA.to_camera_info(EPOCH_NS), EPOCH_NS)
         for t in np.arange(0.0, duration_s, 1 / 60):
-            A = _camera_pose(t) @ invert_transform(X_TRUE)
+            A = camera_pose(t) @ invert_transform(X_TRUE)
             A[:3, 3] += rng.normal(0.0, 0.25e-3 / np.sqrt(3), 3)
             stamp = EPOCH_NS + round((t + latency_ms * 1e-3) * 1e9)
             bag.write_message("/tracker/pose", matrix_to_pose(A, stamp, "tracker"), stamp)
         for t in np.arange(0.1, duration_s - 0.1, 1 / 12):
-            B = invert_transform(_camera_pose(t)) @ W_TRUE
+            B = board_pose(t)
             stamp = EPOCH_NS + round(t * 1e9)
             image = array_to_image(_render_board(B, supersample=2), "mono8", stamp, "camera")
             bag.write_message("/endoscope/image_raw", image, stamp)
@@ -316,7 +260,7 @@ def test_endo_handeye_cli_on_a_rendered_bag(tmp_path):
 
 
 def test_corner_numbering_does_not_depend_on_the_image_orientation():
-    B = invert_transform(_camera_pose(0.7)) @ W_TRUE
+    B = board_pose(0.7)
     image = _render_board(B, supersample=2)
     corners = detect_checkerboard(image, BOARD)
     turned = detect_checkerboard(np.ascontiguousarray(image[::-1, ::-1]), BOARD)

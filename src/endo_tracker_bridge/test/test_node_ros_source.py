@@ -11,9 +11,8 @@ from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
-from scipy.spatial.transform import Rotation
 
-from endo_io.pose import matrix_to_pose, pose_to_matrix
+from endo_io.pose import matrix_to_pose, pose_to_matrix, rigid_transform
 from endo_tracker_bridge.handeye_file import HandEyeCalibration
 from endo_tracker_bridge.node import TrackerBridgeNode
 
@@ -22,15 +21,9 @@ pytestmark = pytest.mark.ros
 OFFSET_NS = -4_000_000  # a tracker whose clock runs 4 ms ahead of the camera's
 
 
-def _transform(rotvec, translation):
-    T = np.eye(4)
-    T[:3, :3] = Rotation.from_rotvec(rotvec).as_matrix()
-    T[:3, 3] = translation
-    return T
 
-
-X = _transform([0.1, 2.9, -0.2], [0.004, 0.010, -0.230])
-WORLD_TRACKER = _transform([0.3, 0.0, -1.2], [1.0, 2.0, 3.0])
+X = rigid_transform([0.1, 2.9, -0.2], [0.004, 0.010, -0.230])
+WORLD_TRACKER = rigid_transform([0.3, 0.0, -1.2], [1.0, 2.0, 3.0])
 
 
 def test_ros_source_in_millimetres(tmp_path):
@@ -66,7 +59,7 @@ def test_ros_source_in_millimetres(tmp_path):
             while time.monotonic() < end:
                 executor.spin_once(timeout_sec=0.02)
 
-        marker_mm = _transform([0.4, -0.3, 0.2], [35.0, -120.0, -1500.0])
+        marker_mm = rigid_transform([0.4, -0.3, 0.2], [35.0, -120.0, -1500.0])
         stamp_ns = 1_750_000_000_000_000_000
         end = time.monotonic() + 10.0
         k = 0
