@@ -1,0 +1,148 @@
+"""A window of keyframes: the past views of each track, with their camera poses.
+
+Triangulating a track needs views from camera centres far enough apart. At
+the usual 5–15 mm/s a second of frames gives that; at slow motion it does not,
+so frames are not all kept: a frame becomes a keyframe only once the camera
+centre has moved ``min_step_m`` from the last keyframe (or turned
+``min_turn_rad``), and the window keeps the last ``capacity`` keyframes, none
+older than ``max_age_ns``. Slow motion thus spreads the same number of
+keyframes over a longer time and still builds baseline; a still camera keeps
+adding no keyframes (beyond what tracker noise moves it).
+
+Each keyframe stores the camera-frame unit ray of every feature seen in it
+(:meth:`endo_io.camera.CameraModel.pixels_to_rays`, computed once), so a
+triangulation only rotates rays into the world.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from dataclasses import dataclass
+
+import numpy as np
+
+from endo_io.pose import rotation_angle
+
+
+@dataclass(frozen=True)
+class Keyframe:
+    """One kept view.
+
+    Attributes:
+        stamp_ns: image stamp, integer ns.
+        T_world_camera: (4, 4) float64 camera pose, metres.
+        ids: (N,) int64 track ids, sorted.
+        rays: (N, 3) float64 unit rays of those tracks, camera frame.
+    """
+
+    stamp_ns: int
+    T_world_camera: np.ndarray
+    ids: np.ndarray
+    rays: np.ndarray
+
+
+@dataclass(frozen=True)
+class TrackViews:
+    """The views of a set of tracks, padded to a common count.
+
+    Attributes:
+        centres: (N, V, 3) float64 camera centres in world, metres.
+        directions: (N, V, 3) float64 unit rays in world.
+        valid: (N, V) bool, which of the V views saw the track.
+    """
+
+    centres: np.ndarray
+    directions: np.ndarray
+    valid: np.ndarray
+
+
+class KeyframeWindow:
+    """The last keyframes (see the module docstring).
+
+    Args:
+        capacity: keyframes kept.
+        min_step_m: camera-centre motion since the last keyframe that makes
+            a new keyframe, metres.
+        min_turn_rad: rotation since the last keyframe that also does.
+        max_age_ns: keyframes older than this before the newest are dropped.
+    """
+
+    def __init__(
+        self,
+        capacity: int = 30,
+        min_step_m: float = 0.8e-3,
+        min_turn_rad: float = np.radians(2.0),
+        max_age_ns: int = 4_000_000_000,
+    ) -> None:
+        if capacity < 2:
+            raise ValueError(f"capacity must be >= 2, got {capacity}")
+        if min_step_m < 0.0 or min_turn_rad < 0.0 or max_age_ns <= 0:
+            raise ValueError("min_step_m, min_turn_rad must be >= 0 and max_age_ns > 0")
+        self.capacity = capacity
+        self.min_step_m = min_step_m
+        self.min_turn_rad = min_turn_rad
+        self.max_age_ns = max_age_ns
+        self._frames: deque[Keyframe] = deque(maxlen=capacity)
+
+    def __len__(self) -> int:
+        return len(self._frames)
+
+    @property
+    def keyframes(self) -> tuple[Keyframe, ...]:
+        """The keyframes held, oldest first."""
+        return tuple(self._frames)
+
+    def clear(self) -> None:
+        """Forget every keyframe."""
+        self._frames.clear()
+
+    def wants(self, T_world_camera: np.ndarray) -> bool:
+        """Whether a frame at this pose would become a keyframe."""
+        if not self._frames:
+            return True
+        last = self._frames[-1].T_world_camera
+        step = float(np.linalg.norm(T_world_camera[:3, 3] - last[:3, 3]))
+        turn = float(rotation_angle(last[:3, :3].T @ T_world_camera[:3, :3]))
+        return step >= self.min_step_m or turn >= self.min_turn_rad
+
+    def add(self, keyframe: Keyframe) -> None:
+        """Append a keyframe and drop those older than ``max_age_ns`` before it."""
+        order = np.argsort(keyframe.ids, kind="stable")
+        self._frames.append(
+            Keyframe(keyframe.stamp_ns, keyframe.T_world_camera, keyframe.ids[order],
+                     keyframe.rays[order])
+        )
+        while self._frames and keyframe.stamp_ns - self._frames[0].stamp_ns > self.max_age_ns:
+            self._frames.popleft()
+
+    def views(self, ids: np.ndarray, current: Keyframe | None = None) -> TrackViews:
+        """Gather every held view of the tracks ``ids``, plus ``current`` if given.
+
+        Args:
+            ids: (N,) int64 track ids.
+            current: the present frame as a last view (its ids need not be
+                sorted, and it need not be a keyframe), or None.
+
+        Returns:
+            The views, V = keyframes held (+ 1 with ``current``), oldest
+            first. A keyframe that is also ``current`` is not counted twice.
+        """
+        frames = list(self._frames)
+        if current is not None and not (frames and frames[-1].stamp_ns == current.stamp_ns):
+            order = np.argsort(current.ids, kind="stable")
+            frames.append(Keyframe(current.stamp_ns, current.T_world_camera,
+                                   current.ids[order], current.rays[order]))
+        n, v = len(ids), len(frames)
+        centres = np.zeros((n, v, 3))
+        directions = np.zeros((n, v, 3))
+        valid = np.zeros((n, v), bool)
+        for k, frame in enumerate(frames):
+            if len(frame.ids) == 0:
+                continue
+            at = np.minimum(np.searchsorted(frame.ids, ids), len(frame.ids) - 1)
+            seen = frame.ids[at] == ids
+            R = frame.T_world_camera[:3, :3]
+            directions[seen, k] = frame.rays[at[seen]] @ R.T
+            centres[:, k] = frame.T_world_camera[:3, 3]
+            valid[:, k] = seen
+        return TrackViews(centres, directions, valid)

@@ -1,0 +1,522 @@
+"""The per-frame step of endo_flow: tracks + poses -> scale -> metric depth, world points, map.
+
+:class:`FlowPipeline` is the one implementation that the ``endo-flow`` node
+and the offline processor both call, one :class:`FlowFrame` at a time, in
+stamp order:
+
+1. **Track** features by Lucas–Kanade on the corrected image
+   (:mod:`endo_flow.tracking`).
+2. With a pose, **triangulate** every track over its keyframe views and the
+   current one (:mod:`endo_flow.keyframes`, :mod:`endo_flow.triangulation`).
+3. **Observe the scale**: ln(z / d_rel) at the accepted tracks' current
+   pixels, one robust observation per frame (:func:`endo_flow.scale.observe_scale`),
+   fused by the Kalman filter on ln s (:class:`endo_flow.scale.ScaleFilter`).
+4. Optionally fit the **shape correction** field to the residuals
+   (:mod:`endo_flow.shape_correction`).
+5. Once the scale is usable: **metric depth** = s · e^c · d_rel, the
+   decimated **world points** (``CameraModel.depth_to_points`` on a binned
+   model of the same camera, then :func:`endo_io.pose.transform_points`),
+   their grey level and normals, and the **voxel map** update.
+
+Without a pose (a tracker dropout) the tracks continue and the depth is made
+metric with the held scale, but nothing is triangulated and no world point
+is produced. A frame stamped before the previous one (a looped bag) resets
+every buffer, the filter, the shape correction and the map, and raises
+:class:`endo_io.errors.ClockJumpError`; the next frame starts afresh.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from endo_flow.errors import FlowInputError, NoFeaturesError
+from endo_flow.keyframes import Keyframe, KeyframeWindow
+from endo_flow.scale import (
+    ScaleEstimate,
+    ScaleFilter,
+    ScaleFilterOptions,
+    ScaleObservation,
+    ScaleState,
+    observe_scale,
+)
+from endo_flow.shape_correction import ShapeCorrectionOptions, ShapeCorrector
+from endo_flow.tracking import FeatureTracker, TrackingOptions
+from endo_flow.triangulation import TriangulationGates, triangulate
+from endo_flow.voxel_map import VoxelMap
+from endo_io.camera import CameraModel
+from endo_io.errors import ClockJumpError, PoseError
+from endo_io.image import irradiance_to_mono8
+from endo_io.pose import check_rotation, transform_points
+
+
+@dataclass(frozen=True)
+class FlowOptions:
+    """Every setting of :class:`FlowPipeline`.
+
+    Attributes:
+        tracking: feature tracking (:class:`~endo_flow.tracking.TrackingOptions`).
+        gates: triangulation acceptance (:class:`~endo_flow.triangulation.TriangulationGates`).
+        scale: the scale filter (:class:`~endo_flow.scale.ScaleFilterOptions`).
+        shape: the shape correction
+            (:class:`~endo_flow.shape_correction.ShapeCorrectionOptions`).
+        keyframes: keyframes kept per track window.
+        keyframe_step_m: camera motion that makes a new keyframe, metres.
+        keyframe_turn_deg: camera rotation that also does, degrees.
+        keyframe_max_age_s: keyframes older than this are dropped, seconds.
+        pose_noise_m: the camera-centre noise of one pose (tracker noise and
+            its lever arm to the camera), metres; sets the part of a frame's
+            scale error that its points share.
+        observation_floor: least standard deviation of one frame's ln s
+            observation (the frames' errors are correlated).
+        min_observation_points: fewer accepted tracks give no observation.
+        max_parallax_weight_deg: parallax beyond this gets no more weight.
+        min_features: a frame with fewer features raises NoFeaturesError.
+        cloud_decimation: the world cloud takes every n-th pixel along each
+            axis.
+        cloud_min_depth_m, cloud_max_depth_m: depth range of cloud points.
+        map_enabled: fuse the world points into the voxel map.
+        voxel_size_m: voxel edge of the map, metres.
+        max_voxels: capacity of the map (memory bound).
+    """
+
+    tracking: TrackingOptions = field(default_factory=TrackingOptions)
+    gates: TriangulationGates = field(default_factory=TriangulationGates)
+    scale: ScaleFilterOptions = field(default_factory=ScaleFilterOptions)
+    shape: ShapeCorrectionOptions = field(
+        default_factory=lambda: ShapeCorrectionOptions(mode="none")
+    )
+    keyframes: int = 30
+    keyframe_step_m: float = 0.8e-3
+    keyframe_turn_deg: float = 2.0
+    keyframe_max_age_s: float = 4.0
+    pose_noise_m: float = 0.5e-3
+    observation_floor: float = 0.02
+    min_observation_points: int = 8
+    max_parallax_weight_deg: float = 20.0
+    min_features: int = 8
+    cloud_decimation: int = 4
+    cloud_min_depth_m: float = 1e-3
+    cloud_max_depth_m: float = 0.3
+    map_enabled: bool = True
+    voxel_size_m: float = 1e-3
+    max_voxels: int = 2_000_000
+
+    def __post_init__(self) -> None:
+        if self.keyframes < 2 or self.keyframe_max_age_s <= 0.0:
+            raise ValueError("keyframes must be >= 2 and keyframe_max_age_s > 0")
+        if self.keyframe_step_m < 0.0 or self.keyframe_turn_deg < 0.0:
+            raise ValueError("keyframe_step_m and keyframe_turn_deg must be >= 0")
+        if self.pose_noise_m < 0.0 or self.observation_floor < 0.0:
+            raise ValueError("pose_noise_m and observation_floor must be >= 0")
+        if self.min_observation_points < 1 or self.min_features < 0:
+            raise ValueError("min_observation_points must be >= 1, min_features >= 0")
+        if not self.max_parallax_weight_deg > 0.0:
+            raise ValueError("max_parallax_weight_deg must be > 0")
+        if self.cloud_decimation < 1:
+            raise ValueError("cloud_decimation must be >= 1")
+        if not 0.0 <= self.cloud_min_depth_m < self.cloud_max_depth_m:
+            raise ValueError("need 0 <= cloud_min_depth_m < cloud_max_depth_m")
+        if not self.voxel_size_m > 0.0 or self.max_voxels < 1:
+            raise ValueError("voxel_size_m must be > 0 and max_voxels >= 1")
+
+
+@dataclass(frozen=True)
+class FlowFrame:
+    """One synchronised input frame.
+
+    Attributes:
+        stamp_ns: the image stamp, integer ns.
+        image: (H, W) float32 corrected linear irradiance (``endo_calib``
+            output), NaN outside the field of view and where saturated.
+        depth_relative: (H, W) float32 relative depth along z
+            (``endo_sfs`` output), NaN invalid.
+        camera: the camera model of both images.
+        T_world_camera: (4, 4) float64 camera pose at ``stamp_ns``
+            (``/endoscope/pose``, metres), or None when there is none.
+    """
+
+    stamp_ns: int
+    image: np.ndarray
+    depth_relative: np.ndarray
+    camera: CameraModel
+    T_world_camera: np.ndarray | None
+
+
+@dataclass(frozen=True)
+class FlowDiagnostics:
+    """Per-frame counters and figures.
+
+    Attributes:
+        has_pose: the frame had a pose.
+        keyframe: the frame became a keyframe.
+        tracks: features tracked in the frame.
+        seeded: of those, new this frame.
+        lost: tracks of the previous frame not continued.
+        keyframes: keyframes held.
+        triangulated: tracks that passed the triangulation gates.
+        observation: this frame's observed s (NaN: none).
+        observation_std: its ln standard deviation (NaN: none).
+        observation_points: points in that observation.
+        accepted: the observation entered the filter.
+        gated: the observation was rejected as an outlier.
+        step: the observation completed a detected scale step.
+        shape_correction: the shape correction field was applied.
+        cloud_points: world points produced.
+        timings_ms: wall time per stage, milliseconds (tracking,
+            triangulation, scale, depth, cloud, map).
+    """
+
+    has_pose: bool
+    keyframe: bool
+    tracks: int
+    seeded: int
+    lost: int
+    keyframes: int
+    triangulated: int
+    observation: float
+    observation_std: float
+    observation_points: int
+    accepted: bool
+    gated: bool
+    step: bool
+    shape_correction: bool
+    cloud_points: int
+    timings_ms: dict[str, float]
+
+
+@dataclass(frozen=True)
+class FlowOutput:
+    """What one frame produced.
+
+    Attributes:
+        stamp_ns: the frame's stamp, integer ns.
+        depth: (H, W) float32 metric depth along z, metres, NaN invalid
+            (REP 118), or None while the scale is not usable yet (the filter
+            has not converged once: ``scale.usable`` is False).
+        points: (N, 3) float32 world points of the decimated depth, metres
+            (empty without depth or without a pose).
+        intensity: (N,) uint8 grey level of those points (the tracking
+            image's 8-bit mapping).
+        normals: (N, 3) float32 unit world normals facing the camera (NaN
+            where the neighbours were missing).
+        scale: the scale estimate after this frame.
+        triangulated: (M, 3) float64 world points of this frame's accepted
+            tracks (the metric evidence), metres.
+        diagnostics: per-frame counters.
+    """
+
+    stamp_ns: int
+    depth: np.ndarray | None
+    points: np.ndarray
+    intensity: np.ndarray
+    normals: np.ndarray
+    scale: ScaleEstimate
+    triangulated: np.ndarray
+    diagnostics: FlowDiagnostics
+
+
+def sample_bilinear(image: np.ndarray, uv: np.ndarray, max_ratio: float = 1.1) -> np.ndarray:
+    """Bilinear samples of a depth image at sub-pixel positions.
+
+    Args:
+        image: (H, W) float, NaN invalid.
+        uv: (N, 2) float pixels (u right, v down, centres at integers).
+        max_ratio: if the four neighbours' largest/smallest exceeds this (a
+            depth edge), the sample is NaN.
+
+    Returns:
+        (N,) float64, NaN outside the image, next to an invalid pixel or
+        across an edge.
+    """
+    h, w = image.shape
+    u, v = uv[:, 0], uv[:, 1]
+    u0, v0 = np.floor(u).astype(np.int64), np.floor(v).astype(np.int64)
+    inside = (u0 >= 0) & (v0 >= 0) & (u0 + 1 < w) & (v0 + 1 < h)
+    out = np.full(len(uv), np.nan)
+    if not np.any(inside):
+        return out
+    u0, v0, fu, fv = u0[inside], v0[inside], (u - u0)[inside], (v - v0)[inside]
+    corners = np.stack([image[v0, u0], image[v0, u0 + 1], image[v0 + 1, u0],
+                        image[v0 + 1, u0 + 1]], axis=1).astype(np.float64)
+    value = (corners[:, 0] * (1 - fu) * (1 - fv) + corners[:, 1] * fu * (1 - fv)
+             + corners[:, 2] * (1 - fu) * fv + corners[:, 3] * fu * fv)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        edge = corners.max(axis=1) > max_ratio * corners.min(axis=1)
+    value[edge | ~np.isfinite(value)] = np.nan
+    out[inside] = value
+    return out
+
+
+def binned_camera(camera: CameraModel, factor: int) -> CameraModel:
+    """The model of ``image[:H//f*f:f, :W//f*f:f]``: every f-th pixel of the camera's image.
+
+    Pixel u' of the decimated image is pixel f·u' of the original, which is
+    exactly image_geometry's binning mapping (``CameraModel`` binning
+    without ROI), so its ray table is the original's at those pixels.
+    """
+    if factor == 1:
+        return camera
+    K = camera.K.copy()
+    K[:2] /= factor
+    return CameraModel(
+        width=camera.width // factor, height=camera.height // factor, K=K, D=camera.D,
+        distortion_model=camera.distortion_model, binning_x=factor, binning_y=factor,
+        frame_id=camera.frame_id, full_width=camera.width, full_height=camera.height,
+    )
+
+
+def surface_normals(points: np.ndarray) -> np.ndarray:
+    """Unit normals of an organised (h, w, 3) point grid, facing the camera at the origin.
+
+    Central differences along both axes, crossed; NaN on the border and
+    wherever a neighbour is missing. Returns (h, w, 3) float64.
+    """
+    normals = np.full(points.shape, np.nan)
+    du = points[1:-1, 2:] - points[1:-1, :-2]
+    dv = points[2:, 1:-1] - points[:-2, 1:-1]
+    n = np.cross(du, dv)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        n /= np.linalg.norm(n, axis=-1, keepdims=True)
+        facing = np.einsum("hwi,hwi->hw", n, points[1:-1, 1:-1]) > 0.0
+    n[facing] *= -1.0
+    normals[1:-1, 1:-1] = n
+    return normals
+
+
+class FlowPipeline:
+    """The per-frame step (see the module docstring).
+
+    Args:
+        options: every setting (defaults if None).
+    """
+
+    def __init__(self, options: FlowOptions | None = None) -> None:
+        self.options = options or FlowOptions()
+        opts = self.options
+        self.tracker = FeatureTracker(opts.tracking)
+        self.window = KeyframeWindow(
+            opts.keyframes, opts.keyframe_step_m, float(np.radians(opts.keyframe_turn_deg)),
+            round(opts.keyframe_max_age_s * 1e9),
+        )
+        self.scale_filter = ScaleFilter(opts.scale)
+        self.voxel_map = VoxelMap(opts.voxel_size_m, opts.max_voxels) if opts.map_enabled else None
+        self._shape: ShapeCorrector | None = None
+        self._camera: CameraModel | None = None
+        self._cloud_camera: CameraModel | None = None
+        self._last_stamp_ns: int | None = None
+        self.frames = 0
+        self.resets = 0
+
+    @property
+    def scale(self) -> ScaleEstimate:
+        """The current scale estimate."""
+        return self.scale_filter.estimate
+
+    @property
+    def shape_corrector(self) -> ShapeCorrector | None:
+        """The shape correction state (None before the first frame)."""
+        return self._shape
+
+    def reset(self) -> None:
+        """Forget tracks, keyframes, the scale, the shape correction and the map."""
+        self.tracker.reset()
+        self.window.clear()
+        self.scale_filter.reset()
+        if self._shape is not None:
+            self._shape.reset()
+        if self.voxel_map is not None:
+            self.voxel_map.reset()
+        self._last_stamp_ns = None
+        self.resets += 1
+
+    def _check(self, frame: FlowFrame) -> np.ndarray | None:
+        cam = frame.camera
+        size = (cam.height, cam.width)
+        for name, array in (("image", frame.image), ("depth_relative", frame.depth_relative)):
+            shape = np.shape(array)
+            if shape != size:
+                raise FlowInputError(
+                    f"{name} is {shape[1] if len(shape) > 1 else '?'}x{shape[0] if shape else '?'}"
+                    f" but camera_info is {cam.width}x{cam.height}"
+                )
+            if not np.issubdtype(np.asarray(array).dtype, np.floating):
+                raise FlowInputError(f"{name} must be float, got {np.asarray(array).dtype}")
+        if frame.T_world_camera is None:
+            return None
+        T = np.asarray(frame.T_world_camera, np.float64)
+        if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+            raise PoseError(f"pose at {frame.stamp_ns} ns is not a finite (4, 4) transform")
+        check_rotation(T[:3, :3])
+        return T
+
+    def _prepare(self, camera: CameraModel) -> None:
+        if self._camera is not None and self._camera == camera:
+            return
+        self._camera = camera
+        self._cloud_camera = binned_camera(camera, self.options.cloud_decimation)
+        radius = 0.5 * min(camera.width, camera.height)
+        self._shape = ShapeCorrector(camera.width, camera.height, (camera.cx, camera.cy), radius,
+                                     self.options.shape)
+
+    def process(self, frame: FlowFrame) -> FlowOutput:
+        """Run the per-frame step on one frame (frames in stamp order).
+
+        Raises:
+            FlowInputError: image or depth_relative of another size than the
+                camera, or not float; a repeated stamp.
+            PoseError: a pose that is not a finite rigid transform.
+            NoFeaturesError: fewer than ``min_features`` features (a
+                textureless or black frame); the frame is dropped.
+            ClockJumpError: the stamp is before the previous frame's; every
+                state was reset and this frame is dropped.
+        """
+        opts = self.options
+        T = self._check(frame)
+        if self._last_stamp_ns is not None and frame.stamp_ns <= self._last_stamp_ns:
+            if frame.stamp_ns == self._last_stamp_ns:
+                raise FlowInputError(f"frame stamp {frame.stamp_ns} ns repeats the previous one")
+            back = (self._last_stamp_ns - frame.stamp_ns) / 1e9
+            self.reset()
+            raise ClockJumpError(
+                f"frame time jumped back {back:.3f} s; tracks, keyframes, scale filter, shape "
+                "correction and map reset"
+            )
+        self._last_stamp_ns = frame.stamp_ns
+        self._prepare(frame.camera)
+        assert self._shape is not None and self._cloud_camera is not None
+        camera = frame.camera
+        timings: dict[str, float] = {}
+        t0 = time.perf_counter()
+        features = self.tracker.track(frame.image)
+        timings["tracking"] = 1e3 * (time.perf_counter() - t0)
+        self.frames += 1
+        if len(features.ids) < opts.min_features:
+            self.scale_filter.predict(frame.stamp_ns)
+            raise NoFeaturesError(
+                f"{len(features.ids)} trackable features (need {opts.min_features}): textureless,"
+                f" black or saturated frame ({100 * features.valid_fraction:.0f} % valid pixels)"
+            )
+
+        t0 = time.perf_counter()
+        observation: ScaleObservation | None = None
+        triangulated = np.empty((0, 3))
+        n_accepted = 0
+        is_keyframe = False
+        update = None
+        if T is not None:
+            rays = camera.pixels_to_rays(features.uv)
+            current = Keyframe(frame.stamp_ns, T, features.ids, rays)
+            views = self.window.views(features.ids, current)
+            result = triangulate(views, opts.gates, optical_axis=T[:3, 2])
+            accepted = result.accepted
+            n_accepted = int(accepted.sum())
+            triangulated = result.points[accepted]
+            timings["triangulation"] = 1e3 * (time.perf_counter() - t0)
+            t0 = time.perf_counter()
+            if n_accepted >= opts.min_observation_points:
+                uv = features.uv[accepted]
+                relative = sample_bilinear(frame.depth_relative, uv)
+                log_c = self._shape.log_correction(uv)
+                corrected = relative * np.exp(log_c)
+                cap = np.radians(opts.max_parallax_weight_deg)
+                weights = np.minimum(result.parallax_rad[accepted], cap) ** 2
+                baseline = float(np.median(result.baseline_m[accepted]))
+                shared = opts.pose_noise_m / max(baseline, 1e-6) / np.sqrt(
+                    float(np.median(result.views[accepted])))
+                observation = observe_scale(
+                    result.depth_m[accepted], corrected, weights,
+                    min_points=opts.min_observation_points,
+                    floor_std=float(np.hypot(opts.observation_floor, shared)),
+                )
+                if observation is not None:
+                    update = self.scale_filter.update(observation, frame.stamp_ns)
+                    if update.accepted and self.scale_filter.estimate.usable:
+                        log_s = np.log(self.scale_filter.estimate.value)
+                        with np.errstate(invalid="ignore", divide="ignore"):
+                            residual = np.log(result.depth_m[accepted]) - np.log(relative) - log_s
+                        self._shape.update(uv, residual, observation.spread, frame.stamp_ns)
+            if observation is None:
+                self.scale_filter.predict(frame.stamp_ns)
+            if self.window.wants(T):
+                self.window.add(current)
+                is_keyframe = True
+            timings["scale"] = 1e3 * (time.perf_counter() - t0)
+        else:
+            self.scale_filter.predict(frame.stamp_ns)
+
+        estimate = self.scale_filter.estimate
+        depth = None
+        points = np.empty((0, 3), np.float32)
+        intensity = np.empty(0, np.uint8)
+        normals = np.empty((0, 3), np.float32)
+        if estimate.usable:
+            t0 = time.perf_counter()
+            depth = np.asarray(frame.depth_relative, np.float32) * np.float32(estimate.value)
+            correction = self._shape.field()
+            if correction is not None:
+                depth *= correction
+            timings["depth"] = 1e3 * (time.perf_counter() - t0)
+            if T is not None:
+                t0 = time.perf_counter()
+                points, intensity, normals = self._cloud(frame, depth, T)
+                timings["cloud"] = 1e3 * (time.perf_counter() - t0)
+                if self.voxel_map is not None and len(points):
+                    t0 = time.perf_counter()
+                    self.voxel_map.insert(points, intensity, normals)
+                    timings["map"] = 1e3 * (time.perf_counter() - t0)
+
+        diagnostics = FlowDiagnostics(
+            has_pose=T is not None,
+            keyframe=is_keyframe,
+            tracks=len(features.ids),
+            seeded=int(features.seeded.sum()),
+            lost=features.lost,
+            keyframes=len(self.window),
+            triangulated=n_accepted,
+            observation=float(np.exp(observation.log_scale)) if observation else float("nan"),
+            observation_std=observation.std if observation else float("nan"),
+            observation_points=observation.count if observation else 0,
+            accepted=bool(update and update.accepted),
+            gated=bool(update and update.gated),
+            step=bool(update and update.step),
+            shape_correction=self._shape.active,
+            cloud_points=len(points),
+            timings_ms=timings,
+        )
+        return FlowOutput(frame.stamp_ns, depth, points, intensity, normals, estimate,
+                          triangulated, diagnostics)
+
+    def _cloud(
+        self, frame: FlowFrame, depth: np.ndarray, T: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Decimated world points, their grey level and world normals."""
+        opts = self.options
+        k = opts.cloud_decimation
+        cam = self._cloud_camera
+        assert cam is not None
+        sub = depth[: cam.height * k : k, : cam.width * k : k]
+        local = cam.depth_to_points(sub)
+        normals_local = surface_normals(local)
+        with np.errstate(invalid="ignore"):
+            keep = (sub >= opts.cloud_min_depth_m) & (sub <= opts.cloud_max_depth_m)
+        keep &= np.isfinite(local).all(axis=-1)
+        world = transform_points(T, local[keep]).astype(np.float32)
+        normals = (normals_local[keep] @ T[:3, :3].T).astype(np.float32)
+        image = np.asarray(frame.image)[: cam.height * k : k, : cam.width * k : k][keep]
+        white = self.tracker.white_level or 1.0
+        grey = irradiance_to_mono8(image[None, :], white=white, gamma=opts.tracking.gamma)[0]
+        return world, grey, normals
+
+
+__all__ = [
+    "FlowDiagnostics",
+    "FlowFrame",
+    "FlowOptions",
+    "FlowOutput",
+    "FlowPipeline",
+    "ScaleEstimate",
+    "ScaleState",
+]

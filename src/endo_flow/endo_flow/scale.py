@@ -1,0 +1,311 @@
+"""The depth scale s (metric depth = s · depth_relative): per-frame observations and a filter.
+
+Shape from shading with the near-light model gives depth up to one factor,
+1/√ρ with ρ = albedo × light power × exposure (docs/sfs.md). Triangulated
+tracks give metric depth z at a few pixels, so each frame observes
+ln s = ln z − ln d_rel at those pixels. :func:`observe_scale` turns them into
+one robust observation: an M-estimate of the location of the log ratios
+(weighted, e.g. by the tracks' parallax), started by Huber iterations from
+the median and finished by Tukey's biweight, which gives wild tracks no
+weight at all (Huber alone is pulled 2 % by 30 % one-sided outliers), with
+its standard error.
+
+:class:`ScaleFilter` is a scalar Kalman filter on ln s, a random walk:
+
+* **predict**: the variance grows by ``process_noise² · dt``;
+* **update**: an observation whose innovation is more than ``gate_sigma``
+  standard deviations off is rejected and counted (a wild observation);
+* **steps**: a gain or exposure change multiplies ρ and so s by a constant
+  (a 20 % gain step moves s by √1.2, +9.5 %). When the last ``step_frames``
+  innovations (accepted or not) all have the same sign and their mean is
+  more than ``step_sigma`` standard deviations off, the filter jumps to that
+  mean with the spread of those observations as its variance (state
+  RECOVERING) instead of creeping towards it at the steady-state gain;
+* **hold**: without observations (a still camera, pure rotation, a tracker
+  dropout) the estimate stays where it is; after ``hold_after_s`` the state
+  says so (HOLDING).
+
+States: INITIALIZING until the standard deviation first falls below
+``converged_std``; then TRACKING, HOLDING or RECOVERING. :attr:`usable` is
+True from the first convergence on (the scale of a held or recovering
+filter is still the best available).
+"""
+
+from __future__ import annotations
+
+import enum
+from collections import deque
+from dataclasses import dataclass
+
+import numpy as np
+
+from endo_io.stamp import NS_PER_S
+
+#: Tukey biweight threshold in robust standard deviations (95 % efficiency).
+TUKEY_C = 4.685
+
+
+class ScaleState(enum.IntEnum):
+    """What the scale filter is doing (values are stable: published on the scale topic)."""
+
+    INITIALIZING = 0
+    TRACKING = 1
+    HOLDING = 2
+    RECOVERING = 3
+
+
+@dataclass(frozen=True)
+class ScaleObservation:
+    """One frame's robust observation of ln s.
+
+    Attributes:
+        log_scale: Huber location of ln(z / d_rel).
+        std: its standard deviation (ln units), the statistical error
+            combined with the caller's floor.
+        spread: robust standard deviation of the individual log ratios.
+        count: number of point pairs used.
+        inliers: number within the Huber threshold.
+    """
+
+    log_scale: float
+    std: float
+    spread: float
+    count: int
+    inliers: int
+
+
+@dataclass(frozen=True)
+class ScaleEstimate:
+    """The filtered scale.
+
+    Attributes:
+        value: s, metres per unit of depth_relative (NaN before any
+            observation).
+        log_std: standard deviation of ln s (≈ relative std of s).
+        state: what the filter is doing.
+        usable: the filter has converged at least once.
+    """
+
+    value: float
+    log_std: float
+    state: ScaleState
+    usable: bool
+
+
+def observe_scale(
+    metric_depth: np.ndarray,
+    relative_depth: np.ndarray,
+    weights: np.ndarray | None = None,
+    *,
+    min_points: int = 8,
+    huber_k: float = 1.5,
+    floor_std: float = 0.0,
+    iterations: int = 10,
+) -> ScaleObservation | None:
+    """Robust ln s from pairs of metric and relative depth at the same pixels.
+
+    Args:
+        metric_depth: (N,) float triangulated depth, metres (> 0).
+        relative_depth: (N,) float depth_relative at the same pixels (> 0).
+        weights: (N,) float >= 0 relative confidence of each pair, or None.
+        min_points: fewer finite, positive pairs give None.
+        huber_k: Huber threshold in robust standard deviations (first half
+            of the iterations; the second half uses Tukey's biweight).
+        floor_std: added in quadrature to the statistical error (ln units):
+            errors the pairs share (the camera poses) do not average out.
+        iterations: IRLS iterations.
+
+    Returns:
+        The observation, or None with fewer than ``min_points`` pairs.
+    """
+    z = np.asarray(metric_depth, np.float64)
+    d = np.asarray(relative_depth, np.float64)
+    w = np.ones_like(z) if weights is None else np.asarray(weights, np.float64)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        ok = np.isfinite(z) & np.isfinite(d) & (z > 0.0) & (d > 0.0) & np.isfinite(w) & (w > 0.0)
+    if int(ok.sum()) < min_points:
+        return None
+    r = np.log(z[ok]) - np.log(d[ok])
+    w = w[ok] / w[ok].max()
+    location = float(np.median(r))
+    sigma = max(1.4826 * float(np.median(np.abs(r - location))), 1e-4)
+    robust = np.ones_like(r)
+    for iteration in range(iterations):
+        u = np.abs(r - location) / sigma
+        if iteration < iterations // 2:  # Huber: converges from any start
+            robust = np.minimum(1.0, huber_k / np.maximum(u, 1e-12))
+        else:  # then Tukey's biweight: far outliers get no weight at all
+            robust = np.where(u < TUKEY_C, (1.0 - (u / TUKEY_C) ** 2) ** 2, 0.0)
+        total = w * robust
+        if total.sum() <= 0.0:
+            break
+        location = float(np.sum(total * r) / np.sum(total))
+        inside = robust > 0.0
+        # the spread of the points that carry weight, not of the outliers
+        sigma = max(1.4826 * float(np.median(np.abs(r[inside] - location))), 1e-4)
+    total = w * robust
+    n_eff = float(total.sum() ** 2 / max(np.sum(total**2), 1e-300))
+    stat = sigma / np.sqrt(max(n_eff, 1.0))
+    inliers = int(np.sum(np.abs(r - location) <= huber_k * sigma))
+    return ScaleObservation(
+        log_scale=location,
+        std=float(np.hypot(stat, floor_std)),
+        spread=sigma,
+        count=int(r.size),
+        inliers=inliers,
+    )
+
+
+@dataclass(frozen=True)
+class ScaleFilterOptions:
+    """Settings of :class:`ScaleFilter` (ln units are relative errors of s).
+
+    Attributes:
+        process_noise: random-walk density of ln s, per √second.
+        gate_sigma: innovations beyond this many standard deviations are
+            rejected.
+        step_frames: innovations of one sign in a row that can signal a step.
+        step_sigma: their mean (in standard deviations) that does.
+        converged_std: standard deviation of ln s below which the filter is
+            converged (TRACKING, usable).
+        hold_after_s: time without an accepted observation after which the
+            state is HOLDING.
+        initial_std: standard deviation of the first observation's estimate
+            is the observation's own; this caps it from below.
+    """
+
+    process_noise: float = 0.01
+    gate_sigma: float = 4.0
+    step_frames: int = 10
+    step_sigma: float = 2.5
+    converged_std: float = 0.03
+    hold_after_s: float = 0.3
+    initial_std: float = 0.0
+
+    def __post_init__(self) -> None:
+        if self.process_noise < 0.0 or self.initial_std < 0.0:
+            raise ValueError("process_noise and initial_std must be >= 0")
+        if not (self.gate_sigma > 0.0 and self.step_sigma > 0.0):
+            raise ValueError("gate_sigma and step_sigma must be > 0")
+        if self.step_frames < 2:
+            raise ValueError("step_frames must be >= 2")
+        if not self.converged_std > 0.0 or self.hold_after_s < 0.0:
+            raise ValueError("converged_std must be > 0 and hold_after_s >= 0")
+
+
+@dataclass(frozen=True)
+class ScaleUpdate:
+    """What one observation did to the filter.
+
+    Attributes:
+        accepted: it entered the estimate.
+        gated: it was rejected as an outlier.
+        step: it completed a detected step (the filter jumped).
+        innovation_sigma: innovation in standard deviations.
+    """
+
+    accepted: bool
+    gated: bool
+    step: bool
+    innovation_sigma: float
+
+
+class ScaleFilter:
+    """Kalman filter on ln s with gating, step recovery and hold (see the module docstring).
+
+    Args:
+        options: the settings.
+    """
+
+    def __init__(self, options: ScaleFilterOptions | None = None) -> None:
+        self.options = options or ScaleFilterOptions()
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget the estimate (a clock jump, a new sequence)."""
+        self._log_scale = float("nan")
+        self._variance = float("inf")
+        self._stamp_ns: int | None = None
+        self._last_accepted_ns: int | None = None
+        self._converged = False
+        self._recovering = False
+        self._recent: deque[tuple[float, float, float]] = deque(maxlen=self.options.step_frames)
+        self.gated = 0
+        self.steps = 0
+        self.accepted = 0
+
+    @property
+    def estimate(self) -> ScaleEstimate:
+        """The current estimate."""
+        std = float(np.sqrt(self._variance)) if np.isfinite(self._variance) else float("inf")
+        if not np.isfinite(self._log_scale):
+            state = ScaleState.INITIALIZING
+        elif self._recovering:
+            state = ScaleState.RECOVERING
+        elif not self._converged:
+            state = ScaleState.INITIALIZING
+        elif self._holding():
+            state = ScaleState.HOLDING
+        else:
+            state = ScaleState.TRACKING
+        value = float(np.exp(self._log_scale)) if np.isfinite(self._log_scale) else float("nan")
+        return ScaleEstimate(value, std, state, self._converged)
+
+    def _holding(self) -> bool:
+        if self._stamp_ns is None or self._last_accepted_ns is None:
+            return True
+        idle_s = (self._stamp_ns - self._last_accepted_ns) / NS_PER_S
+        return idle_s > self.options.hold_after_s
+
+    def predict(self, stamp_ns: int) -> None:
+        """Advance to ``stamp_ns`` (integer ns, not before the last one)."""
+        if self._stamp_ns is not None and np.isfinite(self._variance):
+            dt = max(0.0, (stamp_ns - self._stamp_ns) / NS_PER_S)
+            self._variance += self.options.process_noise**2 * dt
+        self._stamp_ns = stamp_ns
+
+    def update(self, observation: ScaleObservation, stamp_ns: int) -> ScaleUpdate:
+        """Predict to ``stamp_ns`` and fuse one observation."""
+        self.predict(stamp_ns)
+        opts = self.options
+        z, r = observation.log_scale, observation.std**2
+        if not np.isfinite(self._log_scale):
+            self._log_scale = z
+            self._variance = max(r, opts.initial_std**2)
+            self._accept(stamp_ns)
+            return ScaleUpdate(True, False, False, 0.0)
+        innovation = z - self._log_scale
+        s = self._variance + r
+        sigma = float(innovation / np.sqrt(s))
+        self._recent.append((innovation, sigma, z))
+        if self._step_detected():
+            values = np.array([entry[2] for entry in self._recent])
+            self._log_scale = float(np.median(values))
+            self._variance = float(np.var(values) + r)
+            self._recent.clear()
+            self._recovering = True
+            self.steps += 1
+            self._accept(stamp_ns)
+            return ScaleUpdate(True, False, True, sigma)
+        if abs(sigma) > opts.gate_sigma:
+            self.gated += 1
+            return ScaleUpdate(False, True, False, sigma)
+        gain = self._variance / s
+        self._log_scale += gain * innovation
+        self._variance *= 1.0 - gain
+        self._accept(stamp_ns)
+        return ScaleUpdate(True, False, False, sigma)
+
+    def _accept(self, stamp_ns: int) -> None:
+        self.accepted += 1
+        self._last_accepted_ns = stamp_ns
+        if self._variance < self.options.converged_std**2:
+            self._converged = True
+            self._recovering = False
+
+    def _step_detected(self) -> bool:
+        if len(self._recent) < self.options.step_frames:
+            return False
+        sigmas = np.array([entry[1] for entry in self._recent])
+        same_sign = bool(np.all(sigmas > 0.0) or np.all(sigmas < 0.0))
+        return same_sign and abs(float(sigmas.mean())) > self.options.step_sigma

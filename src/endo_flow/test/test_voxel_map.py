@@ -1,0 +1,69 @@
+"""Voxel map: running means, bounded memory with eviction, PLY export."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from endo_flow.errors import MapExportError
+from endo_flow.voxel_map import VoxelMap, write_ply
+
+
+def test_running_means_per_voxel():
+    m = VoxelMap(voxel_size_m=1e-3, max_voxels=100)
+    centre = np.array([0.0105, -0.0205, 0.0505])  # voxel centres
+    rng = np.random.default_rng(0)
+    pts = centre + rng.uniform(-4e-4, 4e-4, (1000, 3))
+    grey = rng.uniform(0, 255, 1000)
+    m.insert(pts[:500], grey[:500], np.tile([0.0, 0.0, -1.0], (500, 1)))
+    m.insert(pts[500:], grey[500:])
+    assert len(m) == 1
+    cloud = m.points()
+    np.testing.assert_allclose(cloud.points[0], pts.mean(axis=0), atol=1e-6)
+    assert abs(cloud.grey[0] - grey.mean()) < 1e-3
+    assert cloud.count[0] == 1000
+    np.testing.assert_allclose(cloud.normals[0], [0.0, 0.0, -1.0], atol=1e-6)
+    m.insert(np.array([[np.nan, 0.0, 0.0], [0.1, 0.1, 0.1]]))
+    assert len(m) == 2
+
+
+def test_capacity_is_bounded_and_old_voxels_go_first():
+    m = VoxelMap(voxel_size_m=1e-3, max_voxels=1000, evict_to=0.5)
+    nbytes = m.nbytes
+    for frame in range(10):  # 10 frames of 400 new voxels each
+        x = (np.arange(400) + 400 * frame) * 1e-3 + 5e-4
+        m.insert(np.stack([x, np.zeros(400), np.zeros(400)], axis=1))
+        assert len(m) <= 1000
+    assert m.nbytes == nbytes
+    assert m.evicted > 0
+    newest = m.points().points[:, 0]
+    assert newest.max() > 3.9  # the last frame is there
+    assert newest.min() > 2.0  # the first frames were evicted
+    m.reset()
+    assert len(m) == 0
+
+
+def test_ply_binary_round_trip(tmp_path):
+    rng = np.random.default_rng(1)
+    pts = rng.normal(0.0, 0.05, (37, 3)).astype(np.float32)
+    normals = rng.normal(0.0, 1.0, (37, 3)).astype(np.float32)
+    grey = rng.uniform(0, 255, 37)
+    count = np.arange(37, dtype=np.uint32)
+    path = tmp_path / "map.ply"
+    assert write_ply(path, pts, normals=normals, grey=grey, count=count) == 37
+    data = path.read_bytes()
+    header, body = data.split(b"end_header\n", 1)
+    lines = header.decode().splitlines()
+    assert lines[:2] == ["ply", "format binary_little_endian 1.0"]
+    assert "element vertex 37" in lines
+    dtype = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("nx", "<f4"), ("ny", "<f4"),
+                      ("nz", "<f4"), ("red", "u1"), ("green", "u1"), ("blue", "u1"),
+                      ("count", "<u4")])
+    vertex = np.frombuffer(body, dtype=dtype)
+    np.testing.assert_array_equal(np.stack([vertex["x"], vertex["y"], vertex["z"]], 1), pts)
+    np.testing.assert_array_equal(vertex["red"], np.rint(grey).astype(np.uint8))
+    np.testing.assert_array_equal(vertex["count"], count)
+    with pytest.raises(MapExportError):
+        write_ply(path, np.empty((0, 3)))
+    with pytest.raises(MapExportError):
+        write_ply(tmp_path / "missing" / "x.ply", pts)
