@@ -1,0 +1,146 @@
+"""``endo-process``: a recording in, the live graph's outputs out, with a summary.
+
+Exit status:
+
+* 0: every frame of the recording was processed;
+* 1: the recording is truncated or damaged: everything up to the damage was
+  processed and written, and one line on stderr says where the cut is;
+* 2: an input or option is unusable (missing file or topic, no camera_info,
+  a bad parameter file, an existing output): one line on stderr, nothing
+  written;
+* 130: stopped by Ctrl-C or SIGTERM; the output holds every frame processed
+  until then and is a complete, finalised MCAP.
+"""
+
+from __future__ import annotations
+
+import argparse
+import signal
+import sys
+import threading
+from collections.abc import Sequence
+from pathlib import Path
+from types import FrameType
+
+from endo_io.bag import BagError
+from endo_io.errors import Endo3dError
+from endo_process.inputs import InputTopics
+from endo_process.runner import ProcessOptions, ProcessReport, process_bag
+from endo_process.summary import format_report
+
+PROGRAM = "endo-process"
+EXIT_OK, EXIT_DAMAGED, EXIT_INPUT, EXIT_INTERRUPTED = 0, 1, 2, 130
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The command line."""
+    defaults = InputTopics()
+    parser = argparse.ArgumentParser(
+        prog=PROGRAM,
+        description="Run the endo3d graph's cores offline over a recording (no DDS): "
+        "photometric correction, shape from shading, tracker poses via hand-eye, "
+        "flow and scale; write the live graph's topics to an MCAP and print a summary.",
+    )
+    parser.add_argument("bag", type=Path, help="rosbag2 MCAP file or bag directory")
+    parser.add_argument("-o", "--output", type=Path, required=True, help="output .mcap")
+    parser.add_argument("--calibration", type=Path, required=True,
+                        help="photometric.yaml (endo-calibrate)")
+    parser.add_argument("--handeye", type=Path, required=True, help="handeye.yaml (endo-handeye)")
+    parser.add_argument("--params", type=Path,
+                        help="ROS 2 parameter file of the nodes (sfs, tracker_bridge, ...)")
+    parser.add_argument("--solve-scale", type=float,
+                        help="the SFS node's solve_scale (overrides --params)")
+    parser.add_argument("--image-topic", default=defaults.image)
+    parser.add_argument("--camera-info-topic", default=defaults.camera_info)
+    parser.add_argument("--tracker-topic", default=defaults.tracker,
+                        help="the tracker driver's PoseStamped marker poses")
+    parser.add_argument("--camera-info", type=Path,
+                        help="camera YAML (camera_calibration format) instead of the topic")
+    parser.add_argument("--ply", type=Path, help="write the fused map as PLY")
+    parser.add_argument("--jobs", type=int, default=2,
+                        help="worker processes for correction + SFS (default 2; 1: one chain "
+                        "in this process)")
+    parser.add_argument("--chunk-frames", type=int, default=32,
+                        help="consecutive frames per worker chunk with --jobs > 1")
+    parser.add_argument("--compression", choices=("zstd", "lz4", "none"), default="lz4",
+                        help="output chunk compression (default lz4: fast)")
+    parser.add_argument("--max-frames", type=int, help="process only the first N images")
+    parser.add_argument("--overwrite", action="store_true", help="replace an existing output")
+    parser.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    return parser  # fmt: skip
+
+
+class _StopOnSignal:
+    """SIGINT/SIGTERM set a flag the frame loop checks; a second SIGINT interrupts at once."""
+
+    def __init__(self) -> None:
+        self.event = threading.Event()
+        self._previous = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
+
+    def _handle(self, signum: int, frame: FrameType | None) -> None:
+        if self.event.is_set() and signum == signal.SIGINT:
+            raise KeyboardInterrupt
+        self.event.set()
+
+    def __enter__(self) -> threading.Event:
+        for signum in self._previous:
+            signal.signal(signum, self._handle)
+        return self.event
+
+    def __exit__(self, *exc: object) -> None:
+        for signum, handler in self._previous.items():
+            signal.signal(signum, handler)
+
+
+def _options(args: argparse.Namespace) -> ProcessOptions:
+    if args.jobs < 1:
+        raise Endo3dError(f"--jobs must be >= 1, got {args.jobs}")
+    if args.chunk_frames < 1:
+        raise Endo3dError(f"--chunk-frames must be >= 1, got {args.chunk_frames}")
+    for name in ("bag", "calibration", "handeye", "params", "camera_info"):
+        path = getattr(args, name)
+        if path is not None and not path.exists():
+            raise Endo3dError(f"{path}: no such file (--{name.replace('_', '-')})")
+    if args.output.exists():
+        if not args.overwrite:
+            raise Endo3dError(f"{args.output} exists (use --overwrite to replace it)")
+        args.output.unlink()
+    return ProcessOptions(
+        bag=args.bag, output=args.output, calibration=args.calibration, handeye=args.handeye,
+        params=args.params, solve_scale=args.solve_scale,
+        topics=InputTopics(args.image_topic, args.camera_info_topic, args.tracker_topic),
+        camera_info=args.camera_info, ply=args.ply, jobs=args.jobs,
+        chunk_frames=args.chunk_frames, compression=args.compression,
+        progress=not args.quiet, max_frames=args.max_frames,
+    )  # fmt: skip
+
+
+def exit_status(report: ProcessReport) -> int:
+    """The documented exit status of a finished run."""
+    if report.interrupted:
+        return EXIT_INTERRUPTED
+    return EXIT_DAMAGED if report.damage else EXIT_OK
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Console entry point of ``endo-process``."""
+    args = build_parser().parse_args(argv)
+    try:
+        options = _options(args)
+        with _StopOnSignal() as stop:
+            report = process_bag(options, stop)
+    except (Endo3dError, BagError) as error:
+        print(f"{PROGRAM}: {error}", file=sys.stderr)
+        return EXIT_INPUT
+    print(format_report(report))
+    if report.damage:
+        print(f"{PROGRAM}: input cut short, processed up to the damage: {report.damage}",
+              file=sys.stderr)  # fmt: skip
+    if report.interrupted:
+        print(f"{PROGRAM}: interrupted; {options.output} holds the "
+              f"{report.frames_shaded} frames processed", file=sys.stderr)  # fmt: skip
+    return exit_status(report)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

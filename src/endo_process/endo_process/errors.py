@@ -1,0 +1,25 @@
+"""Why ``endo-process`` cannot start, or stopped early: one class per cause."""
+
+from __future__ import annotations
+
+from endo_io.errors import Endo3dError
+
+
+class ProcessInputError(Endo3dError):
+    """An input (bag, calibration, parameter file, option) is unusable; nothing was processed."""
+
+
+class MissingTopicError(ProcessInputError):
+    """The bag has no message on a topic the processing needs."""
+
+
+class MissingCameraInfoError(ProcessInputError):
+    """Neither the bag nor ``--camera-info`` gives the camera model."""
+
+
+class ParameterFileError(ProcessInputError):
+    """The ``--params`` file cannot be read or holds a value of the wrong kind."""
+
+
+class WorkerError(Endo3dError):
+    """A shading worker process failed; the message carries its error."""

@@ -1,0 +1,102 @@
+"""The output recording: the live graph's topics in one rosbag2 MCAP, in time order.
+
+Every message is logged at its header stamp (the image's stamp for the
+per-frame outputs, the camera-clock stamp for poses), so the file replays
+on the recording's own timeline; ground truth is copied with its original
+log time. Small streams (poses, ground truth) are held back and written
+just before the first frame output that is later, so the file is in log-time
+order as a recorder would write it.
+
+The writer is flushed every ``flush_every`` frames: after a crash (SIGKILL,
+power cut) every flushed chunk reads back. Ctrl-C and SIGTERM finalise the
+file normally (:mod:`endo_process.cli`).
+"""
+
+from __future__ import annotations
+
+import heapq
+from collections import Counter
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+from endo_io.bag import BagMessage, BagWriter, TopicInfo
+from endo_io.bag.serde import msgtype_of, serialize
+
+#: Flush the writer (close the current chunk) every this many frames.
+DEFAULT_FLUSH_EVERY = 30
+
+
+class OutputBag:
+    """A :class:`BagWriter` with a merge of held-back small streams.
+
+    Args:
+        path: the output ``.mcap`` (never overwritten: BagError).
+        compression: chunk compression, zstd | lz4 | none.
+        copied_topics: topics copied from the input, name -> TopicInfo
+            (their type and QoS offers are kept).
+    """
+
+    def __init__(
+        self, path: Path, compression: str, copied_topics: dict[str, TopicInfo] | None = None
+    ) -> None:
+        self.writer = BagWriter(path, compression=compression)
+        self.path = Path(path)
+        self.counts: Counter[str] = Counter()
+        self._held: list[tuple[int, int, str, bytes]] = []
+        self._order = 0
+        for name, info in (copied_topics or {}).items():
+            self.writer.add_topic(name, info.msgtype, info.offered_qos_profiles)
+            self.counts[name] = 0
+
+    def hold(self, topic: str, message: Any, log_time_ns: int) -> None:
+        """Queue a small message; it is written once frame outputs pass its time."""
+        if topic not in self.counts:
+            self.writer.add_topic(topic, msgtype_of(message))
+            self.counts[topic] = 0
+        heapq.heappush(self._held, (int(log_time_ns), self._order, topic, serialize(message)))
+        self._order += 1
+
+    def copy_until(
+        self, messages: Iterator[BagMessage], pending: list[BagMessage], until_ns: int
+    ) -> None:
+        """Move copied messages with log time <= ``until_ns`` from the stream into the queue.
+
+        ``pending`` holds the one message read past ``until_ns`` between calls.
+        """
+        while True:
+            if not pending:
+                message = next(messages, None)
+                if message is None:
+                    return
+                pending.append(message)
+            message = pending[0]
+            if message.log_time_ns > until_ns:
+                return
+            pending.pop()
+            heapq.heappush(
+                self._held, (message.log_time_ns, self._order, message.topic, bytes(message.data))
+            )
+            self._order += 1
+
+    def release(self, until_ns: int | None = None) -> None:
+        """Write the held messages with log time <= ``until_ns`` (all when None)."""
+        while self._held and (until_ns is None or self._held[0][0] <= until_ns):
+            log_time, _, topic, data = heapq.heappop(self._held)
+            self.writer.write(topic, data, log_time)
+            self.counts[topic] += 1
+
+    def write(self, topic: str, message: Any, log_time_ns: int) -> None:
+        """Write one frame output now, after every held message that is not later."""
+        self.release(log_time_ns)
+        self.writer.write_message(topic, message, log_time_ns)
+        self.counts[topic] += 1
+
+    def flush(self) -> None:
+        """Close the current chunk so that it survives a crash."""
+        self.writer.flush()
+
+    def close(self) -> None:
+        """Write what is held, then finalise the file (summary, footer); idempotent."""
+        self.release()
+        self.writer.close()

@@ -1,0 +1,182 @@
+"""Correction + SFS over a whole recording, in order, on one or several cores.
+
+Shape from shading is the cost of a run, and each frame's solve is seeded by
+the previous frame's solution, so frames cannot simply be handed out one by
+one. With ``jobs`` > 1 the recording is cut into chunks of ``chunk_frames``
+consecutive frames; chunk ``c`` goes to worker process ``c mod jobs``, which
+solves its frames in order, warm-started within the chunk and cold at the
+chunk's first frame. Results come back in frame order. The warm start only
+changes where the solver starts, not what it converges to, so the depth
+agrees with a single chain to the solver's tolerance (tested).
+
+With ``jobs`` == 1 everything runs in the calling process, as one chain (the
+SFS node's own ``threads`` parameter then decides how many threads a solve
+uses). With ``jobs`` > 1 each worker solves with one thread: the cores are
+taken by the workers.
+
+Memory is bounded: at most ``jobs × chunk_frames + jobs`` frames are in flight.
+"""
+
+from __future__ import annotations
+
+import multiprocessing
+import queue
+import signal
+import traceback
+from collections import deque
+from collections.abc import Iterable, Iterator
+from dataclasses import dataclass
+from multiprocessing.context import SpawnProcess
+from pathlib import Path
+from typing import Any
+
+from endo_calib.calibration import PhotometricCalibration
+from endo_process.errors import WorkerError
+from endo_process.shading import RawFrame, ShadedFrame, ShadingStage
+
+#: Frames per chunk when the recording is split over worker processes.
+DEFAULT_CHUNK_FRAMES = 32
+#: Seconds between checks that a worker is still alive while waiting for it.
+_POLL_S = 0.5
+
+
+@dataclass(frozen=True)
+class StageConfig:
+    """What a worker needs to build its own :class:`ShadingStage` (picklable)."""
+
+    calibration_path: Path
+    channel: str
+    sfs_parameters: dict[str, Any]
+
+    def build(self) -> ShadingStage:
+        """Load the calibration and return a stage."""
+        calibration = PhotometricCalibration.load(self.calibration_path)
+        return ShadingStage(calibration, self.channel, self.sfs_parameters)
+
+
+def _worker(config: StageConfig, inbox: Any, outbox: Any) -> None:
+    """Worker process body: frames in, shaded frames out, None ends it."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent decides when to stop
+    try:
+        stage = config.build()
+        while (frame := inbox.get()) is not None:
+            outbox.put(stage.process(frame))
+    except BaseException:  # reported to the parent, which raises WorkerError
+        outbox.put(("error", traceback.format_exc(limit=4)))
+
+
+class ShadingPool:
+    """Ordered correction + SFS of a stream of frames.
+
+    Args:
+        config: calibration file, channel and SFS parameters.
+        jobs: worker processes (1: in this process).
+        chunk_frames: consecutive frames per chunk with ``jobs`` > 1.
+        stage: with ``jobs`` == 1, an already built stage to use.
+    """
+
+    def __init__(
+        self,
+        config: StageConfig,
+        jobs: int = 1,
+        chunk_frames: int = DEFAULT_CHUNK_FRAMES,
+        stage: ShadingStage | None = None,
+    ) -> None:
+        if jobs < 1 or chunk_frames < 1:
+            raise ValueError("jobs and chunk_frames must be >= 1")
+        self.jobs = jobs
+        self.chunk_frames = chunk_frames
+        self._stage: ShadingStage | None = None
+        self._workers: list[SpawnProcess] = []
+        self._inboxes: list[Any] = []
+        self._outboxes: list[Any] = []
+        if jobs == 1:
+            self._stage = stage or config.build()
+            return
+        # spawn, not fork: the parent may already run numba or tqdm threads.
+        context = multiprocessing.get_context("spawn")
+        worker_config = StageConfig(
+            config.calibration_path, config.channel, dict(config.sfs_parameters, threads=1)
+        )
+        for _ in range(jobs):
+            inbox, outbox = context.Queue(), context.Queue()
+            process = context.Process(
+                target=_worker, args=(worker_config, inbox, outbox), daemon=True
+            )
+            process.start()
+            self._workers.append(process)
+            self._inboxes.append(inbox)
+            self._outboxes.append(outbox)
+
+    def _worker_of(self, index: int) -> int:
+        return (index // self.chunk_frames) % self.jobs
+
+    def _receive(self, worker: int) -> ShadedFrame:
+        while True:
+            try:
+                item = self._outboxes[worker].get(timeout=_POLL_S)
+            except queue.Empty:
+                if not self._workers[worker].is_alive():
+                    raise WorkerError(
+                        f"shading worker {worker} exited with code "
+                        f"{self._workers[worker].exitcode}"
+                    ) from None
+                continue
+            if isinstance(item, tuple):
+                raise WorkerError(f"shading worker {worker} failed:\n{item[1]}")
+            return item
+
+    def map(self, frames: Iterable[RawFrame]) -> Iterator[ShadedFrame]:
+        """Yield the shaded frames in the order of ``frames``.
+
+        ``frames[k].index`` must be k (the chunking follows it); frames are
+        pulled from the iterable only as far ahead as the workers need.
+        """
+        if self._stage is not None:
+            for frame in frames:
+                yield self._stage.process(frame)
+            return
+        limit = self.jobs * self.chunk_frames + self.jobs
+        pending: deque[int] = deque()
+        source = iter(frames)
+        exhausted = False
+        while True:
+            while not exhausted and len(pending) < limit:
+                frame = next(source, None)
+                if frame is None:
+                    exhausted = True
+                    break
+                start = frame.index % self.chunk_frames == 0
+                if start != frame.chunk_start:
+                    frame = RawFrame(frame.index, frame.stamp_ns, frame.frame_id, frame.raw,
+                                     frame.encoding, frame.camera, start)  # fmt: skip
+                self._inboxes[self._worker_of(frame.index)].put(frame)
+                pending.append(frame.index)
+            if not pending:
+                return
+            yield self._receive(self._worker_of(pending.popleft()))
+
+    def close(self) -> None:
+        """Stop the workers (idempotent); frames still queued are abandoned."""
+        for inbox in self._inboxes:
+            try:
+                inbox.put(None)
+            except (OSError, ValueError):
+                pass
+        for process in self._workers:
+            process.join(timeout=2.0)
+            if process.is_alive():
+                process.terminate()
+                process.join(timeout=2.0)
+        for box in self._inboxes + self._outboxes:
+            box.cancel_join_thread()
+            box.close()
+        self._workers.clear()
+        self._inboxes.clear()
+        self._outboxes.clear()
+
+    def __enter__(self) -> ShadingPool:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()

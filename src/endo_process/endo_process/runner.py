@@ -1,0 +1,324 @@
+"""One offline run: a recording in, the live graph's outputs out.
+
+:func:`process_bag` is what ``endo-process`` runs. In order:
+
+1. the nodes' parameters (:mod:`endo_process.settings`), the photometric
+   and hand–eye calibrations, and the recording's small streams
+   (:mod:`endo_process.inputs`);
+2. every tracker pose through the bridge's chain
+   (:class:`endo_tracker_bridge.chain.CameraPoseChain`: gate, hand–eye,
+   ``T_world_tracker``, clock offset), written as ``/endoscope/pose``;
+3. every image through the correction and SFS cores
+   (:class:`endo_process.parallel.ShadingPool`, one chain or chunks on
+   several processes), written as ``/endoscope/image_corrected``,
+   ``/endoscope/depth_relative`` and ``/endoscope/camera_info``;
+4. the camera pose at each image stamp from a
+   :class:`endo_io.pose_buffer.PoseBuffer` fed with those poses in stamp
+   order, as a live consumer sees them; frames without one are counted.
+
+Ground truth in the input is copied through. A stop request (Ctrl-C,
+SIGTERM) ends the run after the current frame and the output is finalised.
+"""
+
+from __future__ import annotations
+
+import statistics
+import threading
+import time
+from collections import Counter
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from sensor_msgs.msg import Image
+
+from endo_calib.calibration import PhotometricCalibration
+from endo_calib.errors import CalibrationError
+from endo_io import topics
+from endo_io.bag import BagMessage, BagReader
+from endo_io.errors import Endo3dError, PoseLookupError
+from endo_io.image import array_to_image, image_to_array
+from endo_io.pose import matrix_to_pose
+from endo_io.pose_buffer import PoseBuffer
+from endo_io.stamp import NS_PER_S, stamp_to_ns
+from endo_process.errors import ProcessInputError
+from endo_process.inputs import InputTopics, RecordingInputs, camera_at, iter_ground_truth, \
+    iter_images, open_recording
+from endo_process.output import DEFAULT_FLUSH_EVERY, OutputBag
+from endo_process.parallel import DEFAULT_CHUNK_FRAMES, ShadingPool, StageConfig
+from endo_process.progress import Progress
+from endo_process.settings import ProcessSettings, load_settings
+from endo_process.shading import RawFrame, ShadedFrame, ShadingStage
+from endo_tracker_bridge.chain import CameraPose, CameraPoseChain
+from endo_tracker_bridge.errors import HandEyeFileError
+from endo_tracker_bridge.handeye_file import HandEyeCalibration
+from endo_tracker_bridge.sources.ros import sample_from_pose_stamped
+
+
+@dataclass(frozen=True)
+class ProcessOptions:
+    """The command line of one run (see ``endo-process --help``)."""
+
+    bag: Path
+    output: Path
+    calibration: Path
+    handeye: Path
+    params: Path | None = None
+    solve_scale: float | None = None
+    topics: InputTopics = field(default_factory=InputTopics)
+    camera_info: Path | None = None
+    ply: Path | None = None
+    jobs: int = 1
+    chunk_frames: int = DEFAULT_CHUNK_FRAMES
+    compression: str = "zstd"
+    progress: bool = True
+    flush_every: int = DEFAULT_FLUSH_EVERY
+    max_frames: int | None = None
+
+
+@dataclass
+class ProcessReport:
+    """What a run did, for the summary table and the tests.
+
+    Counters are per cause (error class name). ``seconds`` is the wall time
+    of the frame loop, ``bag_seconds`` the recording time it covered.
+    """
+
+    frames_in: int = 0
+    frames_total: int = 0
+    frames_shaded: int = 0
+    frames_with_pose: int = 0
+    dropped: Counter[str] = field(default_factory=Counter)
+    without_pose: Counter[str] = field(default_factory=Counter)
+    tracker_rejected: Counter[str] = field(default_factory=Counter)
+    tracker_samples: int = 0
+    poses_written: int = 0
+    written: Counter[str] = field(default_factory=Counter)
+    seconds: float = 0.0
+    setup_seconds: float = 0.0
+    bag_seconds: float = 0.0
+    solve_ms: list[float] = field(default_factory=list)
+    damage: str | None = None
+    interrupted: bool = False
+    output: Path | None = None
+
+    @property
+    def frames_per_second(self) -> float:
+        """Frames through the whole pipeline per wall second."""
+        return self.frames_in / self.seconds if self.seconds > 0 else 0.0
+
+    @property
+    def real_time_factor(self) -> float:
+        """Recording seconds processed per wall second (>1: faster than real time)."""
+        return self.bag_seconds / self.seconds if self.seconds > 0 else 0.0
+
+    @property
+    def median_solve_ms(self) -> float:
+        """Median SFS solve time per frame."""
+        return statistics.median(self.solve_ms) if self.solve_ms else 0.0
+
+
+def _load_calibrations(
+    options: ProcessOptions,
+) -> tuple[PhotometricCalibration, HandEyeCalibration]:
+    try:
+        photometric = PhotometricCalibration.load(options.calibration)
+    except CalibrationError as error:
+        raise ProcessInputError(f"--calibration: {error}") from None
+    try:
+        handeye = HandEyeCalibration.load(options.handeye)
+    except (HandEyeFileError, OSError) as error:
+        raise ProcessInputError(f"--handeye: {error}") from None
+    return photometric, handeye
+
+
+def camera_poses(
+    inputs: RecordingInputs,
+    settings: ProcessSettings,
+    handeye: HandEyeCalibration,
+    report: ProcessReport,
+) -> list[CameraPose]:
+    """Every recorded marker pose through the bridge's chain, as the ``ros`` source does."""
+    chain = CameraPoseChain(handeye, settings.T_world_tracker, settings.speed_limits)
+    unit = settings.tracker_unit
+    bridge = settings.bridge
+    poses: list[CameraPose] = []
+    for msg in inputs.tracker_poses:
+        report.tracker_samples += 1
+        try:
+            sample = sample_from_pose_stamped(
+                msg, unit, str(bridge["ros_frame_id"]), str(bridge["tool_id"]),
+                float(bridge["rotation_tolerance"]),
+            )  # fmt: skip
+            poses.append(chain.accept(sample))
+        except Endo3dError as error:
+            report.tracker_rejected[type(error).__name__] += 1
+    return poses
+
+
+class _PoseFeed:
+    """Feeds a PoseBuffer in stamp order up to just past each query, as poses arrive live."""
+
+    def __init__(self, poses: list[CameraPose]) -> None:
+        self._poses = sorted(poses, key=lambda p: p.stamp_ns)
+        self._next = 0
+        self.buffer = PoseBuffer()
+
+    def at(self, stamp_ns: int) -> np.ndarray:
+        """T_world_camera at ``stamp_ns``; raises PoseLookupError when there is none."""
+        while self._next < len(self._poses):
+            pose = self._poses[self._next]
+            if self.buffer.newest_ns is not None and self.buffer.newest_ns > stamp_ns:
+                break
+            self.buffer.insert(pose.stamp_ns, pose.T_world_camera)
+            self._next += 1
+        return self.buffer.query(stamp_ns)
+
+
+def _raw_frames(
+    inputs: RecordingInputs,
+    images: Iterator[Image],
+    report: ProcessReport,
+    stop: threading.Event,
+    max_frames: int | None,
+) -> Iterator[RawFrame]:
+    """Decoded images paired with their camera; unusable ones are counted and skipped."""
+    index = 0
+    for msg in images:
+        if stop.is_set() or (max_frames is not None and report.frames_in >= max_frames):
+            return
+        report.frames_in += 1
+        stamp_ns = stamp_to_ns(msg.header.stamp)
+        try:
+            camera = camera_at(inputs, stamp_ns)
+            if camera is None:
+                report.dropped["NoCameraInfoError"] += 1
+                continue
+            raw = image_to_array(msg)
+        except Endo3dError as error:
+            report.dropped[type(error).__name__] += 1
+            continue
+        yield RawFrame(index, stamp_ns, msg.header.frame_id, raw, msg.encoding, camera)
+        index += 1
+
+
+def _write_frame(
+    output: OutputBag, inputs: RecordingInputs, shaded: ShadedFrame, report: ProcessReport
+) -> None:
+    stamp = shaded.stamp_ns
+    info = inputs.camera_infos.get(stamp) if inputs.fixed_camera is None else None
+    if info is None:
+        info = shaded.camera.to_camera_info(stamp)
+        info.header.frame_id = shaded.frame_id or shaded.camera.frame_id
+    output.write(topics.CAMERA_INFO, info, stamp)
+    if shaded.irradiance is not None:
+        encoding = "32FC3" if shaded.irradiance.ndim == 3 else "32FC1"
+        output.write(
+            topics.IMAGE_CORRECTED,
+            array_to_image(shaded.irradiance, encoding, stamp, shaded.frame_id),
+            stamp,
+        )
+    if shaded.depth_relative is not None:
+        output.write(
+            topics.DEPTH_RELATIVE,
+            array_to_image(shaded.depth_relative, "32FC1", stamp, shaded.frame_id),
+            stamp,
+        )
+        report.frames_shaded += 1
+    if shaded.dropped is not None:
+        report.dropped[shaded.dropped[0]] += 1
+    if shaded.solve_ms > 0.0:
+        report.solve_ms.append(shaded.solve_ms)
+
+
+def process_bag(options: ProcessOptions, stop: threading.Event | None = None) -> ProcessReport:
+    """Run the offline graph over ``options.bag`` into ``options.output``.
+
+    Args:
+        options: the run's inputs, outputs and settings.
+        stop: set it (from a signal handler) to end the run after the
+            current frame; the output is finalised either way.
+
+    Returns:
+        The run's report (``damage`` set when the bag was cut short,
+        ``interrupted`` when ``stop`` ended it).
+
+    Raises:
+        ProcessInputError: (and subclasses) an input is unusable; nothing
+            was written.
+        BagError: the bag cannot be opened, or the output exists already.
+    """
+    stop = stop or threading.Event()
+    setup_start = time.perf_counter()
+    settings = load_settings(options.params, solve_scale=options.solve_scale)
+    photometric, handeye = _load_calibrations(options)
+    inputs = open_recording(options.bag, options.topics, options.camera_info)
+    report = ProcessReport(frames_total=inputs.frame_count, output=options.output)
+    poses = camera_poses(inputs, settings, handeye, report)
+    with BagReader(options.bag) as reader:
+        copied = {name: reader.topics[name] for name in inputs.ground_truth}
+    output = OutputBag(options.output, options.compression, copied)
+    world_frame = str(settings.bridge["world_frame"])
+    tracker_frame = str(settings.bridge["tracker_frame"])
+    for pose in poses:
+        output.hold(topics.CAMERA_POSE,
+                    matrix_to_pose(pose.T_world_camera, pose.stamp_ns, world_frame),
+                    pose.stamp_ns)  # fmt: skip
+        output.hold(topics.MARKER_POSE,
+                    matrix_to_pose(pose.sample.T_tracker_marker, pose.sample.stamp_ns,
+                                   tracker_frame),
+                    pose.sample.stamp_ns)  # fmt: skip
+    report.poses_written = len(poses)
+    config = StageConfig(options.calibration, settings.channel, settings.sfs)
+    stage = ShadingStage(photometric, settings.channel, settings.sfs) if options.jobs == 1 else None
+    feed = _PoseFeed(poses)
+    truth: Iterator[BagMessage] = iter_ground_truth(inputs)
+    truth_pending: list[BagMessage] = []
+    total = inputs.frame_count if options.max_frames is None else min(
+        inputs.frame_count, options.max_frames
+    )
+    first_stamp: int | None = None
+    last_stamp: int | None = None
+    pool = ShadingPool(config, options.jobs, options.chunk_frames, stage)
+    progress = Progress(total, enabled=options.progress)
+    report.setup_seconds = time.perf_counter() - setup_start
+    start = time.perf_counter()
+    try:
+        frames = _raw_frames(
+            inputs, iter_images(inputs, options.topics.image), report, stop, options.max_frames
+        )
+        for count, shaded in enumerate(pool.map(frames), start=1):
+            output.copy_until(truth, truth_pending, shaded.stamp_ns)
+            _write_frame(output, inputs, shaded, report)
+            try:
+                feed.at(shaded.stamp_ns)
+                report.frames_with_pose += 1
+            except PoseLookupError as error:
+                report.without_pose[type(error).__name__] += 1
+            first_stamp = shaded.stamp_ns if first_stamp is None else first_stamp
+            last_stamp = shaded.stamp_ns
+            if count % options.flush_every == 0:
+                output.flush()
+            progress.update(report.frames_in)
+            if stop.is_set():
+                report.interrupted = True
+                break
+    except KeyboardInterrupt:
+        report.interrupted = True
+    finally:
+        report.seconds = time.perf_counter() - start
+        pool.close()
+        progress.close()
+        if not report.interrupted:
+            output.copy_until(truth, truth_pending, np.iinfo(np.int64).max)
+        output.close()
+    report.interrupted = report.interrupted or stop.is_set()
+    report.written = Counter(output.counts)
+    report.damage = inputs.damage
+    if first_stamp is not None and last_stamp is not None:
+        frame_period = 0 if report.frames_in < 2 else (last_stamp - first_stamp) / max(
+            report.frames_in - 1, 1
+        )
+        report.bag_seconds = (last_stamp - first_stamp + frame_period) / NS_PER_S
+    return report

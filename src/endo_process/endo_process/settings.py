@@ -1,0 +1,184 @@
+"""The nodes' parameters, for an offline run: the live defaults, a ROS 2 parameter file over them.
+
+``endo-process --params endo3d.yaml`` reads the same file a launch passes
+to the nodes (``ros2 run ... --ros-args --params-file endo3d.yaml``)::
+
+    photometric_correction:
+      ros__parameters: {channel: luminance}
+    sfs:
+      ros__parameters: {model: near_light, roughness: 0.3, solve_scale: 0.5}
+    tracker_bridge:
+      ros__parameters:
+        T_world_tracker: [1.0, 0.0, 0.0, 0.0,  0.0, 1.0, 0.0, 0.0,  0.0, 0.0, 1.0, 0.0,  0.0, 0.0, 0.0, 1.0]
+    flow:
+      ros__parameters: {...}
+
+A ``/**`` section applies to every node. Each node's defaults are the live
+node's own (``endo_sfs.node.PARAMETERS`` for the SFS node), so a run
+without a file processes exactly what the nodes started without parameters
+would. Names a node does not have are refused, with the node and the name.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+from endo_process.errors import ParameterFileError
+from endo_sfs.node import PARAMETERS as SFS_PARAMETERS
+from endo_tracker_bridge.conventions import LengthUnit
+from endo_tracker_bridge.errors import TrackerSourceError
+from endo_tracker_bridge.node import IDENTITY_ROWS, world_tracker_from_parameter
+from endo_tracker_bridge.validation import DEFAULT_ROTATION_TOLERANCE, SpeedLimits
+
+#: Node names of the live graph whose parameters the offline run takes.
+CORRECTION_NODE = "photometric_correction"
+SFS_NODE = "sfs"
+BRIDGE_NODE = "tracker_bridge"
+FLOW_NODE = "flow"
+
+#: The correction node's parameters (``endo_calib.node``) that change the result.
+CORRECTION_DEFAULTS: dict[str, Any] = {"channel": "luminance", "calibration_file": ""}
+#: The bridge's parameters that apply to a recorded ``ros`` source
+#: (``endo_tracker_bridge.node``; the others choose and open a live source).
+BRIDGE_DEFAULTS: dict[str, Any] = {
+    "source": "ros",
+    "handeye_file": "",
+    "T_world_tracker": IDENTITY_ROWS,
+    "world_frame": "world",
+    "tracker_frame": "tracker",
+    "max_speed_m_s": SpeedLimits().linear_m_s,
+    "max_angular_speed_deg_s": SpeedLimits().angular_deg_s,
+    "rotation_tolerance": DEFAULT_ROTATION_TOLERANCE,
+    "ros_topic": "/tracker/driver_pose",
+    "ros_unit": "m",
+    "ros_frame_id": "",
+    "tool_id": "marker",
+}
+#: The SFS node's parameters that are solver arguments of the same name.
+SFS_SOLVE_ARGUMENTS = (
+    "model", "roughness", "solve_scale", "tolerance", "max_iterations", "order",
+    "dark_level", "smoothing", "mask_highlights", "threads",
+)  # fmt: skip
+
+
+def read_parameter_file(path: Path) -> dict[str, dict[str, Any]]:
+    """Node name -> its ``ros__parameters`` mapping from a ROS 2 parameter file.
+
+    Raises:
+        ParameterFileError: unreadable file, not YAML, or not the
+            ``node: {ros__parameters: {...}}`` layout.
+    """
+    try:
+        document = yaml.safe_load(Path(path).read_text())
+    except OSError as error:
+        raise ParameterFileError(f"{path}: cannot read ({error.strerror})") from None
+    except yaml.YAMLError as error:
+        raise ParameterFileError(f"{path}: not YAML ({error})") from None
+    if document is None:
+        return {}
+    if not isinstance(document, Mapping):
+        raise ParameterFileError(f"{path}: expected a mapping of node names")
+    nodes: dict[str, dict[str, Any]] = {}
+    for name, section in document.items():
+        parameters = section.get("ros__parameters") if isinstance(section, Mapping) else None
+        if not isinstance(parameters, Mapping):
+            raise ParameterFileError(f"{path}: node {name!r} has no ros__parameters mapping")
+        nodes[str(name).lstrip("/")] = dict(parameters)
+    return nodes
+
+
+def _node_values(
+    nodes: Mapping[str, Mapping[str, Any]], node: str, defaults: Mapping[str, Any], path: str
+) -> dict[str, Any]:
+    """The node's defaults with the file's ``/**`` and ``node`` sections over them."""
+    values = dict(defaults)
+    for section in ("**", node):
+        for name, value in nodes.get(section, {}).items():
+            if name not in defaults:
+                if section == "**":
+                    continue  # a wildcard parameter of another node
+                raise ParameterFileError(f"{path}: node {node!r} has no parameter {name!r}")
+            default = defaults[name]
+            if isinstance(default, bool) != isinstance(value, bool) or (
+                isinstance(default, int | float) and not isinstance(value, int | float)
+            ):
+                raise ParameterFileError(
+                    f"{path}: {node}.{name} must be like {default!r}, got {value!r}"
+                )
+            values[name] = float(value) if isinstance(default, float) else value
+    return values
+
+
+@dataclass(frozen=True)
+class ProcessSettings:
+    """Everything the cores take besides the calibrations, from the nodes' parameters.
+
+    Attributes:
+        channel: the correction node's ``channel``.
+        sfs: the SFS node's parameters (name -> value), every one of them.
+        bridge: the tracker bridge's parameters for a ``ros`` source.
+        flow: the flow node's parameters given in the file (its defaults
+            are the flow package's own).
+    """
+
+    channel: str = "luminance"
+    sfs: dict[str, Any] = field(
+        default_factory=lambda: {name: d for name, (d, _) in SFS_PARAMETERS.items()}
+    )
+    bridge: dict[str, Any] = field(default_factory=lambda: dict(BRIDGE_DEFAULTS))
+    flow: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def solve_arguments(self) -> dict[str, Any]:
+        """Keyword arguments of :func:`endo_sfs.relative_depth.solve` (besides the arrays)."""
+        return {name: self.sfs[name] for name in SFS_SOLVE_ARGUMENTS}
+
+    @property
+    def T_world_tracker(self) -> np.ndarray:
+        """(4, 4) float64 tracker → world, checked as the bridge checks it."""
+        return world_tracker_from_parameter(self.bridge["T_world_tracker"])
+
+    @property
+    def speed_limits(self) -> SpeedLimits:
+        """The bridge's gate limits."""
+        return SpeedLimits(
+            float(self.bridge["max_speed_m_s"]), float(self.bridge["max_angular_speed_deg_s"])
+        )
+
+    @property
+    def tracker_unit(self) -> LengthUnit:
+        """Unit of the recorded driver poses (the bridge's ``ros_unit``)."""
+        return LengthUnit.parse(str(self.bridge["ros_unit"]))
+
+
+def load_settings(path: Path | None, *, solve_scale: float | None = None) -> ProcessSettings:
+    """The nodes' defaults, with ``path``'s values and then ``solve_scale`` over them.
+
+    Raises:
+        ParameterFileError: the file cannot be read, names a parameter a
+            node does not have, gives a value of the wrong kind, or holds a
+            T_world_tracker / ros_unit the bridge would refuse.
+    """
+    nodes = read_parameter_file(path) if path is not None else {}
+    where = str(path)
+    sfs_defaults = {name: default for name, (default, _) in SFS_PARAMETERS.items()}
+    settings = ProcessSettings(
+        channel=str(_node_values(nodes, CORRECTION_NODE, CORRECTION_DEFAULTS, where)["channel"]),
+        sfs=_node_values(nodes, SFS_NODE, sfs_defaults, where),
+        bridge=_node_values(nodes, BRIDGE_NODE, BRIDGE_DEFAULTS, where),
+        flow=dict(nodes.get(FLOW_NODE, {})),
+    )
+    if solve_scale is not None:
+        settings.sfs["solve_scale"] = float(solve_scale)
+    try:
+        settings.T_world_tracker  # noqa: B018 - validated once, here
+        settings.tracker_unit  # noqa: B018
+    except TrackerSourceError as error:
+        raise ParameterFileError(f"{where}: {BRIDGE_NODE}: {error}") from None
+    return settings

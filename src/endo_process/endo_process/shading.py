@@ -1,0 +1,153 @@
+"""Correction and shape from shading of one frame, exactly as the two live nodes do it.
+
+:class:`ShadingStage` holds what the nodes hold between frames (the loaded
+calibration, the camera model, the SFS warm start) and calls their cores:
+
+* ``photometric_correction`` (``endo_calib.node``): ``to_raw_frame`` of the
+  decoded image, :meth:`PhotometricCalibration.correct`, ``select_channel``;
+* ``sfs`` (``endo_sfs.node``): :func:`endo_sfs.relative_depth.solve` with the
+  node's parameters, the field-of-view mask of ``fov_radius`` and the
+  previous solution as warm start; a camera change drops the warm start,
+  and a frame without usable pixels gives an all-NaN depth and drops it too.
+
+Its input and output (:class:`RawFrame` in, :class:`ShadedFrame` out) are
+plain picklable data, so worker processes run it on chunks of the recording
+(:mod:`endo_process.parallel`).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from endo_calib.calibration import PhotometricCalibration
+from endo_calib.node import select_channel
+from endo_calib.raw_image import to_raw_frame
+from endo_io.camera import CameraModel
+from endo_io.errors import Endo3dError
+from endo_process.settings import SFS_SOLVE_ARGUMENTS
+from endo_sfs.errors import NoValidPixelsError
+from endo_sfs.relative_depth import SfsSolution, solve
+
+
+@dataclass(frozen=True)
+class RawFrame:
+    """One recorded image and its camera, ready for the correction.
+
+    index: position in the recording (0-based); stamp_ns: header stamp;
+    frame_id: header frame; raw: the decoded image ((H, W) or (H, W, C),
+    as ``endo_io.image.image_to_array`` gives it); encoding: its ROS
+    encoding; camera: its model; chunk_start: the first frame of a chunk
+    (the warm start is dropped before it).
+    """
+
+    index: int
+    stamp_ns: int
+    frame_id: str
+    raw: np.ndarray
+    encoding: str
+    camera: CameraModel
+    chunk_start: bool = False
+
+
+@dataclass(frozen=True)
+class ShadedFrame:
+    """The correction and SFS outputs of one frame.
+
+    irradiance: (H, W) float32 (or (H, W, 3) for channel rgb) linear
+    irradiance, None when the correction dropped the frame. depth_relative:
+    (H, W) float32 relative depth, NaN invalid; None when the correction
+    dropped the frame. dropped: the cause (error class name) and one-line
+    message of a drop or of an all-NaN depth, else None. solve_ms: wall
+    time of the solve.
+    """
+
+    index: int
+    stamp_ns: int
+    frame_id: str
+    camera: CameraModel
+    irradiance: np.ndarray | None
+    depth_relative: np.ndarray | None
+    dropped: tuple[str, str] | None = None
+    solve_ms: float = 0.0
+    iterations: int = 0
+
+
+class ShadingStage:
+    """The correction node and the SFS node back to back, without DDS.
+
+    Args:
+        calibration: the loaded ``photometric.yaml``.
+        channel: the correction node's ``channel`` parameter.
+        sfs_parameters: the SFS node's parameters (every name of
+            ``endo_sfs.node.PARAMETERS``).
+    """
+
+    def __init__(
+        self, calibration: PhotometricCalibration, channel: str, sfs_parameters: dict[str, Any]
+    ) -> None:
+        self.calibration = calibration
+        self.channel = channel
+        self.fov_radius = float(sfs_parameters["fov_radius"])
+        self.warm_start = bool(sfs_parameters["warm_start"])
+        self.solve_arguments = {name: sfs_parameters[name] for name in SFS_SOLVE_ARGUMENTS}
+        self._camera: CameraModel | None = None
+        self._mask: np.ndarray | None = None
+        self._previous: SfsSolution | None = None
+
+    def reset(self) -> None:
+        """Drop the warm start (the next frame is solved cold)."""
+        self._previous = None
+
+    def _mask_for(self, camera: CameraModel) -> np.ndarray | None:
+        if camera != self._camera:
+            self._camera = camera
+            self._previous = None
+            self._mask = camera.fov_mask(self.fov_radius) if self.fov_radius > 0.0 else None
+        return self._mask
+
+    def process(self, frame: RawFrame) -> ShadedFrame:
+        """Correct and solve one frame; never raises for bad input (it is reported)."""
+        if frame.chunk_start:
+            self.reset()
+        base = {"index": frame.index, "stamp_ns": frame.stamp_ns, "frame_id": frame.frame_id,
+                "camera": frame.camera}  # fmt: skip
+        try:
+            corrected = self.calibration.correct(to_raw_frame(frame.raw, frame.encoding))
+            irradiance = select_channel(self.calibration, corrected, self.channel)
+        except Endo3dError as error:
+            return ShadedFrame(**base, irradiance=None, depth_relative=None,
+                               dropped=(type(error).__name__, str(error)))  # fmt: skip
+        if irradiance.ndim != 2:
+            cause = ("SfsInputError", "the SFS node takes 32FC1 only (channel rgb gives 32FC3)")
+            return ShadedFrame(**base, irradiance=irradiance, depth_relative=None, dropped=cause)
+        mask = self._mask_for(frame.camera)
+        start = time.perf_counter()
+        try:
+            solution = solve(
+                irradiance,
+                frame.camera,
+                mask=mask,
+                warm_start=self._previous if self.warm_start else None,
+                **self.solve_arguments,
+            )
+        except NoValidPixelsError as error:
+            # As the node: an all-NaN depth keeps consumers in step.
+            self._previous = None
+            empty = np.full(irradiance.shape, np.nan, dtype=np.float32)
+            return ShadedFrame(**base, irradiance=irradiance, depth_relative=empty,
+                               dropped=(type(error).__name__, str(error)))  # fmt: skip
+        except Endo3dError as error:
+            return ShadedFrame(**base, irradiance=irradiance, depth_relative=None,
+                               dropped=(type(error).__name__, str(error)))  # fmt: skip
+        self._previous = solution
+        return ShadedFrame(
+            **base,
+            irradiance=irradiance,
+            depth_relative=solution.depth,
+            solve_ms=(time.perf_counter() - start) * 1e3,
+            iterations=int(solution.info.iterations),
+        )

@@ -1,0 +1,26 @@
+from setuptools import find_packages, setup
+
+PACKAGE = "endo_process"
+
+setup(
+    name=PACKAGE,
+    version="0.1.0",
+    packages=find_packages(exclude=["test"]),
+    data_files=[
+        ("share/ament_index/resource_index/packages", ["resource/" + PACKAGE]),
+        ("share/" + PACKAGE, ["package.xml"]),
+    ],
+    install_requires=["setuptools"],
+    zip_safe=True,
+    maintainer="endo3d developers",
+    maintainer_email="dev@endo3d.org",
+    description="endo-process: a recording in, the live graph's outputs out, offline and "
+    "deterministic, through the nodes' own cores.",
+    license="Apache-2.0",
+    tests_require=["pytest"],
+    entry_points={
+        "console_scripts": [
+            "endo-process = endo_process.cli:main",
+        ],
+    },
+)
