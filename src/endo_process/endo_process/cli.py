@@ -24,6 +24,7 @@ from types import FrameType
 
 from endo_io.bag import BagError
 from endo_io.errors import Endo3dError
+from endo_process.accuracy import score_recording
 from endo_process.inputs import InputTopics
 from endo_process.runner import ProcessOptions, ProcessReport, process_bag
 from endo_process.summary import format_report
@@ -132,7 +133,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     except (Endo3dError, BagError) as error:
         print(f"{PROGRAM}: {error}", file=sys.stderr)
         return EXIT_INPUT
-    print(format_report(report))
+    accuracy = None
+    if report.frames_shaded and not report.interrupted:
+        accuracy = score_recording(options.output)
+    print(format_report(report, accuracy))
     if report.damage:
         print(f"{PROGRAM}: input cut short, processed up to the damage: {report.damage}",
               file=sys.stderr)  # fmt: skip

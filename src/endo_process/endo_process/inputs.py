@@ -66,7 +66,9 @@ class RecordingInputs:
     _models: dict[int, CameraModel] = field(default_factory=dict, repr=False)
 
 
-def _read(reader: BagReader, topic_names: list[str], inputs: RecordingInputs) -> Iterator[BagMessage]:
+def _read(
+    reader: BagReader, topic_names: list[str], inputs: RecordingInputs
+) -> Iterator[BagMessage]:
     """Messages of ``topic_names``; damage ends the stream and is remembered."""
     try:
         yield from reader.messages(topics=topic_names)

@@ -19,6 +19,7 @@ Memory is bounded: at most ``jobs × chunk_frames + jobs`` frames are in flight.
 
 from __future__ import annotations
 
+import contextlib
 import multiprocessing
 import queue
 import signal
@@ -142,10 +143,11 @@ class ShadingPool:
         exhausted = False
         while True:
             while not exhausted and len(pending) < limit:
-                frame = next(source, None)
-                if frame is None:
+                next_frame = next(source, None)
+                if next_frame is None:
                     exhausted = True
                     break
+                frame = next_frame
                 start = frame.index % self.chunk_frames == 0
                 if start != frame.chunk_start:
                     frame = RawFrame(frame.index, frame.stamp_ns, frame.frame_id, frame.raw,
@@ -159,10 +161,8 @@ class ShadingPool:
     def close(self) -> None:
         """Stop the workers (idempotent); frames still queued are abandoned."""
         for inbox in self._inboxes:
-            try:
+            with contextlib.suppress(OSError, ValueError):
                 inbox.put(None)
-            except (OSError, ValueError):
-                pass
         for process in self._workers:
             process.join(timeout=2.0)
             if process.is_alive():

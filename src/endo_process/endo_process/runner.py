@@ -43,8 +43,14 @@ from endo_io.pose import matrix_to_pose
 from endo_io.pose_buffer import PoseBuffer
 from endo_io.stamp import NS_PER_S, stamp_to_ns
 from endo_process.errors import ProcessInputError
-from endo_process.inputs import InputTopics, RecordingInputs, camera_at, iter_ground_truth, \
-    iter_images, open_recording
+from endo_process.inputs import (
+    InputTopics,
+    RecordingInputs,
+    camera_at,
+    iter_ground_truth,
+    iter_images,
+    open_recording,
+)
 from endo_process.output import DEFAULT_FLUSH_EVERY, OutputBag
 from endo_process.parallel import DEFAULT_CHUNK_FRAMES, ShadingPool, StageConfig
 from endo_process.progress import Progress

@@ -9,7 +9,8 @@ to the nodes (``ros2 run ... --ros-args --params-file endo3d.yaml``)::
       ros__parameters: {model: near_light, roughness: 0.3, solve_scale: 0.5}
     tracker_bridge:
       ros__parameters:
-        T_world_tracker: [1.0, 0.0, 0.0, 0.0,  0.0, 1.0, 0.0, 0.0,  0.0, 0.0, 1.0, 0.0,  0.0, 0.0, 0.0, 1.0]
+        T_world_tracker: [1.0, 0.0, 0.0, 0.0,  0.0, 1.0, 0.0, 0.0,
+                          0.0, 0.0, 1.0, 0.0,  0.0, 0.0, 0.0, 1.0]
     flow:
       ros__parameters: {...}
 
@@ -21,6 +22,7 @@ would. Names a node does not have are refused, with the node and the name.
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -30,7 +32,9 @@ import numpy as np
 import yaml
 
 from endo_process.errors import ParameterFileError
+from endo_sfs.errors import SfsError
 from endo_sfs.node import PARAMETERS as SFS_PARAMETERS
+from endo_sfs.options import SfsOptions
 from endo_tracker_bridge.conventions import LengthUnit
 from endo_tracker_bridge.errors import TrackerSourceError
 from endo_tracker_bridge.node import IDENTITY_ROWS, world_tracker_from_parameter
@@ -60,11 +64,11 @@ BRIDGE_DEFAULTS: dict[str, Any] = {
     "ros_frame_id": "",
     "tool_id": "marker",
 }
-#: The SFS node's parameters that are solver arguments of the same name.
-SFS_SOLVE_ARGUMENTS = (
-    "model", "roughness", "solve_scale", "tolerance", "max_iterations", "order",
-    "dark_level", "smoothing", "mask_highlights", "threads",
-)  # fmt: skip
+#: The SFS node's parameters that are :class:`SfsOptions` fields of the same name
+#: (the node builds its options from exactly these).
+SFS_OPTION_PARAMETERS = tuple(
+    f.name for f in dataclasses.fields(SfsOptions) if f.name in SFS_PARAMETERS
+)
 
 
 def read_parameter_file(path: Path) -> dict[str, dict[str, Any]]:
@@ -135,9 +139,9 @@ class ProcessSettings:
     flow: dict[str, Any] = field(default_factory=dict)
 
     @property
-    def solve_arguments(self) -> dict[str, Any]:
-        """Keyword arguments of :func:`endo_sfs.relative_depth.solve` (besides the arrays)."""
-        return {name: self.sfs[name] for name in SFS_SOLVE_ARGUMENTS}
+    def sfs_options(self) -> SfsOptions:
+        """The solver settings the SFS node builds from these parameters."""
+        return SfsOptions(**{name: self.sfs[name] for name in SFS_OPTION_PARAMETERS})
 
     @property
     def T_world_tracker(self) -> np.ndarray:
@@ -181,4 +185,8 @@ def load_settings(path: Path | None, *, solve_scale: float | None = None) -> Pro
         settings.tracker_unit  # noqa: B018
     except TrackerSourceError as error:
         raise ParameterFileError(f"{where}: {BRIDGE_NODE}: {error}") from None
+    try:
+        settings.sfs_options  # noqa: B018
+    except SfsError as error:
+        raise ParameterFileError(f"{where}: {SFS_NODE}: {error}") from None
     return settings

@@ -28,8 +28,9 @@ from endo_calib.node import select_channel
 from endo_calib.raw_image import to_raw_frame
 from endo_io.camera import CameraModel
 from endo_io.errors import Endo3dError
-from endo_process.settings import SFS_SOLVE_ARGUMENTS
+from endo_process.settings import SFS_OPTION_PARAMETERS
 from endo_sfs.errors import NoValidPixelsError
+from endo_sfs.options import SfsOptions
 from endo_sfs.relative_depth import SfsSolution, solve
 
 
@@ -93,7 +94,7 @@ class ShadingStage:
         self.channel = channel
         self.fov_radius = float(sfs_parameters["fov_radius"])
         self.warm_start = bool(sfs_parameters["warm_start"])
-        self.solve_arguments = {name: sfs_parameters[name] for name in SFS_SOLVE_ARGUMENTS}
+        self.options = SfsOptions(**{name: sfs_parameters[name] for name in SFS_OPTION_PARAMETERS})
         self._camera: CameraModel | None = None
         self._mask: np.ndarray | None = None
         self._previous: SfsSolution | None = None
@@ -130,9 +131,9 @@ class ShadingStage:
             solution = solve(
                 irradiance,
                 frame.camera,
+                self.options,
                 mask=mask,
                 warm_start=self._previous if self.warm_start else None,
-                **self.solve_arguments,
             )
         except NoValidPixelsError as error:
             # As the node: an all-NaN depth keeps consumers in step.

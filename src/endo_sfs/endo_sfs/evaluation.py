@@ -13,6 +13,7 @@ class DepthError:
 
     scale: the factor applied to the estimate. abs_rel: mean |s·d − d*|/d*.
     p95_rel, max_rel: 95th percentile and maximum of the same ratio.
+    mae: mean |s·d − d*|, in the unit of the truth (metres for metric depth).
     coverage: fraction of the pixels with finite truth (inside the evaluated
     region) that have a finite estimate.
     """
@@ -22,6 +23,7 @@ class DepthError:
     p95_rel: float
     max_rel: float
     coverage: float
+    mae: float
 
 
 def depth_error(
@@ -54,11 +56,13 @@ def depth_error(
         scale = 1.0
     else:
         raise ValueError(f"unknown scaling {scaling!r}")
-    ratio = np.abs(scale * d - t) / t
+    difference = np.abs(scale * d - t)
+    ratio = difference / t
     return DepthError(
         scale=scale,
         abs_rel=float(np.mean(ratio)),
         p95_rel=float(np.percentile(ratio, 95)),
         max_rel=float(np.max(ratio)),
         coverage=float(both.sum() / wanted.sum()),
+        mae=float(np.mean(difference)),
     )

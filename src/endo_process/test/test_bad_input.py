@@ -1,0 +1,144 @@
+"""endo-process on bad input: one line and exit 2, a cut bag to the cut, no poses, signals."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from endo_io import topics
+from endo_io.bag import BagReader, BagWriter
+from endo_process.cli import EXIT_DAMAGED, EXIT_INPUT, EXIT_INTERRUPTED, EXIT_OK, main
+from endo_process.runner import ProcessOptions, process_bag
+
+from .conftest import BAGS, PHANTOM
+
+
+def _subset(path: Path, keep: set[str], images: int, tracker_until_s: float = 1e9) -> Path:
+    """The phantom's first ``images`` frames (and what goes with them) on the ``keep`` topics."""
+    with BagReader(PHANTOM) as reader, BagWriter(path) as writer:
+        start = reader.time_range_ns[0]  # type: ignore[index]
+        seen = 0
+        for name in sorted(keep & set(reader.topics)):
+            writer.add_topic(name, reader.topics[name].msgtype)
+        for message in reader.messages(sorted(keep)):
+            if message.topic == topics.IMAGE_RAW:
+                seen += 1
+                if seen > images:
+                    break
+            if message.topic == topics.TRACKER_POSE and (
+                message.log_time_ns - start > tracker_until_s * 1e9
+            ):
+                continue
+            writer.write(message.topic, message.data, message.log_time_ns)
+    return path
+
+
+ALL = {topics.IMAGE_RAW, topics.CAMERA_INFO, topics.TRACKER_POSE}
+
+
+def _argv(bag: Path, out: Path, calibrations: tuple[Path, Path], *extra: str) -> list[str]:
+    return [str(bag), "-o", str(out), "--calibration", str(calibrations[0]),
+            "--handeye", str(calibrations[1]), "--solve-scale", "0.5", "--jobs", "1", "-q",
+            *extra]  # fmt: skip
+
+
+@pytest.mark.parametrize("missing", [topics.TRACKER_POSE, topics.IMAGE_RAW, topics.CAMERA_INFO])
+def test_a_missing_topic_is_one_line_naming_it_and_exit_2(
+    missing: str, calibrations: tuple[Path, Path], tmp_path: Path, capsys: pytest.CaptureFixture
+) -> None:
+    bag = _subset(tmp_path / "cut.mcap", ALL - {missing}, images=2)
+    out = tmp_path / "out.mcap"
+    assert main(_argv(bag, out, calibrations)) == EXIT_INPUT
+    error = capsys.readouterr().err.strip()
+    assert len(error.splitlines()) == 1 and missing in error, error
+    assert not out.exists()
+
+
+def test_camera_info_from_a_yaml_replaces_the_topic(
+    calibrations: tuple[Path, Path], tmp_path: Path, capsys: pytest.CaptureFixture
+) -> None:
+    bag = _subset(tmp_path / "noinfo.mcap", ALL - {topics.CAMERA_INFO}, images=2)
+    out = tmp_path / "out.mcap"
+    camera = BAGS / "phantom_colon.camera.yaml"
+    assert main(_argv(bag, out, calibrations, "--camera-info", str(camera))) == EXIT_OK
+    with BagReader(out) as reader:
+        assert reader.topics[topics.CAMERA_INFO].message_count == 2
+        assert reader.topics[topics.DEPTH_RELATIVE].message_count == 2
+
+
+def test_a_missing_file_is_one_line_and_exit_2(
+    calibrations: tuple[Path, Path], tmp_path: Path, capsys: pytest.CaptureFixture
+) -> None:
+    argv = _argv(PHANTOM, tmp_path / "out.mcap", (tmp_path / "nope.yaml", calibrations[1]))
+    assert main(argv) == EXIT_INPUT
+    error = capsys.readouterr().err.strip()
+    assert len(error.splitlines()) == 1 and "nope.yaml" in error
+
+
+def test_a_truncated_bag_is_processed_up_to_the_cut(
+    calibrations: tuple[Path, Path], tmp_path: Path, capsys: pytest.CaptureFixture
+) -> None:
+    data = PHANTOM.read_bytes()
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(data[: len(data) // 5])  # the first ~18 frames' chunks
+    out = tmp_path / "out.mcap"
+    assert main(_argv(cut, out, calibrations)) == EXIT_DAMAGED
+    captured = capsys.readouterr()
+    assert "cut short" in captured.err and "cut.mcap" in captured.err
+    with BagReader(out) as reader:  # a complete file: reading it raises nothing
+        depth = reader.topics[topics.DEPTH_RELATIVE].message_count
+        assert sum(1 for _ in reader.messages([topics.DEPTH_RELATIVE])) == depth
+    with BagReader(cut) as reader:
+        readable = sum(1 for m in _intact(reader) if m.topic == topics.IMAGE_RAW)
+    assert 5 <= depth == readable < 90
+
+
+def _intact(reader: BagReader):  # type: ignore[no-untyped-def]
+    try:
+        yield from reader.messages()
+    except Exception:
+        return
+
+
+def test_frames_without_a_pose_are_counted_and_skipped(
+    calibrations: tuple[Path, Path], tmp_path: Path
+) -> None:
+    bag = _subset(tmp_path / "nopose.mcap", ALL, images=12, tracker_until_s=0.2)
+    report = process_bag(ProcessOptions(
+        bag=bag, output=tmp_path / "out.mcap", calibration=calibrations[0],
+        handeye=calibrations[1], solve_scale=0.5, jobs=1, progress=False,
+    ))  # fmt: skip
+    # Tracker poses cover 0.2 s of the 0.4 s; their camera-clock stamps are 25 ms earlier.
+    assert report.frames_shaded == 12
+    assert report.frames_with_pose + sum(report.without_pose.values()) == 12
+    assert 4 <= report.frames_with_pose <= 7
+    assert report.without_pose["PoseNotYetError"] >= 5
+
+
+@pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM])
+def test_a_signal_finalises_the_output(
+    signum: int, calibrations: tuple[Path, Path], tmp_path: Path
+) -> None:
+    out = tmp_path / "out.mcap"
+    command = [sys.executable, "-m", "endo_process.cli",
+               *_argv(PHANTOM, out, calibrations)[:-1], "--solve-scale", "1"]  # fmt: skip
+    process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                               text=True, env=dict(os.environ))  # fmt: skip
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline and not (out.exists() and out.stat().st_size > 1 << 20):
+        time.sleep(0.2)  # the first frames are written
+    process.send_signal(signum)
+    _, stderr = process.communicate(timeout=60)
+    assert process.returncode == EXIT_INTERRUPTED, stderr
+    assert "interrupted" in stderr
+    with BagReader(out) as reader:
+        assert reader.damage is None
+        frames = reader.topics[topics.DEPTH_RELATIVE].message_count
+        assert sum(1 for _ in reader.messages([topics.DEPTH_RELATIVE])) == frames
+    assert 1 <= frames < 90

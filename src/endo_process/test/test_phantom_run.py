@@ -1,0 +1,90 @@
+"""endo-process over the whole phantom bag: accuracy against the truth, and --jobs agreement.
+
+Thresholds: relative depth AbsRel (median-scaled) as issue 5's bar for the
+SFS stage (≤ 0.08 on the mean; measured 0.0797 at solve_scale 0.5 here,
+tuned on this bag by the SFS work; the held-out seed-7 rendering gave 0.081
+at full resolution, docs/sfs.md); camera poses within the tracker's noise
+through the hand–eye lever arm (measured median 0.35 mm, 0.08°).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from endo_bringup.evaluation import read_depth_frames
+from endo_io import topics
+from endo_io.bag import BagReader
+from endo_process.accuracy import score_recording
+from endo_process.runner import ProcessOptions, ProcessReport, process_bag
+
+from .conftest import PHANTOM
+
+
+@pytest.fixture(scope="module")
+def full_run(
+    calibrations: tuple[Path, Path], phantom_params: Path, tmp_path_factory: pytest.TempPathFactory
+) -> tuple[ProcessReport, Path]:
+    """All 90 frames at solve_scale 0.5 on two worker processes, chunks of 8 frames."""
+    output = tmp_path_factory.mktemp("full") / "phantom.mcap"
+    report = process_bag(ProcessOptions(
+        bag=PHANTOM, output=output, calibration=calibrations[0], handeye=calibrations[1],
+        params=phantom_params, solve_scale=0.5, jobs=2, chunk_frames=8, progress=False,
+    ))  # fmt: skip
+    return report, output
+
+
+def test_every_frame_is_processed_and_the_truth_copied(full_run: tuple[ProcessReport, Path]):
+    report, output = full_run
+    assert report.frames_in == report.frames_shaded == 90
+    assert not report.dropped and report.damage is None and not report.interrupted
+    # The first image (t = 0) is older than the first tracker sample (4 ms): no pose.
+    assert report.frames_with_pose == 89
+    assert dict(report.without_pose) == {"PoseTooOldError": 1}
+    with BagReader(output) as reader:
+        counts = {name: info.message_count for name, info in reader.topics.items()}
+    assert counts[topics.IMAGE_CORRECTED] == counts[topics.DEPTH_RELATIVE] == 90
+    assert counts[topics.CAMERA_INFO] == 90
+    assert counts[topics.CAMERA_POSE] == 180
+    assert counts[topics.TRUE_DEPTH] == 3 and counts[topics.TRUE_CAMERA_POSE] == 90
+
+
+def test_accuracy_against_the_ground_truth(full_run: tuple[ProcessReport, Path]) -> None:
+    accuracy = score_recording(full_run[1])
+    assert len(accuracy.relative) == 3
+    abs_rel = [e.abs_rel for e in accuracy.relative.values()]
+    assert np.mean(abs_rel) <= 0.08 and max(abs_rel) <= 0.085, abs_rel
+    assert min(e.coverage for e in accuracy.relative.values()) > 0.8
+    # The relative depth's unit: √ρ·(true depth) for albedo × light ρ; one scale fits all.
+    assert 0.005 < accuracy.oracle_scale < 0.05
+    poses = accuracy.poses
+    assert poses is not None and poses.compared == 89
+    assert np.median(poses.position_mm) < 0.6 and np.percentile(poses.position_mm, 95) < 1.2
+    assert np.median(poses.rotation_deg) < 0.15
+
+
+def test_one_and_two_jobs_agree_to_the_solver_tolerance(
+    full_run: tuple[ProcessReport, Path], calibrations: tuple[Path, Path], phantom_params: Path,
+    tmp_path: Path,
+) -> None:
+    frames = 18  # crosses two chunk boundaries of the two-job run (frames 8 and 16)
+    report = process_bag(ProcessOptions(
+        bag=PHANTOM, output=tmp_path / "one.mcap", calibration=calibrations[0],
+        handeye=calibrations[1], params=phantom_params, solve_scale=0.5, jobs=1,
+        max_frames=frames, progress=False,
+    ))  # fmt: skip
+    assert report.frames_shaded == frames
+    one = read_depth_frames(tmp_path / "one.mcap", topics.DEPTH_RELATIVE)
+    two = read_depth_frames(full_run[1], topics.DEPTH_RELATIVE, set(one))
+    assert sorted(one) == sorted(two)
+    for stamp in one:
+        a, b = one[stamp], two[stamp]
+        np.testing.assert_array_equal(np.isfinite(a), np.isfinite(b))
+        valid = np.isfinite(a)
+        relative = np.abs(a[valid] - b[valid]) / a[valid]
+        # Sweeps stop at 1e-5 in ln r; isolated nodes unlocked by smaller
+        # changes may differ by ~5e-4 (docs/sfs.md), measured up to 1.5e-3.
+        assert np.percentile(relative, 99.9) < 2e-3 and relative.max() < 1e-2
+        assert np.median(relative) < 1e-5
