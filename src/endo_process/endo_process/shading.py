@@ -23,8 +23,7 @@ from typing import Any
 
 import numpy as np
 
-from endo_calib.calibration import PhotometricCalibration
-from endo_calib.node import select_channel
+from endo_calib.calibration import PhotometricCalibration, select_channel
 from endo_calib.raw_image import to_raw_frame
 from endo_io.camera import CameraModel
 from endo_io.errors import Endo3dError
