@@ -25,14 +25,7 @@ import numpy as np
 import pytest
 
 from endo_bringup.demo import GRAPH_RATE, SAMPLE_BAGS, run_graph_stage
-from endo_bringup.graph import (
-    CORRECTED_TOPIC,
-    DEPTH_TOPIC,
-    POSE_TOPIC,
-    RAW_TOPIC,
-    TRUE_DEPTH_TOPIC,
-    TRUE_POSE_TOPIC,
-)
+from endo_io import topics
 
 pytestmark = [pytest.mark.ros, pytest.mark.timeout(180)]
 
@@ -70,14 +63,14 @@ def test_graph_on_the_sample_bags(tmp_path: Path) -> None:
     assert run is not None
     assert all(code == 0 for code in run.return_codes.values()), run.return_codes
     counts = report.counts
-    played_images = run.played[RAW_TOPIC]
-    assert counts[TRUE_POSE_TOPIC] == run.played[TRUE_POSE_TOPIC]
-    assert counts[TRUE_DEPTH_TOPIC] == run.played[TRUE_DEPTH_TOPIC]
+    played_images = run.played[topics.IMAGE_RAW]
+    assert counts[topics.TRUE_CAMERA_POSE] == run.played[topics.TRUE_CAMERA_POSE]
+    assert counts[topics.TRUE_DEPTH] == run.played[topics.TRUE_DEPTH]
     # the recorder's subscription is reliable: every corrected frame arrives
-    assert counts[CORRECTED_TOPIC] >= 0.9 * played_images
+    assert counts[topics.IMAGE_CORRECTED] >= 0.9 * played_images
     # the SFS node may skip frames when the machine is busy, but not all
-    assert counts[DEPTH_TOPIC] > 0
-    assert counts[POSE_TOPIC] > 0
+    assert counts[topics.DEPTH_RELATIVE] > 0
+    assert counts[topics.CAMERA_POSE] > 0
 
     # relative depth, scale recovered per frame by the median ratio
     assert report.depth_errors, "no depth frame had a ground truth with its stamp"
@@ -88,6 +81,6 @@ def test_graph_on_the_sample_bags(tmp_path: Path) -> None:
     # /endoscope/pose against /ground_truth/camera_pose at the image stamps
     poses = report.poses
     assert poses is not None
-    assert poses.compared >= 0.8 * run.played[TRUE_POSE_TOPIC]
+    assert poses.compared >= 0.8 * run.played[topics.TRUE_CAMERA_POSE]
     assert float(np.max(poses.position_mm)) < POSITION_BOUND_MM
     assert float(np.max(poses.rotation_deg)) < ROTATION_BOUND_DEG

@@ -48,12 +48,6 @@ from std_msgs.msg import Float32
 
 from endo_bringup.dds_profile import with_large_frame_profile
 from endo_bringup.graph import (
-    CORRECTED_TOPIC,
-    DEPTH_TOPIC,
-    POSE_TOPIC,
-    RAW_TOPIC,
-    TRUE_DEPTH_TOPIC,
-    TRUE_POSE_TOPIC,
     GraphError,
     GraphRun,
     GraphSettings,
@@ -63,6 +57,7 @@ from endo_bringup.graph import (
     run_offline_calibrations,
 )
 from endo_bringup.process_group import console_script
+from endo_io import topics as topic_names
 from endo_io.bag import BagReader, BagWriter, message_class, msgtype_of, serialize
 from endo_io.bag.serde import dds_aligned
 from endo_io.camera import CameraModel
@@ -118,9 +113,9 @@ def write_synthetic_bag(path: Path, seconds: float = 2.0) -> None:
         shade = (0.35 + 0.65 * patch) * vignette
         pixels = (255 * np.clip(shade[..., None] * tint, 0, 1)).astype(np.uint8)
         events.append(
-            (t, "/endoscope/image_raw", array_to_image(pixels, "rgb8", t, camera.frame_id))
+            (t, topic_names.IMAGE_RAW, array_to_image(pixels, "rgb8", t, camera.frame_id))
         )
-        events.append((t + 1_000_000, "/endoscope/camera_info", camera.to_camera_info(t)))
+        events.append((t + 1_000_000, topic_names.CAMERA_INFO, camera.to_camera_info(t)))
     for i in range(round(60 * seconds)):
         t = SYNTHETIC_START_NS + round(i * 1e9 / 60) + 2_000_000
         angle = 0.1 * i
@@ -368,7 +363,11 @@ class GraphReport:
             ]
             problems += [
                 f"no message on {topic}"
-                for topic in (CORRECTED_TOPIC, DEPTH_TOPIC, POSE_TOPIC)
+                for topic in (
+                    topic_names.IMAGE_CORRECTED,
+                    topic_names.DEPTH_RELATIVE,
+                    topic_names.CAMERA_POSE,
+                )
                 if self.counts.get(topic, 0) == 0
             ]
             if not self.depth_errors:
@@ -463,13 +462,13 @@ def run_graph_stage(
         return report
     recording = report.run.recording
     report.counts = dict(evaluation.topic_counts(recording))
-    truths = evaluation.read_depth_frames(recording, TRUE_DEPTH_TOPIC)
+    truths = evaluation.read_depth_frames(recording, topic_names.TRUE_DEPTH)
     report.depth_errors = evaluation.depth_errors_at_truth(
-        evaluation.read_depth_frames(recording, DEPTH_TOPIC, set(truths)), truths
+        evaluation.read_depth_frames(recording, topic_names.DEPTH_RELATIVE, set(truths)), truths
     )
     report.poses = evaluation.compare_poses(
-        *evaluation.read_pose_stream(recording, POSE_TOPIC),
-        *evaluation.read_pose_stream(recording, TRUE_POSE_TOPIC),
+        *evaluation.read_pose_stream(recording, topic_names.CAMERA_POSE),
+        *evaluation.read_pose_stream(recording, topic_names.TRUE_CAMERA_POSE),
     )
     return report
 
@@ -495,11 +494,31 @@ def print_graph_report(report: GraphReport, rate: float) -> None:
         )
         print(f"    {'stage':<28} {'output topic':<30} {'in':>5} {'out':>5}  exit")
         stages = [
-            ("endo-replay (ground truth)", TRUE_POSE_TOPIC, played.get(TRUE_POSE_TOPIC, 0)),
-            ("endo-replay (ground truth)", TRUE_DEPTH_TOPIC, played.get(TRUE_DEPTH_TOPIC, 0)),
-            ("photometric_correction", CORRECTED_TOPIC, played.get(RAW_TOPIC, 0)),
-            ("endo-sfs", DEPTH_TOPIC, report.counts.get(CORRECTED_TOPIC, 0)),
-            ("endo-tracker-bridge", POSE_TOPIC, played.get("/tracker/pose", 0)),
+            (
+                "endo-replay (ground truth)",
+                topic_names.TRUE_CAMERA_POSE,
+                played.get(topic_names.TRUE_CAMERA_POSE, 0),
+            ),
+            (
+                "endo-replay (ground truth)",
+                topic_names.TRUE_DEPTH,
+                played.get(topic_names.TRUE_DEPTH, 0),
+            ),
+            (
+                "photometric_correction",
+                topic_names.IMAGE_CORRECTED,
+                played.get(topic_names.IMAGE_RAW, 0),
+            ),
+            (
+                "endo-sfs",
+                topic_names.DEPTH_RELATIVE,
+                report.counts.get(topic_names.IMAGE_CORRECTED, 0),
+            ),
+            (
+                "endo-tracker-bridge",
+                topic_names.CAMERA_POSE,
+                played.get(topic_names.TRACKER_POSE, 0),
+            ),
         ]
         for stage, topic, count_in in stages:
             code = run.return_codes.get(stage.split(" ")[0], "?")

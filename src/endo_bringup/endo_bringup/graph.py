@@ -43,24 +43,26 @@ import yaml
 from endo_bringup.process_group import ProcessGroup, console_script
 from endo_io.bag import BagReader
 from endo_io.errors import BagError
+from endo_io.topics import (
+    CAMERA_INFO,
+    CAMERA_POSE,
+    DEPTH_RELATIVE,
+    IMAGE_CORRECTED,
+    IMAGE_RAW,
+    TRACKER_POSE,
+    TRUE_CAMERA_POSE,
+    TRUE_DEPTH,
+)
 
 #: What the recorder keeps: the graph's outputs and the bag's ground truth.
-CORRECTED_TOPIC = "/endoscope/image_corrected"
-DEPTH_TOPIC = "/endoscope/depth_relative"
-POSE_TOPIC = "/endoscope/pose"
-TRUE_DEPTH_TOPIC = "/ground_truth/depth"
-TRUE_POSE_TOPIC = "/ground_truth/camera_pose"
-RECORDED_TOPICS = [CORRECTED_TOPIC, DEPTH_TOPIC, POSE_TOPIC, TRUE_DEPTH_TOPIC, TRUE_POSE_TOPIC]
+RECORDED_TOPICS = [IMAGE_CORRECTED, DEPTH_RELATIVE, CAMERA_POSE, TRUE_DEPTH, TRUE_CAMERA_POSE]
 #: Topics the nodes publish; the recorder must have subscribed to them before playing.
-NODE_OUTPUT_TOPICS = [CORRECTED_TOPIC, DEPTH_TOPIC, POSE_TOPIC]
+NODE_OUTPUT_TOPICS = [IMAGE_CORRECTED, DEPTH_RELATIVE, CAMERA_POSE]
 #: The bag's topics that are played, and where the tracker poses go: the
 #: bridge publishes /tracker/pose itself, so the bag's driver poses are
 #: played on the bridge's input topic (its ``ros_topic`` default).
-RAW_TOPIC = "/endoscope/image_raw"
-CAMERA_INFO_TOPIC = "/endoscope/camera_info"
-BAG_TRACKER_TOPIC = "/tracker/pose"
 DRIVER_TOPIC = "/tracker/driver_pose"
-PLAYED_TOPICS = [RAW_TOPIC, CAMERA_INFO_TOPIC, BAG_TRACKER_TOPIC, TRUE_DEPTH_TOPIC, TRUE_POSE_TOPIC]
+PLAYED_TOPICS = [IMAGE_RAW, CAMERA_INFO, TRACKER_POSE, TRUE_DEPTH, TRUE_CAMERA_POSE]
 
 
 class GraphError(RuntimeError):
@@ -197,8 +199,8 @@ def node_commands(
             console_script("photometric_correction"),
             "--ros-args",
             "-p", f"calibration_file:={photometric}",
-            "-r", f"image_raw:={RAW_TOPIC}",
-            "-r", f"image_corrected:={CORRECTED_TOPIC}",
+            "-r", f"image_raw:={IMAGE_RAW}",
+            "-r", f"image_corrected:={IMAGE_CORRECTED}",
         ],
         "endo-sfs": [
             console_script("endo-sfs"),
@@ -206,9 +208,9 @@ def node_commands(
             "-p", f"model:={settings.model}",
             "-p", f"roughness:={float(settings.roughness)!r}",
             "-p", f"solve_scale:={float(settings.solve_scale)!r}",
-            "-r", f"image_corrected:={CORRECTED_TOPIC}",
-            "-r", f"camera_info:={CAMERA_INFO_TOPIC}",
-            "-r", f"depth_relative:={DEPTH_TOPIC}",
+            "-r", f"image_corrected:={IMAGE_CORRECTED}",
+            "-r", f"camera_info:={CAMERA_INFO}",
+            "-r", f"depth_relative:={DEPTH_RELATIVE}",
         ],
         "endo-tracker-bridge": [
             console_script("endo-tracker-bridge"),
@@ -311,7 +313,7 @@ def run_live_graph(
         console_script("endo-replay"),
         str(bag),
         "--topics", *played,
-        "--remap", f"{BAG_TRACKER_TOPIC}:={DRIVER_TOPIC}",
+        "--remap", f"{TRACKER_POSE}:={DRIVER_TOPIC}",
         "--rate", repr(float(settings.rate)),
         "--wait-for-subscribers", "1",
     ]  # fmt: skip
@@ -329,12 +331,12 @@ def run_live_graph(
             replay.wait(settings.startup_timeout_s + playing_s + 15.0)
         group.stop(["endo-replay"])
         expected = {
-            CORRECTED_TOPIC: played.get(RAW_TOPIC, 0),
-            DEPTH_TOPIC: played.get(RAW_TOPIC, 0),
-            TRUE_DEPTH_TOPIC: played.get(TRUE_DEPTH_TOPIC, 0),
-            TRUE_POSE_TOPIC: played.get(TRUE_POSE_TOPIC, 0),
+            IMAGE_CORRECTED: played.get(IMAGE_RAW, 0),
+            DEPTH_RELATIVE: played.get(IMAGE_RAW, 0),
+            TRUE_DEPTH: played.get(TRUE_DEPTH, 0),
+            TRUE_CAMERA_POSE: played.get(TRUE_CAMERA_POSE, 0),
             # the bridge drops nothing from a clean driver; dropouts are absent samples
-            POSE_TOPIC: played.get(BAG_TRACKER_TOPIC, 0),
+            CAMERA_POSE: played.get(TRACKER_POSE, 0),
         }
         _wait_for_drain(recording, expected, settings.drain_timeout_s)
         group.stop(["endo-record"])

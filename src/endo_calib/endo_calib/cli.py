@@ -39,12 +39,10 @@ from endo_calib.fit import FitReport, fit_gray_card
 from endo_calib.geometry import CardPose
 from endo_calib.gray_levels import GrayCardAccumulator
 from endo_calib.raw_image import to_raw_frame
+from endo_io import topics
 from endo_io.camera import CameraModel
 from endo_io.errors import Endo3dError
 
-DEFAULT_IMAGE_TOPIC = "/endoscope/image_raw"
-DEFAULT_LEVEL_TOPIC = "/calibration/gray_level"
-DEFAULT_INFO_TOPIC = "/endoscope/camera_info"
 #: A level message logged this long after an image still applies to it (ns).
 LEVEL_TOLERANCE_NS = 5_000_000
 
@@ -193,9 +191,9 @@ def build_parser() -> argparse.ArgumentParser:
         help="convert a TUM/DSO pcalib.txt + vignette.png instead of fitting",
     )
     parser.add_argument("--camera-info", type=Path, help="camera calibration YAML (for G)")
-    parser.add_argument("--image-topic", default=DEFAULT_IMAGE_TOPIC)
-    parser.add_argument("--gray-level-topic", default=DEFAULT_LEVEL_TOPIC)
-    parser.add_argument("--camera-info-topic", default=DEFAULT_INFO_TOPIC)
+    parser.add_argument("--image-topic", default=topics.IMAGE_RAW)
+    parser.add_argument("--gray-level-topic", default=topics.GRAY_LEVEL)
+    parser.add_argument("--camera-info-topic", default=topics.CAMERA_INFO)
     parser.add_argument(
         "--settle-frames",
         type=int,

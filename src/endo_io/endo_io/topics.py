@@ -22,6 +22,7 @@ topic                              what
 ``/tracker/marker_pose``           the validated marker pose (tracker bridge)
 ``/ground_truth/depth``            the simulator's true depth, metres
 ``/ground_truth/camera_pose``      the simulator's true ``T_world_camera``
+``/calibration/gray_level``        the gray card's reflectance level (calibration bags)
 =================================  =================================================
 """
 
@@ -45,6 +46,8 @@ MARKER_POSE: Final = "/tracker/marker_pose"
 
 TRUE_DEPTH: Final = "/ground_truth/depth"
 TRUE_CAMERA_POSE: Final = "/ground_truth/camera_pose"
+
+GRAY_LEVEL: Final = "/calibration/gray_level"
 
 DIAGNOSTICS: Final = "/diagnostics"
 CLOCK: Final = "/clock"

@@ -45,27 +45,28 @@ from endo_io.bag import BagWriter, qos_profiles_to_yaml, serialize
 from endo_io.image import array_to_image
 from endo_io.pose import matrix_to_pose
 from endo_io.qos import reliable_qos
+from endo_io.topics import (
+    CAMERA_INFO,
+    GRAY_LEVEL,
+    IMAGE_RAW,
+    TRACKER_FRAME,
+    TRACKER_POSE,
+    TRUE_CAMERA_POSE,
+    TRUE_DEPTH,
+    WORLD_FRAME,
+)
 from endo_sim.errors import SimulationParameterError
 from endo_sim.sequences import Sequence
 from endo_sim.tracker import simulate_tracker
 from endo_sim.trajectory import NS_PER_S
 
-IMAGE_TOPIC = "/endoscope/image_raw"
-CAMERA_INFO_TOPIC = "/endoscope/camera_info"
-DEPTH_TOPIC = "/ground_truth/depth"
-CAMERA_POSE_TOPIC = "/ground_truth/camera_pose"
-TRACKER_TOPIC = "/tracker/pose"
-GRAY_LEVEL_TOPIC = "/calibration/gray_level"
-WORLD_FRAME = "world"
-TRACKER_FRAME = "tracker"
-
 _TOPIC_TYPES = {
-    IMAGE_TOPIC: "sensor_msgs/msg/Image",
-    CAMERA_INFO_TOPIC: "sensor_msgs/msg/CameraInfo",
-    DEPTH_TOPIC: "sensor_msgs/msg/Image",
-    CAMERA_POSE_TOPIC: "geometry_msgs/msg/PoseStamped",
-    TRACKER_TOPIC: "geometry_msgs/msg/PoseStamped",
-    GRAY_LEVEL_TOPIC: "std_msgs/msg/Float32",
+    IMAGE_RAW: "sensor_msgs/msg/Image",
+    CAMERA_INFO: "sensor_msgs/msg/CameraInfo",
+    TRUE_DEPTH: "sensor_msgs/msg/Image",
+    TRUE_CAMERA_POSE: "geometry_msgs/msg/PoseStamped",
+    TRACKER_POSE: "geometry_msgs/msg/PoseStamped",
+    GRAY_LEVEL: "std_msgs/msg/Float32",
 }
 
 
@@ -95,22 +96,22 @@ def frame_messages(sequence: Sequence, k: int, frame: Any, stamp_ns: int) -> lis
     pose = sequence.trajectory.pose_at(int(sequence.frame_times_ns[k]))
     out = [
         TimedMessage(
-            stamp_ns, IMAGE_TOPIC, array_to_image(frame.image, frame.encoding, stamp_ns, frame_id)
+            stamp_ns, IMAGE_RAW, array_to_image(frame.image, frame.encoding, stamp_ns, frame_id)
         ),
-        TimedMessage(stamp_ns, CAMERA_INFO_TOPIC, camera.to_camera_info(stamp_ns)),
+        TimedMessage(stamp_ns, CAMERA_INFO, camera.to_camera_info(stamp_ns)),
     ]
     if k % sequence.config.depth_every == 0:
         out.append(
             TimedMessage(
-                stamp_ns, DEPTH_TOPIC, array_to_image(frame.depth, "32FC1", stamp_ns, frame_id)
+                stamp_ns, TRUE_DEPTH, array_to_image(frame.depth, "32FC1", stamp_ns, frame_id)
             )
         )
     out.append(
-        TimedMessage(stamp_ns, CAMERA_POSE_TOPIC, matrix_to_pose(pose, stamp_ns, WORLD_FRAME))
+        TimedMessage(stamp_ns, TRUE_CAMERA_POSE, matrix_to_pose(pose, stamp_ns, WORLD_FRAME))
     )
     if sequence.gray_levels is not None:
         out.append(
-            TimedMessage(stamp_ns, GRAY_LEVEL_TOPIC, Float32(data=float(sequence.gray_levels[k])))
+            TimedMessage(stamp_ns, GRAY_LEVEL, Float32(data=float(sequence.gray_levels[k])))
         )
     return out
 
@@ -141,7 +142,7 @@ def _tracker_stream(sequence: Sequence) -> Iterator[tuple[int, int, TimedMessage
             stamp_ns,
             10,
             TimedMessage(
-                stamp_ns, TRACKER_TOPIC, matrix_to_pose(published, stamp_ns, TRACKER_FRAME)
+                stamp_ns, TRACKER_POSE, matrix_to_pose(published, stamp_ns, TRACKER_FRAME)
             ),
         )
 
@@ -168,9 +169,9 @@ def write_bag(sequence: Sequence, path: str | Path, compression: str = "zstd") -
     path = Path(path)
     if path.suffix != ".mcap":
         raise SimulationParameterError(f"{path}: the bag must be a single .mcap file")
-    topics = [IMAGE_TOPIC, CAMERA_INFO_TOPIC, DEPTH_TOPIC, CAMERA_POSE_TOPIC, TRACKER_TOPIC]
+    topics = [IMAGE_RAW, CAMERA_INFO, TRUE_DEPTH, TRUE_CAMERA_POSE, TRACKER_POSE]
     if sequence.gray_levels is not None:
-        topics.append(GRAY_LEVEL_TOPIC)
+        topics.append(GRAY_LEVEL)
     qos = qos_profiles_to_yaml([reliable_qos(10)])
     counts = dict.fromkeys(topics, 0)
     with BagWriter(path, compression=compression) as bag:
@@ -238,7 +239,7 @@ def ground_truth_document(sequence: Sequence, stem: str, counts: dict[str, int])
             "inverse_response_npy": f"{stem}.inverse_response.npy",
         },
         "tracker": {
-            "topic": TRACKER_TOPIC,
+            "topic": TRACKER_POSE,
             "frame_id": TRACKER_FRAME,
             "units": tracker.units,
             "rate_hz": float(tracker.rate_hz),

@@ -26,21 +26,11 @@ from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo, Image
 from std_msgs.msg import Float32
 
+from endo_io import topics
 from endo_io.diagnostics import InputHealth
 from endo_io.pose import matrix_to_pose
 from endo_io.qos import create_reliable_publisher
-from endo_sim.bagout import (
-    CAMERA_INFO_TOPIC,
-    CAMERA_POSE_TOPIC,
-    DEPTH_TOPIC,
-    GRAY_LEVEL_TOPIC,
-    IMAGE_TOPIC,
-    TRACKER_FRAME,
-    TRACKER_TOPIC,
-    frame_messages,
-    image_noise_rng,
-    tracker_rng,
-)
+from endo_sim.bagout import frame_messages, image_noise_rng, tracker_rng
 from endo_sim.sequences import Sequence
 from endo_sim.trajectory import NS_PER_S
 
@@ -68,17 +58,19 @@ class SimulatorNode(Node):
         )
         self._publish_depth = bool(self.get_parameter("publish_depth").value)
         self._time_scale = float(self.get_parameter("time_scale").value)
-        self._outputs = {
-            IMAGE_TOPIC: create_reliable_publisher(self, Image, IMAGE_TOPIC),
-            CAMERA_INFO_TOPIC: create_reliable_publisher(self, CameraInfo, CAMERA_INFO_TOPIC),
-            DEPTH_TOPIC: create_reliable_publisher(self, Image, DEPTH_TOPIC),
-            CAMERA_POSE_TOPIC: create_reliable_publisher(self, PoseStamped, CAMERA_POSE_TOPIC),
-            TRACKER_TOPIC: create_reliable_publisher(self, PoseStamped, TRACKER_TOPIC),
+        types = {
+            topics.IMAGE_RAW: Image,
+            topics.CAMERA_INFO: CameraInfo,
+            topics.TRUE_DEPTH: Image,
+            topics.TRUE_CAMERA_POSE: PoseStamped,
+            topics.TRACKER_POSE: PoseStamped,
         }
         if sequence.gray_levels is not None:
-            self._outputs[GRAY_LEVEL_TOPIC] = create_reliable_publisher(
-                self, Float32, GRAY_LEVEL_TOPIC
-            )
+            types[topics.GRAY_LEVEL] = Float32
+        self._outputs = {
+            topic: create_reliable_publisher(self, msg_type, topic)
+            for topic, msg_type in types.items()
+        }
         self.frames = InputHealth(self, "rendered frames")
         self.tracker = InputHealth(self, "tracker samples")
         self._image_rng = image_noise_rng(sequence.config.seed)
@@ -125,7 +117,7 @@ class SimulatorNode(Node):
         pose = sequence.trajectory.pose_at(int(sequence.frame_times_ns[k]))
         frame = sequence.renderer.render(sequence.scene_of_frame(k), pose, self._image_rng)
         for message in frame_messages(sequence, k, frame, stamp_ns):
-            if message.topic == DEPTH_TOPIC and not self._publish_depth:
+            if message.topic == topics.TRUE_DEPTH and not self._publish_depth:
                 continue
             self._outputs[message.topic].publish(message.message)
 
@@ -144,7 +136,8 @@ class SimulatorNode(Node):
         camera_pose = self.sequence.trajectory.pose_at(sample_ns)
         marker = model.add_noise(model.true_marker_poses(camera_pose[None]), self._tracker_rng)[0]
         marker[:3, 3] *= model.unit_scale
-        self._outputs[TRACKER_TOPIC].publish(matrix_to_pose(marker, now, TRACKER_FRAME))
+        pose = matrix_to_pose(marker, now, topics.TRACKER_FRAME)
+        self._outputs[topics.TRACKER_POSE].publish(pose)
 
     def close(self) -> None:
         """Stop the render thread (called by run_node on shutdown)."""

@@ -28,6 +28,7 @@ from endo_io.errors import Endo3dError
 from endo_io.image import image_to_array
 from endo_io.pose import pose_to_matrix
 from endo_io.stamp import stamp_to_ns
+from endo_io.topics import CAMERA_INFO, IMAGE_RAW, TRACKER_POSE
 from endo_tracker_bridge.conventions import LengthUnit
 from endo_tracker_bridge.errors import HandEyeError
 from endo_tracker_bridge.handeye import (
@@ -47,9 +48,9 @@ from endo_tracker_bridge.handeye_file import HandEyeCalibration
 class BagTopics:
     """Topic names of the calibration bag."""
 
-    image: str = "/endoscope/image_raw"
-    camera_info: str = "/endoscope/camera_info"
-    pose: str = "/tracker/pose"
+    image: str = IMAGE_RAW
+    camera_info: str = CAMERA_INFO
+    pose: str = TRACKER_POSE
 
 
 @dataclass(frozen=True)
