@@ -20,8 +20,11 @@ DEMO_DOMAIN_ID ?= 41
 TEST_DOMAIN_ID ?= 42
 BENCH_DOMAIN_ID ?= 43
 DOCTOR_DOMAIN_ID ?= 44
+FUZZ_DOMAIN_ID ?= 45
+# Examples per fuzz property in `make fuzz` (`make test` runs each with 30).
+FUZZ_EXAMPLES ?= 2000
 
-.PHONY: venv demo test lint bench doctor constraints clean
+.PHONY: venv demo test fuzz lint bench doctor constraints clean
 
 $(VBIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -47,6 +50,12 @@ demo: $(STAMP)
 test: export ROS_DOMAIN_ID := $(TEST_DOMAIN_ID)
 test: $(STAMP)
 	$(VBIN)/python -m pytest
+
+# The fuzz tests of untrusted input (bags, CDR messages) with a large budget.
+fuzz: export ROS_DOMAIN_ID := $(FUZZ_DOMAIN_ID)
+fuzz: export ENDO3D_FUZZ_EXAMPLES := $(FUZZ_EXAMPLES)
+fuzz: $(STAMP)
+	$(VBIN)/python -m pytest -m fuzz
 
 lint: $(STAMP)
 	$(VBIN)/ruff check src tests bench

@@ -125,7 +125,9 @@ class CameraModel:
                 f"focal lengths must be positive, got fx={K[0, 0]:g} fy={K[1, 1]:g}"
             )
         if K[1, 0] != 0.0 or K[2, 0] != 0.0 or K[2, 1] != 0.0 or K[2, 2] != 1.0:
-            raise CameraModelError(f"K must be [[fx, s, cx], [0, fy, cy], [0, 0, 1]], got {K}")
+            raise CameraModelError(
+                f"K must be [[fx, s, cx], [0, fy, cy], [0, 0, 1]], got {K.tolist()}"
+            )
         put("K", K)
 
         if self.distortion_model not in DISTORTION_COEFFICIENT_COUNTS:

@@ -244,3 +244,16 @@ def test_decoded_messages_of_a_cut_bag_are_exact(tmp_path):
         for message in reader.messages():
             decoded.append(deserialize(message))
     assert decoded == [small_image(i) for i in range(4 * MESSAGES_PER_CHUNK)]
+
+
+def test_a_cut_in_the_closing_magic_names_an_offset_inside_the_file(tmp_path):
+    # Issue 16: a bag one byte short reported "byte 14997367 of 14997366".
+    path = tmp_path / "full.mcap"
+    written = write_chunked_bag(path, "zstd")
+    size = path.stat().st_size
+    for cut in range(size - 8, size):
+        damaged = cut_copy(path, tmp_path / f"cut_{cut}.mcap", cut)
+        got, error = read_until_error(damaged)
+        assert got == written, f"cut at {cut}"
+        assert_clear_error(error, damaged, offset=size - 8)
+        assert f"of {cut} " in str(error) and "closing MCAP magic" in str(error)

@@ -1,16 +1,20 @@
 """One MCAP file: its channels, and its messages in log-time order, tolerant of damage.
 
-Record parsing is the ``mcap`` package's (``Chunk.read``, ``breakup_chunk``,
-``StreamReader``); this module only decides *which* records to read, in what
-order, and what to do when one is damaged.
+Records are read by :mod:`endo_io.bag.mcap_records` (the ``mcap`` package's
+record classes over a :class:`~endo_io.bag.mcap_records.BoundedFile`, chunks
+decompressed in bounded steps), so that no length field is trusted before it
+is checked against the bytes there are; the summary section is parsed by the
+``mcap`` package's ``SeekingReader`` over the same bounded file. This module
+decides *which* records to read, in what order, and what to do when one is
+damaged.
 
 Two ways to find the messages:
 
 * **Index** (a complete file): the summary's chunk indexes give every chunk's
   offset and time range, and its statistics the per-topic counts.
 * **Scan** (no summary, an unchunked file, or a file cut short by a crash):
-  one linear pass with ``StreamReader(emit_chunks=True)`` lists the chunks
-  and top-level message records and their time ranges without decompressing
+  one linear pass over the top-level records lists the chunks and top-level
+  message records and their time ranges without decompressing
   (message counts come from the message-index records that follow each
   chunk; a chunk without them, or one that declares new channels, is
   decompressed once). The pass stops at the first unreadable record; that
@@ -30,7 +34,6 @@ from __future__ import annotations
 
 import dataclasses
 import heapq
-import io
 import os
 import zlib
 from collections.abc import Iterator
@@ -38,9 +41,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import IO, Any
 
-import lz4.frame
-import zstandard
-from mcap.data_stream import ReadDataStream
 from mcap.opcode import Opcode
 from mcap.reader import FOOTER_SIZE, SeekingReader
 from mcap.records import (
@@ -54,10 +54,19 @@ from mcap.records import (
     Metadata,
     Schema,
 )
-from mcap.stream_reader import MAGIC_SIZE, StreamReader, breakup_chunk
+from mcap.stream_reader import MAGIC_SIZE
 
 from endo_io.bag.errors import BagCorruptError, BagError, BagNotFoundError
 from endo_io.bag.interfaces import BagMessage, TopicInfo
+from endo_io.bag.mcap_records import (
+    DEFAULT_MAX_CHUNK_BYTES,
+    RECORD_PREFIX,
+    BoundedFile,
+    RecordDamage,
+    chunk_records,
+    read_cut_chunk,
+    read_record,
+)
 from endo_io.bag.metadata import (
     ROSBAG2_METADATA_RECORD,
     SERIALIZED_METADATA_KEY,
@@ -65,10 +74,8 @@ from endo_io.bag.metadata import (
 )
 
 MCAP_MAGIC = b"\x89MCAP0\r\n"
-_RECORD_PREFIX = 9  # opcode (1) + record length (8)
+_RECORD_PREFIX = RECORD_PREFIX
 _FOOTER_CRC_SIZE = 4
-# A corrupt length field must not make us allocate gigabytes.
-_RECORD_SIZE_LIMIT = 1 << 31
 _KIND_CHUNK = 0
 _KIND_MESSAGE = 1
 _KIND_RECOVERED = 2  # the readable head of a chunk cut short by the end of the file
@@ -96,6 +103,8 @@ class _ChannelInfo:
 
 
 def _describe(exc: BaseException) -> str:
+    if isinstance(exc, RecordDamage):
+        return str(exc)
     text = str(exc).strip().splitlines()
     detail = text[0][:120] if text else ""
     name = type(exc).__name__
@@ -111,17 +120,27 @@ class McapFile:
         path: The ``.mcap`` file.
         validate_crcs: Check each chunk's CRC (when the writer stored one), so
             that a corrupt chunk is reported instead of yielding wrong bytes.
+        max_chunk_bytes: A chunk declaring more uncompressed bytes is treated
+            as damaged instead of being decompressed (it bounds the memory a
+            hostile file can make the reader use).
 
     Raises:
         BagNotFoundError: the file does not exist.
         BagError: it cannot be opened or is not an MCAP file.
     """
 
-    def __init__(self, path: Path, *, validate_crcs: bool = True) -> None:
+    def __init__(
+        self,
+        path: Path,
+        *,
+        validate_crcs: bool = True,
+        max_chunk_bytes: int = DEFAULT_MAX_CHUNK_BYTES,
+    ) -> None:
         self.path = path
         self.validate_crcs = validate_crcs
+        self.max_chunk_bytes = max_chunk_bytes
         try:
-            self._file: IO[bytes] = path.open("rb")
+            self._raw: IO[bytes] = path.open("rb")
         except FileNotFoundError as exc:
             raise BagNotFoundError(f"{path}: no such bag file") from exc
         except IsADirectoryError as exc:
@@ -129,7 +148,8 @@ class McapFile:
         except OSError as exc:
             raise BagError(f"{path}: cannot open ({exc.strerror})") from exc
         try:
-            self.size = os.fstat(self._file.fileno()).st_size
+            self.size = os.fstat(self._raw.fileno()).st_size
+            self._file = BoundedFile(self._raw, self.size)
             self.profile = ""
             self.library = ""
             self.rosbag2_metadata: dict[str, Any] | None = None
@@ -141,7 +161,8 @@ class McapFile:
             self._segments: list[_Segment] = []
             self._damage: dict[int, str] = {}
             self._recovered: dict[int, list[Any]] = {}
-            head = self._file.read(MAGIC_SIZE)
+            head = self._raw.read(MAGIC_SIZE)
+            self._file.seek(len(head))
             if head != MCAP_MAGIC:
                 if MCAP_MAGIC.startswith(head):  # empty, or cut inside the magic
                     self._damage[len(head)] = "file ends inside the MCAP magic"
@@ -150,7 +171,7 @@ class McapFile:
             if not self._load_index():
                 self._scan()
         except BaseException:
-            self._file.close()
+            self._raw.close()
             raise
 
     # -- opening ---------------------------------------------------------------
@@ -164,10 +185,7 @@ class McapFile:
             stream.seek(self.size - MAGIC_SIZE)
             if stream.read(MAGIC_SIZE) != MCAP_MAGIC:
                 return False
-            stream.seek(self.size - MAGIC_SIZE - FOOTER_SIZE)
-            footer = next(
-                StreamReader(stream, skip_magic=True, record_size_limit=_RECORD_SIZE_LIMIT).records
-            )
+            footer, _ = read_record(stream, self.size - MAGIC_SIZE - FOOTER_SIZE)
             if not isinstance(footer, Footer) or footer.summary_start == 0:
                 return False
             summary_end = self.size - MAGIC_SIZE - _FOOTER_CRC_SIZE
@@ -179,7 +197,7 @@ class McapFile:
                 if zlib.crc32(summary_bytes) != footer.summary_crc:
                     return False
             stream.seek(0)
-            reader = SeekingReader(stream, record_size_limit=_RECORD_SIZE_LIMIT)
+            reader = SeekingReader(stream, record_size_limit=self.size)  # type: ignore[arg-type]
             summary = reader.get_summary()
             header = reader.get_header()
         except Exception:
@@ -220,12 +238,7 @@ class McapFile:
             if metadata_index.name != ROSBAG2_METADATA_RECORD:
                 continue
             try:
-                stream.seek(metadata_index.offset)
-                record = next(
-                    StreamReader(
-                        stream, skip_magic=True, record_size_limit=_RECORD_SIZE_LIMIT
-                    ).records
-                )
+                record, _ = read_record(stream, metadata_index.offset)
             except Exception as exc:
                 self._damage.setdefault(metadata_index.offset, _describe(exc))
                 continue
@@ -237,17 +250,13 @@ class McapFile:
     def _scan(self) -> None:
         """One linear pass listing segments; stops at the first unreadable record."""
         stream = self._file
-        stream.seek(MAGIC_SIZE)
-        records = StreamReader(
-            stream, skip_magic=True, emit_chunks=True, record_size_limit=_RECORD_SIZE_LIMIT
-        ).records
         position = MAGIC_SIZE
         pending: tuple[Chunk, int, int] | None = None
         pending_counts: dict[int, int] = {}
         in_summary = False
         try:
-            for record in records:
-                end = stream.tell()
+            while position < self.size:
+                record, end = read_record(stream, position)
                 if isinstance(record, MessageIndex):
                     if pending is not None:
                         pending_counts[record.channel_id] = len(record.records)
@@ -281,22 +290,24 @@ class McapFile:
                 elif isinstance(record, DataEnd):
                     in_summary = True
                 elif isinstance(record, Footer):
-                    # The trailing magic is read after the footer is yielded.
-                    position = end + MAGIC_SIZE
-                    continue
+                    stream.seek(end)
+                    if end + MAGIC_SIZE > self.size or stream.read(MAGIC_SIZE) != MCAP_MAGIC:
+                        self._damage.setdefault(
+                            end, "the closing MCAP magic after the footer is cut or damaged"
+                        )
+                    return
                 position = end
         except Exception as exc:
             if pending is not None:
                 self._finish_scanned_chunk(*pending, pending_counts)
-            if position >= self.size:
-                reason = "file ends before the MCAP footer"
-            else:
-                reason = _describe(exc)
-                self._recover_cut_chunk(position)
-            self._damage.setdefault(position, reason)
+                pending = None
+            self._damage.setdefault(position, _describe(exc))
+            self._recover_cut_chunk(position)
             return
-        if pending is not None:
-            self._finish_scanned_chunk(*pending, pending_counts)
+        finally:
+            if pending is not None:
+                self._finish_scanned_chunk(*pending, pending_counts)
+        self._damage.setdefault(position, "file ends before the MCAP footer")
 
     def _finish_scanned_chunk(
         self, chunk: Chunk, offset: int, end: int, index_counts: dict[int, int]
@@ -307,7 +318,9 @@ class McapFile:
             channel_ids = frozenset(index_counts)
         else:
             try:
-                records = breakup_chunk(chunk, validate_crc=self.validate_crcs)
+                records = chunk_records(
+                    chunk, validate_crc=self.validate_crcs, max_chunk_bytes=self.max_chunk_bytes
+                )
             except Exception as exc:
                 self._damage.setdefault(offset, _describe(exc))
                 return
@@ -344,30 +357,16 @@ class McapFile:
         try:
             stream.seek(offset)
             prefix = stream.read(_RECORD_PREFIX)
-            if len(prefix) < _RECORD_PREFIX or prefix[0] != Opcode.CHUNK:
+            if prefix[0] != Opcode.CHUNK:
                 return
             if offset + _RECORD_PREFIX + int.from_bytes(prefix[1:], "little") <= self.size:
                 return  # the record fits in the file: corrupt, not cut
-            chunk = Chunk.read(ReadDataStream(stream))
-            if chunk.compression == "zstd":
-                data = zstandard.ZstdDecompressor().decompressobj().decompress(chunk.data)
-            elif chunk.compression == "lz4":
-                data = lz4.frame.LZ4FrameDecompressor().decompress(chunk.data)
-            elif chunk.compression == "":
-                data = chunk.data
-            else:
-                return
+            chunk = read_cut_chunk(stream)
+            records = chunk_records(
+                chunk, validate_crc=False, max_chunk_bytes=self.max_chunk_bytes, partial=True
+            )
         except Exception:
             return
-        records: list[Any] = []
-        try:
-            inner = StreamReader(
-                io.BytesIO(data), skip_magic=True, record_size_limit=_RECORD_SIZE_LIMIT
-            )
-            for record in inner.records:  # stops at the first incomplete record
-                records.append(record)
-        except Exception:
-            pass
         found: set[int] = set()
         for record in records:
             if isinstance(record, Schema):
@@ -520,14 +519,20 @@ class McapFile:
         """Read one segment's messages that pass the filters, sorted by (log time, position)."""
         stream = self._file
         try:
-            stream.seek(segment.offset + _RECORD_PREFIX, io.SEEK_SET)
-            if segment.kind == _KIND_CHUNK:
-                chunk = Chunk.read(ReadDataStream(stream))
-                records = breakup_chunk(chunk, validate_crc=self.validate_crcs)
-            elif segment.kind == _KIND_RECOVERED:
+            if segment.kind == _KIND_RECOVERED:
                 records = self._recovered[segment.offset]
             else:
-                records = [Message.read(ReadDataStream(stream), segment.length)]
+                record, _ = read_record(stream, segment.offset)
+                if segment.kind == _KIND_MESSAGE:
+                    records = [record]
+                elif isinstance(record, Chunk):
+                    records = chunk_records(
+                        record,
+                        validate_crc=self.validate_crcs,
+                        max_chunk_bytes=self.max_chunk_bytes,
+                    )
+                else:
+                    raise RecordDamage("the summary's chunk index points at no chunk record")
         except Exception as exc:
             self._damage.setdefault(segment.offset, _describe(exc))
             return []
@@ -570,4 +575,4 @@ class McapFile:
 
     def close(self) -> None:
         """Close the file."""
-        self._file.close()
+        self._raw.close()

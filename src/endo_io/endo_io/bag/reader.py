@@ -19,6 +19,7 @@ from typing import Any
 from endo_io.bag.errors import BagCorruptError, BagError, BagNotFoundError
 from endo_io.bag.interfaces import BagMessage, TopicInfo
 from endo_io.bag.mcap_file import McapFile
+from endo_io.bag.mcap_records import DEFAULT_MAX_CHUNK_BYTES
 from endo_io.bag.metadata import read_metadata_yaml
 from endo_io.bag.qos_yaml import qos_profiles_text
 
@@ -34,6 +35,8 @@ class BagReader:
         path: A ``.mcap`` file, or a rosbag2 bag directory with metadata.yaml
             (its files are merged in log-time order).
         validate_crcs: Check chunk CRCs where the writer stored them.
+        max_chunk_bytes: Treat a chunk declaring more uncompressed bytes as
+            damaged (bounds the memory a corrupt or hostile file can cost).
 
     Raises:
         BagNotFoundError: the path, metadata.yaml or a listed file is missing.
@@ -45,7 +48,13 @@ class BagReader:
             the file's ``rosbag2`` record), or None if the bag has none.
     """
 
-    def __init__(self, path: str | os.PathLike[str], *, validate_crcs: bool = True) -> None:
+    def __init__(
+        self,
+        path: str | os.PathLike[str],
+        *,
+        validate_crcs: bool = True,
+        max_chunk_bytes: int = DEFAULT_MAX_CHUNK_BYTES,
+    ) -> None:
         self.path = Path(path)
         self.metadata: dict[str, Any] | None = None
         self._files: list[McapFile] = []
@@ -64,10 +73,18 @@ class BagReader:
                     )
                 for relative in self.metadata["relative_file_paths"]:
                     self._files.append(
-                        McapFile(self._member_path(relative), validate_crcs=validate_crcs)
+                        McapFile(
+                            self._member_path(relative),
+                            validate_crcs=validate_crcs,
+                            max_chunk_bytes=max_chunk_bytes,
+                        )
                     )
             else:
-                self._files.append(McapFile(self.path, validate_crcs=validate_crcs))
+                self._files.append(
+                    McapFile(
+                        self.path, validate_crcs=validate_crcs, max_chunk_bytes=max_chunk_bytes
+                    )
+                )
                 self.metadata = self._files[0].rosbag2_metadata
         except BaseException:
             self.close()
