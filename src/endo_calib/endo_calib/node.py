@@ -1,7 +1,8 @@
 """``photometric_correction`` node: raw images in, linear irradiance out.
 
-Subscribes ``image_raw`` (sensor_msgs/Image, mono8/mono16/16UC1/rgb8/bgr8/
-rgba8/bgra8, sensor-data QoS) and publishes ``image_corrected``: 32FC1 linear
+Subscribes ``/endoscope/image_raw`` (sensor_msgs/Image, mono8/mono16/16UC1/
+rgb8/bgr8/rgba8/bgra8, sensor-data QoS) and publishes
+``/endoscope/image_corrected`` (:mod:`endo_io.topics`): 32FC1 linear
 irradiance g(v)/L(x) of the configured channel, or 32FC3 (R, G, B) with
 ``channel: rgb``; saturated pixels and pixels outside the field of view are
 NaN. The calibration comes from the ``calibration_file`` parameter
@@ -13,23 +14,28 @@ A missing or corrupt calibration, an image that does not match it, or a bad
 encoding: the frame is dropped with a one-line error (counted on
 ``/diagnostics``), nothing is published, and the node keeps running. Setting
 the parameter to a file that cannot be loaded is rejected with the reason and
-the previous calibration stays in use.
+the previous calibration stays in use. A ``channel`` the calibration cannot
+give (``red`` of a mono calibration) stops the node at start-up with one
+line and exit code 2, and is refused as a run-time change.
 """
 
 from __future__ import annotations
 
 import sys
+from collections.abc import Mapping
+from typing import Any
 
-from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
 from rclpy.node import Node
-from rclpy.parameter import Parameter
 from sensor_msgs.msg import Image
 
 from endo_calib.calibration import OUTPUT_CHANNELS, PhotometricCalibration, select_channel
 from endo_calib.errors import CalibrationError, CalibrationFileError
 from endo_calib.raw_image import to_raw_frame
+from endo_io import topics
 from endo_io.diagnostics import InputHealth
+from endo_io.errors import ParameterValidationError
 from endo_io.image import array_to_image, image_to_array
+from endo_io.parameters import NodeParameters, ParameterSpec
 from endo_io.process import run_node
 from endo_io.qos import SENSOR_DATA_QOS, create_reliable_publisher
 from endo_io.stamp import stamp_to_ns
@@ -39,54 +45,69 @@ class CalibrationNotLoadedError(CalibrationFileError):
     """No usable calibration is loaded, so frames cannot be corrected."""
 
 
+#: Every parameter of the node.
+PARAMETERS: tuple[ParameterSpec, ...] = (
+    ParameterSpec(
+        "calibration_file", "", "photometric.yaml written by endo-calibrate; reloaded when set"
+    ),
+    ParameterSpec(
+        "channel", "luminance",
+        "published channel: luminance, red, green, blue (32FC1) or rgb (32FC3); a colour "
+        "channel needs a colour calibration",
+        choices=OUTPUT_CHANNELS,
+    ),
+)
+
+
+def check_channel(calibration: PhotometricCalibration, channel: str, path: str) -> None:
+    """Refuse a channel the calibration cannot give (a colour channel of a mono one).
+
+    Raises:
+        ParameterValidationError: one line naming the channel and the file.
+    """
+    names = calibration.channel_names
+    colour = channel in ("red", "green", "blue")
+    if (channel == "rgb" and len(names) != 3) or (colour and channel not in names):
+        raise ParameterValidationError(
+            f"parameter channel: {channel!r} needs a colour calibration, but "
+            f"{path or 'the calibration'} has channels {'/'.join(names)}"
+        )
+
+
 class PhotometricCorrectionNode(Node):
     """Applies a gray-card photometric calibration to every raw frame."""
 
     def __init__(self, node_name: str = "photometric_correction", **kwargs: object) -> None:
         super().__init__(node_name, **kwargs)  # type: ignore[arg-type]
-        self.declare_parameter(
-            "calibration_file",
-            "",
-            ParameterDescriptor(
-                description="photometric.yaml written by endo-calibrate; reloaded when set"
-            ),
-        )
-        self.declare_parameter(
-            "channel",
-            "luminance",
-            ParameterDescriptor(
-                description="published channel: luminance|red|green|blue (32FC1) or rgb (32FC3)"
-            ),
-        )
+        self.parameters = NodeParameters(self, PARAMETERS)
         self.health = InputHealth(self, "image input")
         self.calibration: PhotometricCalibration | None = None
         self.load_error = "calibration_file is not set"
-        self.channel = str(self.get_parameter("channel").value)
-        if self.channel not in OUTPUT_CHANNELS:
-            self.get_logger().error(
-                f"channel {self.channel!r} not one of {OUTPUT_CHANNELS}; using luminance"
-            )
-            self.channel = "luminance"
-        self._load(str(self.get_parameter("calibration_file").value))
-        self.add_on_set_parameters_callback(self._on_parameters)
-        self.publisher = create_reliable_publisher(self, Image, "image_corrected")
-        self.subscription = self.create_subscription(
-            Image, "image_raw", self.health.guard(self._on_image), SENSOR_DATA_QOS
-        )
-
-    def _load(self, path: str) -> None:
-        """Load at start-up: on failure log the cause and publish nothing until a valid file."""
+        self.publisher = create_reliable_publisher(self, Image, topics.IMAGE_CORRECTED)
+        path = self.parameters["calibration_file"]
         if not path:
             self.get_logger().error("no calibration: set the calibration_file parameter")
-            return
-        try:
-            self.calibration = PhotometricCalibration.load(path)
-        except CalibrationError as error:
-            self.load_error = str(error)
-            self.get_logger().error(f"cannot load calibration: {error}")
-            self.health.set_value("calibration_error", self.load_error)
-            return
-        self._report_loaded(path)
+        else:
+            try:
+                calibration = PhotometricCalibration.load(path)
+            except CalibrationError as error:
+                # The node stays up: the file may be written or fixed later.
+                self.load_error = str(error)
+                self.get_logger().error(f"cannot load calibration: {error}")
+                self.health.set_value("calibration_error", self.load_error)
+            else:
+                check_channel(calibration, self.parameters["channel"], path)
+                self.calibration = calibration
+                self._report_loaded(path)
+        self.parameters.on_change(self._apply_parameters)
+        self.subscription = self.create_subscription(
+            Image, topics.IMAGE_RAW, self.health.guard(self._on_image), SENSOR_DATA_QOS
+        )
+
+    @property
+    def channel(self) -> str:
+        """The published channel."""
+        return str(self.parameters["channel"])
 
     def _report_loaded(self, path: str) -> None:
         cal = self.calibration
@@ -99,39 +120,25 @@ class PhotometricCorrectionNode(Node):
             f"channels {'/'.join(cal.channel_names)}"
         )
 
-    def _on_parameters(self, parameters: list[Parameter]) -> SetParametersResult:
-        """Validate and apply parameter changes; a bad calibration file is rejected."""
-        new_calibration: PhotometricCalibration | None = None
-        new_path = ""
-        channel = self.channel
-        for parameter in parameters:
-            if parameter.name == "channel":
-                channel = str(parameter.value)
-                if channel not in OUTPUT_CHANNELS:
-                    return SetParametersResult(
-                        successful=False, reason=f"channel must be one of {OUTPUT_CHANNELS}"
-                    )
-            elif parameter.name == "calibration_file":
-                new_path = str(parameter.value)
-                try:
-                    new_calibration = PhotometricCalibration.load(new_path)
-                except CalibrationError as error:
-                    self.get_logger().error(f"calibration not changed: {error}")
-                    return SetParametersResult(successful=False, reason=str(error))
-        effective = new_calibration or self.calibration
-        if (
-            effective is not None
-            and channel in ("red", "green", "blue", "rgb")
-            and (effective.channel_names == ("mono",))
-        ):
-            return SetParametersResult(
-                successful=False, reason=f"channel {channel!r} needs a colour calibration"
-            )
-        self.channel = channel
-        if new_calibration is not None:
-            self.calibration = new_calibration
-            self._report_loaded(new_path)
-        return SetParametersResult(successful=True)
+    def _apply_parameters(self, changes: Mapping[str, Any], values: Mapping[str, Any]) -> None:
+        """Load a new calibration file and check the channel against it; refuse on failure.
+
+        Raises:
+            CalibrationError: the new file does not load (the previous one stays).
+            ParameterValidationError: the channel does not fit the calibration.
+        """
+        calibration = self.calibration
+        if "calibration_file" in changes:
+            try:
+                calibration = PhotometricCalibration.load(values["calibration_file"])
+            except CalibrationError as error:
+                self.get_logger().error(f"calibration not changed: {error}")
+                raise
+        if calibration is not None:
+            check_channel(calibration, values["channel"], values["calibration_file"])
+        if calibration is not self.calibration:
+            self.calibration = calibration
+            self._report_loaded(values["calibration_file"])
 
     def _on_image(self, msg: Image) -> None:
         calibration = self.calibration

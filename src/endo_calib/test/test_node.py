@@ -19,6 +19,8 @@ from endo_calib.calibration import ChannelCalibration, PhotometricCalibration
 from endo_calib.light_map import normalised_grid
 from endo_calib.node import PhotometricCorrectionNode
 from endo_calib.response import InverseResponse
+from endo_io import topics
+from endo_io.errors import ParameterValidationError
 from endo_io.image import array_to_image, image_to_array
 from endo_io.qos import SENSOR_DATA_QOS, reliable_qos
 
@@ -55,14 +57,14 @@ def _start(ros, parameters):
     node = PhotometricCorrectionNode(context=context, namespace=NS, parameter_overrides=parameters)
     probe = rclpy.create_node("calib_probe", namespace=NS, context=context)
     received: list[Image] = []
-    probe.create_subscription(Image, "image_corrected", received.append, reliable_qos(10))
-    publisher = probe.create_publisher(Image, "image_raw", SENSOR_DATA_QOS)
+    probe.create_subscription(Image, topics.IMAGE_CORRECTED, received.append, reliable_qos(10))
+    publisher = probe.create_publisher(Image, topics.IMAGE_RAW, SENSOR_DATA_QOS)
     executor.add_node(node)
     executor.add_node(probe)
     deadline = time.monotonic() + 10.0
     while (
         publisher.get_subscription_count() == 0
-        or probe.count_publishers(f"{NS}/image_corrected") == 0
+        or probe.count_publishers(topics.IMAGE_CORRECTED) == 0
     ):
         executor.spin_once(timeout_sec=0.05)
         assert time.monotonic() < deadline, "node and probe did not discover each other"
@@ -156,3 +158,32 @@ def test_without_a_calibration_nothing_is_published(ros, tmp_path):
     path = _write_calibration(tmp_path / "late.yaml", 2.2)
     assert node.set_parameters([Parameter("calibration_file", value=str(path))])[0].successful
     assert _exchange(executor, publisher, received, msg) is not None
+
+
+def test_a_colour_channel_of_a_mono_calibration_is_refused_at_start_and_at_run_time(
+    ros, tmp_path
+):
+    context, _ = ros
+    mono = _write_calibration(tmp_path / "mono.yaml", 2.2)
+    colour = _write_calibration(tmp_path / "rgb.yaml", 2.2, colour=True)
+    with pytest.raises(ParameterValidationError, match="'red' needs a colour calibration"):
+        PhotometricCorrectionNode(
+            context=context, namespace=NS,
+            parameter_overrides=[Parameter("calibration_file", value=str(mono)),
+                                 Parameter("channel", value="red")],
+        )
+    node, _, _ = _start(ros, [Parameter("calibration_file", value=str(mono))])
+    result = node.set_parameters([Parameter("channel", value="green")])[0]
+    assert not result.successful and "needs a colour calibration" in result.reason
+    assert node.channel == "luminance"
+    assert node.set_parameters([Parameter("calibration_file", value=str(colour))])[0].successful
+    assert node.set_parameters([Parameter("channel", value="green")])[0].successful
+    # Back to the mono file while publishing green: refused, the colour one stays.
+    result = node.set_parameters([Parameter("calibration_file", value=str(mono))])[0]
+    assert not result.successful and "needs a colour calibration" in result.reason
+    assert node.calibration.channel_names == ("red", "green", "blue")
+    # Both at once are checked together.
+    assert node.set_parameters_atomically(
+        [Parameter("calibration_file", value=str(mono)), Parameter("channel", value="luminance")]
+    ).successful
+    assert node.calibration.channel_names == ("mono",) and node.channel == "luminance"

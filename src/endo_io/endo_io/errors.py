@@ -67,3 +67,12 @@ class PoseOrderError(PoseError):
 
 class ClockJumpError(Endo3dError):
     """Time jumped (a bag loop, a driver restart): state kept over time was reset."""
+
+
+class ParameterValidationError(Endo3dError, ValueError):
+    """A node parameter has the wrong type, is out of its range or not one of its choices.
+
+    Raised while a node starts (``endo_io.process.run_node`` turns it into one
+    line on stderr and exit code 2) and given as the reason when a run-time
+    change is refused.
+    """

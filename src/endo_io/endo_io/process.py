@@ -20,6 +20,8 @@ from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.utilities import get_rmw_implementation_identifier
 
+from endo_io.errors import Endo3dError, ParameterValidationError
+
 
 @dataclass(frozen=True)
 class DdsEnvironment:
@@ -63,19 +65,32 @@ def log_dds_environment(node: Node) -> DdsEnvironment:
     return env
 
 
+#: Parameters every rclpy node declares by itself; --help lists the node's own.
+_RCLPY_PARAMETERS = frozenset({"use_sim_time", "start_type_description_service"})
+
+
 def describe_parameters(node: Node) -> str:
-    """One line per declared parameter: name, type, default, range and description."""
+    """One line per declared parameter: name, default, range or choices, description.
+
+    Ranges come from the descriptor's numeric range, choices from its
+    ``additional_constraints`` (``endo_io.parameters`` fills both from the
+    node's table); read-only parameters say so.
+    """
     lines = []
     for name in sorted(node._parameters):
-        if name == "use_sim_time" or name.startswith("qos_overrides."):
+        if name in _RCLPY_PARAMETERS or name.startswith("qos_overrides."):
             continue
         descriptor = node.describe_parameter(name)
         value = node.get_parameter(name).value
-        bounds = ""
+        notes = ""
         for r in (*descriptor.floating_point_range, *descriptor.integer_range):
-            bounds = f" [{r.from_value}, {r.to_value}]"
+            notes = f" [{r.from_value}, {r.to_value}]"
+        if descriptor.additional_constraints and not notes:
+            notes = f", {descriptor.additional_constraints}"
+        if descriptor.read_only:
+            notes += ", read-only"
         text = descriptor.description or ""
-        lines.append(f"  {name} (default {value!r}{bounds}): {text}")
+        lines.append(f"  {name} (default {value!r}{notes}): {text}")
     return "\n".join(lines)
 
 
@@ -105,21 +120,35 @@ def run_node(factory: Callable[[], Node], args: Sequence[str] | None = None) -> 
 
     ``args`` are the ROS arguments (``--ros-args ...``); ``sys.argv`` by default.
     Returns the process exit code: the node's ``exit_code`` attribute when it
-    has one (a replay that hit a damaged bag sets it), else 0.
+    has one (a replay that hit a damaged bag sets it), else 0. A node that
+    cannot start on its configuration (an :class:`Endo3dError` from
+    ``factory``: a parameter out of range, a calibration file that does not
+    load) gives one line on stderr naming the cause and exit code 2, never a
+    traceback.
     """
     argv = list(sys.argv if args is None else args)
     ours, _ = split_ros_args(argv)
     if "-h" in ours or "--help" in ours:
         return print_node_help(factory, argv)
+    program = Path(argv[0]).name if argv else "node"
     # rclpy's default signal handlers cover SIGINT and SIGTERM: both shut the
     # context down, spin() returns, and the node's close() still runs below.
     rclpy.init(args=argv)
     node: Node | None = None
     try:
-        node = factory()
-        log_dds_environment(node)
+        try:
+            node = factory()
+        except ParameterValidationError as error:
+            print(f"{program}: {error}", file=sys.stderr)
+            return 2
+        except Endo3dError as error:
+            print(f"{program}: {type(error).__name__}: {error}", file=sys.stderr)
+            return 2
         executor = SingleThreadedExecutor()
         executor.add_node(node)
+        # Logged once the executor exists: a SIGINT sent on seeing this line
+        # must not land inside the executor's constructor.
+        log_dds_environment(node)
         executor.spin()
     except (KeyboardInterrupt, ExternalShutdownException):
         pass

@@ -1,12 +1,17 @@
 """``sfs`` node: linear irradiance in, relative depth out, one frame at a time.
 
-Subscribes ``image_corrected`` (sensor_msgs/Image 32FC1, the linear
-irradiance from ``photometric_correction``; NaN = saturated or outside the
-field of view) and ``camera_info``, pairs them by stamp, and publishes
-``depth_relative`` (32FC1, same header, relative depth along the optical
-axis, NaN invalid; see :mod:`endo_sfs.relative_depth` for the convention) and,
-with ``publish_normals``, ``normals`` (32FC3 unit normals in the optical
-frame).
+Subscribes ``/endoscope/image_corrected`` (sensor_msgs/Image 32FC1, the
+linear irradiance from ``photometric_correction``; NaN = saturated or outside
+the field of view) and ``/endoscope/camera_info``, pairs them by stamp, and
+publishes ``/endoscope/depth_relative`` (32FC1, same header, relative depth
+along the optical axis, NaN invalid; see :mod:`endo_sfs.relative_depth` for
+the convention) and, with ``publish_normals``, ``/endoscope/normals`` (32FC3
+unit normals in the optical frame); the names are :mod:`endo_io.topics`'.
+
+Parameters are declared from the table :data:`PARAMETERS` (see
+:mod:`endo_io.parameters`): a start-up value out of range or outside its
+choices stops the node with one line and exit code 2; the solver settings
+(:class:`endo_sfs.SfsOptions`) are rebuilt once per accepted change.
 
 Every frame goes through :func:`endo_sfs.relative_depth.solve`, the function
 offline tools call; with ``mask_highlights`` (default true) specular
@@ -26,23 +31,19 @@ from __future__ import annotations
 
 import sys
 import time
+from collections.abc import Mapping
 from typing import Any
 
 import numpy as np
-from rcl_interfaces.msg import (
-    FloatingPointRange,
-    IntegerRange,
-    ParameterDescriptor,
-    ParameterType,
-    SetParametersResult,
-)
 from rclpy.node import Node
-from rclpy.parameter import Parameter
 from sensor_msgs.msg import CameraInfo, Image
 
+from endo_io import topics
 from endo_io.camera import CameraModel
 from endo_io.diagnostics import InputHealth
+from endo_io.errors import ParameterValidationError
 from endo_io.image import array_to_image, image_to_array
+from endo_io.parameters import NodeParameters, ParameterSpec
 from endo_io.process import run_node
 from endo_io.qos import SENSOR_DATA_QOS, create_reliable_publisher
 from endo_io.stamp import NS_PER_S, stamp_to_ns
@@ -58,107 +59,103 @@ _WARM_UP_SIZE = 24
 _WARM_UP_PARALLEL_SIZE = 192
 
 
-def _float_range(low: float, high: float) -> list[FloatingPointRange]:
-    return [FloatingPointRange(from_value=low, to_value=high, step=0.0)]
-
-
-def _int_range(low: int, high: int) -> list[IntegerRange]:
-    return [IntegerRange(from_value=low, to_value=high, step=1)]
-
-
-#: name -> (default, descriptor) of every parameter of the node.
-PARAMETERS: dict[str, tuple[object, ParameterDescriptor]] = {
-    "model": ("near_light", ParameterDescriptor(
-        type=ParameterType.PARAMETER_STRING,
-        description="reflectance geometry: near_light (light at the optical centre, 1/r²) or "
+#: Every parameter of the node.
+PARAMETERS: tuple[ParameterSpec, ...] = (
+    ParameterSpec(
+        "model", "near_light",
+        "reflectance geometry: near_light (light at the optical centre, 1/r²) or "
         "orthographic (the seed paper's Eikonal model)",
-        additional_constraints="one of: " + ", ".join(MODELS),
-    )),
-    "roughness": (0.0, ParameterDescriptor(
-        type=ParameterType.PARAMETER_DOUBLE,
-        description="Oren–Nayar roughness σ in radians (0 = Lambertian)",
-        floating_point_range=_float_range(0.0, MAX_ROUGHNESS),
-    )),
-    "solve_scale": (1.0, ParameterDescriptor(
-        type=ParameterType.PARAMETER_DOUBLE,
-        description="solve-grid density relative to the image pixels; the depth is "
-        "resampled back to full size",
-        floating_point_range=_float_range(0.1, 1.0),
-    )),
-    "tolerance": (DEFAULT_TOLERANCE, ParameterDescriptor(
-        type=ParameterType.PARAMETER_DOUBLE,
-        description="stop sweeping when no node changed by more than this in a full "
-        "iteration (ln r for near_light, i.e. relative depth)",
-        floating_point_range=_float_range(1e-9, 1e-2),
-    )),
-    "max_iterations": (DEFAULT_MAX_ITERATIONS, ParameterDescriptor(
-        type=ParameterType.PARAMETER_INTEGER,
-        description="cap on full fast-sweeping iterations (four sweeps each)",
-        integer_range=_int_range(1, 1000),
-    )),
-    "order": (2, ParameterDescriptor(
-        type=ParameterType.PARAMETER_INTEGER,
-        description="upwind scheme: 1 first-order Godunov, 2 second-order, 3 WENO3 Godunov",
-        integer_range=_int_range(1, 3),
-    )),
-    "threads": (2, ParameterDescriptor(
-        type=ParameterType.PARAMETER_INTEGER,
-        description="CPU threads per frame (resampling; near_light on grids of 20000+ nodes: "
-        "the first pass, or the sweeps when the predicted order is poor, as two halves at "
-        "once); 1 leaves the other cores to the rest of the graph and makes the output "
-        "bit-reproducible",
-        integer_range=_int_range(1, 64),
-    )),
-    "warm_start": (True, ParameterDescriptor(
-        type=ParameterType.PARAMETER_BOOL,
-        description="seed each near_light solve with the previous frame's solution",
-    )),
-    "dark_level": (0.0, ParameterDescriptor(
-        type=ParameterType.PARAMETER_DOUBLE,
-        description="irradiance at or below this is not data (noise floor), image units",
-        floating_point_range=_float_range(0.0, 1e6),
-    )),
-    "fov_radius": (0.0, ParameterDescriptor(
-        type=ParameterType.PARAMETER_DOUBLE,
-        description="radius in pixels of the circular field of view around the principal "
-        "point (0: whole image; NaN pixels are excluded anyway)",
-        floating_point_range=_float_range(0.0, 1e5),
-    )),
-    "smoothing": (0.0, ParameterDescriptor(
-        type=ParameterType.PARAMETER_DOUBLE,
-        description="Gaussian σ in pixels applied to the valid irradiance before solving "
-        "(noise near c ≈ 1 biases the slope; ~1 px helps 8-bit input)",
-        floating_point_range=_float_range(0.0, 10.0),
-    )),
-    "mask_highlights": (True, ParameterDescriptor(
-        type=ParameterType.PARAMETER_BOOL,
-        description="detect specular highlights (saturated pixels and bright blobs over the "
-        "diffuse baseline, with their shoulders) and give them no data term; they come out NaN",
-    )),
-    "publish_normals": (False, ParameterDescriptor(
-        type=ParameterType.PARAMETER_BOOL,
-        description="also publish unit surface normals on 'normals' (32FC3, optical frame)",
-    )),
-    "stamp_tolerance": (0.0, ParameterDescriptor(
-        type=ParameterType.PARAMETER_DOUBLE,
-        description="largest image/camera_info stamp difference of a pair, seconds "
-        "(0: exact match)",
-        floating_point_range=_float_range(0.0, 1.0),
-    )),
-    "queue_size": (10, ParameterDescriptor(
-        type=ParameterType.PARAMETER_INTEGER,
-        description="unmatched images and camera_infos kept while waiting for a partner",
-        integer_range=_int_range(1, 100),
-        read_only=True,
-    )),
-}
+        choices=MODELS,
+    ),
+    ParameterSpec(
+        "roughness", 0.0, "Oren–Nayar roughness σ in radians (0 = Lambertian)",
+        range=(0.0, MAX_ROUGHNESS),
+    ),
+    ParameterSpec(
+        "solve_scale", 1.0,
+        "solve-grid density relative to the image pixels; the depth is resampled back to "
+        "full size",
+        range=(0.1, 1.0),
+    ),
+    ParameterSpec(
+        "tolerance", DEFAULT_TOLERANCE,
+        "stop sweeping when no node changed by more than this in a full iteration (ln r for "
+        "near_light, i.e. relative depth)",
+        range=(1e-9, 1e-2),
+    ),
+    ParameterSpec(
+        "max_iterations", DEFAULT_MAX_ITERATIONS,
+        "cap on full fast-sweeping iterations (four sweeps each)", range=(1, 1000),
+    ),
+    ParameterSpec(
+        "order", 2, "upwind scheme: 1 first-order Godunov, 2 second-order, 3 WENO3 Godunov",
+        range=(1, 3),
+    ),
+    ParameterSpec(
+        "threads", 2,
+        "CPU threads per frame (resampling; near_light on grids of 20000+ nodes: the first "
+        "pass, or the sweeps when the predicted order is poor, as two halves at once); 1 "
+        "leaves the other cores to the rest of the graph and makes the output bit-reproducible",
+        range=(1, 64),
+    ),
+    ParameterSpec(
+        "warm_start", True, "seed each near_light solve with the previous frame's solution"
+    ),
+    ParameterSpec(
+        "dark_level", 0.0,
+        "irradiance at or below this is not data (noise floor), image units", range=(0.0, 1e6),
+    ),
+    ParameterSpec(
+        "fov_radius", 0.0,
+        "radius in pixels of the circular field of view around the principal point (0: whole "
+        "image; NaN pixels are excluded anyway)",
+        range=(0.0, 1e5),
+    ),
+    ParameterSpec(
+        "smoothing", 0.0,
+        "Gaussian σ in pixels applied to the valid irradiance before solving (noise near "
+        "c ≈ 1 biases the slope; ~1 px helps 8-bit input)",
+        range=(0.0, 10.0),
+    ),
+    ParameterSpec(
+        "mask_highlights", True,
+        "detect specular highlights (saturated pixels and bright blobs over the diffuse "
+        "baseline, with their shoulders) and give them no data term; they come out NaN",
+    ),
+    ParameterSpec(
+        "publish_normals", False,
+        "also publish unit surface normals on the normals topic (32FC3, optical frame)",
+    ),
+    ParameterSpec(
+        "stamp_tolerance", 0.0,
+        "largest image/camera_info stamp difference of a pair, seconds (0: exact match)",
+        range=(0.0, 1.0),
+    ),
+    ParameterSpec(
+        "queue_size", 10, "unmatched images and camera_infos kept while waiting for a partner",
+        range=(1, 100), read_only=True,
+    ),
+)
 
 
 #: The node parameters that are :class:`SfsOptions` fields of the same name.
-_OPTION_PARAMETERS = (
+_OPTION_PARAMETERS = frozenset({
     "model", "roughness", "solve_scale", "tolerance", "max_iterations", "order", "threads",
     "dark_level", "smoothing", "mask_highlights",
-)
+})
+
+
+def _solver_options(values: Mapping[str, Any]) -> SfsOptions:
+    """The solver settings from the node's parameter values (name -> value).
+
+    Raises:
+        SfsError: a value :class:`SfsOptions` refuses, named in the message.
+    """
+    return SfsOptions(**{name: values[name] for name in _OPTION_PARAMETERS})
+
+
+def _tolerance_ns(seconds: float) -> int:
+    return round(seconds * NS_PER_S)
 
 
 def warm_up_kernels() -> float:
@@ -189,14 +186,11 @@ class SfsNode(Node):
 
     def __init__(self, node_name: str = "sfs", **kwargs: Any) -> None:
         super().__init__(node_name, **kwargs)
-        for name, (default, descriptor) in PARAMETERS.items():
-            self.declare_parameter(name, default, descriptor)
-        model = str(self.get_parameter("model").value)
-        if model not in MODELS:
-            self.get_logger().error(f"model {model!r} is not one of {MODELS}; using near_light")
-            self.set_parameters([Parameter("model", value="near_light")])
-        self._options = self._solver_options({})
-        self.add_on_set_parameters_callback(self._on_parameters)
+        self.parameters = NodeParameters(self, PARAMETERS)
+        try:
+            self._options = _solver_options(self.parameters.values())
+        except SfsError as error:
+            raise ParameterValidationError(str(error)) from None
         seconds = warm_up_kernels()
         self.get_logger().info(f"shape-from-shading kernels ready in {seconds:.2f} s")
 
@@ -205,54 +199,34 @@ class SfsNode(Node):
         self._fov_mask: tuple[float, np.ndarray] | None = None
         self._previous: SfsSolution | None = None
         self._matcher: StampMatcher[Image, CameraInfo] = StampMatcher(
-            int(self._value("queue_size")), self._tolerance_ns()
+            self.parameters["queue_size"], _tolerance_ns(self.parameters["stamp_tolerance"])
         )
-        self.depth_publisher = create_reliable_publisher(self, Image, "depth_relative")
-        self.normals_publisher = create_reliable_publisher(self, Image, "normals")
+        self.depth_publisher = create_reliable_publisher(self, Image, topics.DEPTH_RELATIVE)
+        self.normals_publisher = create_reliable_publisher(self, Image, topics.NORMALS)
         self.create_subscription(
-            Image, "image_corrected", self.health.guard(self._on_image), SENSOR_DATA_QOS
+            Image, topics.IMAGE_CORRECTED, self.health.guard(self._on_image), SENSOR_DATA_QOS
         )
         self.create_subscription(
-            CameraInfo, "camera_info", self.health.guard(self._on_camera_info), SENSOR_DATA_QOS
+            CameraInfo, topics.CAMERA_INFO, self.health.guard(self._on_camera_info),
+            SENSOR_DATA_QOS,
         )
+        self.parameters.on_change(self._apply_parameters)
 
     # ------------------------------------------------------------------ parameters
-
-    def _value(self, name: str) -> Any:
-        return self.get_parameter(name).value
-
-    def _tolerance_ns(self) -> int:
-        return round(float(self._value("stamp_tolerance")) * NS_PER_S)
 
     @property
     def options(self) -> SfsOptions:
         """The solver settings every frame uses, rebuilt when a parameter changes."""
         return self._options
 
-    def _solver_options(self, changes: dict[str, Any]) -> SfsOptions:
-        """The solver settings from the parameters, with ``changes`` (name -> value) applied.
-
-        Raises:
-            SfsError: a value out of its range (UnknownModelError,
-                InvalidOptionError), named in the message.
-        """
-        values = {name: self._value(name) for name in _OPTION_PARAMETERS}
-        values.update({k: v for k, v in changes.items() if k in _OPTION_PARAMETERS})
-        return SfsOptions(**values)
-
-    def _on_parameters(self, parameters: list[Parameter]) -> SetParametersResult:
-        changes = {parameter.name: parameter.value for parameter in parameters}
-        try:
-            options = self._solver_options(changes)
-        except SfsError as error:
-            return SetParametersResult(successful=False, reason=str(error))
-        self._options = options
-        for parameter in parameters:
-            if parameter.name in ("model", "roughness", "solve_scale"):
-                self._previous = None  # the old solution no longer seeds this problem
-            if parameter.name == "stamp_tolerance":
-                self._matcher.tolerance_ns = round(float(parameter.value) * NS_PER_S)
-        return SetParametersResult(successful=True)
+    def _apply_parameters(self, changes: Mapping[str, Any], values: Mapping[str, Any]) -> None:
+        """Put accepted changes into effect; an SfsError (e.g. a bad combination) refuses them."""
+        if changes.keys() & _OPTION_PARAMETERS:
+            self._options = _solver_options(values)
+        if changes.keys() & {"model", "roughness", "solve_scale"}:
+            self._previous = None  # the old solution no longer seeds this problem
+        if "stamp_tolerance" in changes:
+            self._matcher.tolerance_ns = _tolerance_ns(changes["stamp_tolerance"])
 
     # ------------------------------------------------------------------ callbacks
 
@@ -275,7 +249,7 @@ class SfsNode(Node):
         return self._camera
 
     def _mask(self, camera: CameraModel) -> np.ndarray | None:
-        radius = float(self._value("fov_radius"))
+        radius = float(self.parameters["fov_radius"])
         if radius <= 0.0:
             return None
         if self._fov_mask is None or self._fov_mask[0] != radius or (
@@ -293,7 +267,7 @@ class SfsNode(Node):
         camera = self._camera_model(info)
         stamp_ns = stamp_to_ns(image_msg.header.stamp)
         frame_id = image_msg.header.frame_id
-        warm = self._previous if bool(self._value("warm_start")) else None
+        warm = self._previous if self.parameters["warm_start"] else None
         start = time.perf_counter()
         try:
             solution = solve(
@@ -309,7 +283,7 @@ class SfsNode(Node):
         elapsed_ms = (time.perf_counter() - start) * 1e3
         self._previous = solution
         self.depth_publisher.publish(array_to_image(solution.depth, "32FC1", stamp_ns, frame_id))
-        if bool(self._value("publish_normals")):
+        if self.parameters["publish_normals"]:
             normals = surface_normals(solution.depth, camera)
             self.normals_publisher.publish(array_to_image(normals, "32FC3", stamp_ns, frame_id))
         self.health.set_value("solve_ms", f"{elapsed_ms:.1f}")

@@ -12,6 +12,7 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 from sensor_msgs.msg import CameraInfo, Image
 
+from endo_io import topics
 from endo_io.image import array_to_image, image_to_array
 from endo_io.qos import SENSOR_DATA_QOS, reliable_qos
 from endo_io.stamp import ns_to_stamp, stamp_to_ns
@@ -33,10 +34,11 @@ def graph():
     sfs = SfsNode(parameter_overrides=[Parameter("publish_normals", value=True)])
     peer = Node("sfs_test_peer")
     received: dict[str, list[Image]] = {"depth": [], "normals": []}
-    peer.create_subscription(Image, "depth_relative", received["depth"].append, reliable_qos(50))
-    peer.create_subscription(Image, "normals", received["normals"].append, reliable_qos(50))
-    images = peer.create_publisher(Image, "image_corrected", SENSOR_DATA_QOS)
-    infos = peer.create_publisher(CameraInfo, "camera_info", SENSOR_DATA_QOS)
+    peer.create_subscription(Image, topics.DEPTH_RELATIVE, received["depth"].append,
+                             reliable_qos(50))
+    peer.create_subscription(Image, topics.NORMALS, received["normals"].append, reliable_qos(50))
+    images = peer.create_publisher(Image, topics.IMAGE_CORRECTED, SENSOR_DATA_QOS)
+    infos = peer.create_publisher(CameraInfo, topics.CAMERA_INFO, SENSOR_DATA_QOS)
     executor = SingleThreadedExecutor()
     executor.add_node(sfs)
     executor.add_node(peer)
@@ -67,12 +69,13 @@ def _frame(stamp_ns, image, camera, encoding="32FC1"):
 
 def test_parameters_are_declared_with_descriptions_and_ranges(graph):
     sfs, *_ = graph
-    for name, (_, descriptor) in PARAMETERS.items():
-        assert sfs.has_parameter(name)
+    for spec in PARAMETERS:
+        assert sfs.has_parameter(spec.name)
+        descriptor = sfs.describe_parameter(spec.name)
         assert descriptor.description
-        if isinstance(PARAMETERS[name][0], float):
+        if isinstance(spec.default, float):
             assert descriptor.floating_point_range
-        elif isinstance(PARAMETERS[name][0], int) and not isinstance(PARAMETERS[name][0], bool):
+        elif isinstance(spec.default, int) and not isinstance(spec.default, bool):
             assert descriptor.integer_range
     assert not sfs.set_parameters([Parameter("roughness", value=2.0)])[0].successful
     assert not sfs.set_parameters([Parameter("model", value="stereo")])[0].successful

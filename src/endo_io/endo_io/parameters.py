@@ -1,0 +1,272 @@
+"""A node's parameters declared from one table, validated at start-up and at run time.
+
+Each node lists its parameters as :class:`ParameterSpec` rows (name,
+default, description, range or choices, read-only or not) and hands them to
+:class:`NodeParameters`, which
+
+* declares every row with a full ``ParameterDescriptor`` (type, description,
+  range, ``additional_constraints`` naming the choices, read-only), so that
+  ``ros2 param describe`` and ``--help`` show them;
+* validates the values the node starts with: a wrong type, a value out of
+  range or outside its choices raises :class:`ParameterValidationError` with
+  one line naming the parameter, which :func:`endo_io.process.run_node`
+  prints before exiting with code 2;
+* accepts an integer for a double (``-p solve_scale:=1``, as users type
+  it; rclpy alone refuses it for a double-typed parameter) and a number for
+  a string (``-p tool_id:=7``);
+* validates every run-time change the same way and then hands the accepted
+  values to the node's ``apply`` callback, which puts them into effect or
+  refuses them by raising an :class:`endo_io.errors.Endo3dError`; its
+  message is the reason the caller gets. Read-only rows are refused by rclpy
+  itself.
+
+How an integer gets into a double parameter: rclpy fixes a parameter's
+type at declaration and refuses an override of another type with a
+traceback. Each row is therefore first declared dynamically typed (any
+override is taken as it is), read and converted, then undeclared and
+declared again, statically typed, with the converted value. At run time a
+pre-set callback converts integers for doubles before rclpy checks types.
+"""
+
+from __future__ import annotations
+
+import contextlib
+from collections.abc import Callable, Iterable, Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+from rcl_interfaces.msg import (
+    FloatingPointRange,
+    IntegerRange,
+    ParameterDescriptor,
+    SetParametersResult,
+)
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+
+from endo_io.errors import Endo3dError, ParameterValidationError
+
+Type = Parameter.Type
+
+_NUMBER_TYPES = (Type.INTEGER, Type.DOUBLE, Type.INTEGER_ARRAY, Type.DOUBLE_ARRAY)
+_ARRAY_ELEMENT = {
+    Type.BOOL_ARRAY: Type.BOOL,
+    Type.INTEGER_ARRAY: Type.INTEGER,
+    Type.DOUBLE_ARRAY: Type.DOUBLE,
+    Type.STRING_ARRAY: Type.STRING,
+}
+_TYPE_WORDS = {
+    Type.BOOL: "true or false",
+    Type.INTEGER: "an integer",
+    Type.DOUBLE: "a number",
+    Type.STRING: "a string",
+}
+
+
+@dataclass(frozen=True)
+class ParameterSpec:
+    """One row of a node's parameter table.
+
+    Attributes:
+        name: the parameter's name.
+        default: its default value; its type is the parameter's type unless
+            ``type`` says otherwise (needed for an empty list).
+        description: what it does, with its unit.
+        range: inclusive (low, high) of a number, or of every element of a
+            number array; None for no range.
+        choices: the allowed values of a string (or of every element of a
+            string array); None for any.
+        read_only: fixed at start-up; rclpy refuses run-time changes.
+        type: the rclpy parameter type; None infers it from ``default``.
+    """
+
+    name: str
+    default: Any
+    description: str
+    range: tuple[float, float] | None = None
+    choices: tuple[str, ...] | None = None
+    read_only: bool = False
+    type: Type | None = None
+
+    def __post_init__(self) -> None:
+        if self.range is not None and self.parameter_type not in _NUMBER_TYPES:
+            raise ValueError(f"{self.name}: a range needs a number parameter")
+        if self.choices is not None and self.parameter_type not in (
+            Type.STRING, Type.STRING_ARRAY
+        ):
+            raise ValueError(f"{self.name}: choices need a string parameter")
+        self.validate(self.default)  # a table whose defaults fail is a programming error
+
+    @property
+    def parameter_type(self) -> Type:
+        """The parameter's rclpy type."""
+        if self.type is not None:
+            return self.type
+        return Type.from_parameter_value(self.default)
+
+    @property
+    def constraints(self) -> str:
+        """The range or choices in words ('' when neither), as ``--help`` shows them."""
+        if self.choices is not None:
+            return "one of: " + ", ".join(self.choices)
+        if self.range is not None:
+            low, high = self.range
+            return f"in [{low:g}, {high:g}]"
+        return ""
+
+    def descriptor(self) -> ParameterDescriptor:
+        """The ``ParameterDescriptor`` rclpy declares the parameter with."""
+        descriptor = ParameterDescriptor(
+            name=self.name,
+            type=self.parameter_type.value,
+            description=self.description,
+            additional_constraints=self.constraints,
+            read_only=self.read_only,
+        )
+        if self.range is not None:
+            low, high = self.range
+            if self.parameter_type in (Type.INTEGER, Type.INTEGER_ARRAY):
+                descriptor.integer_range = [
+                    IntegerRange(from_value=int(low), to_value=int(high), step=1)
+                ]
+            else:
+                descriptor.floating_point_range = [
+                    FloatingPointRange(from_value=float(low), to_value=float(high), step=0.0)
+                ]
+        return descriptor
+
+    def validate(self, value: Any) -> Any:
+        """The value converted to this parameter's type, checked against range and choices.
+
+        Args:
+            value: what rclpy holds (from ``-p``, a YAML file or a set request).
+
+        Returns:
+            bool, int, float or str, or a list of them for an array parameter.
+
+        Raises:
+            ParameterValidationError: wrong type, out of range, not a choice; the
+                message is one line naming the parameter.
+        """
+        kind = self.parameter_type
+        element = _ARRAY_ELEMENT.get(kind)
+        if element is None:
+            return self._check(self._convert(value, kind, value), value)
+        if isinstance(value, str | bytes) or not isinstance(value, Iterable):
+            raise ParameterValidationError(
+                f"parameter {self.name}: expected a list, got {value!r}"
+            )
+        items = [self._convert(item, element, value) for item in value]
+        return [self._check(item, value) for item in items]
+
+    def _convert(self, value: Any, kind: Type, given: Any) -> Any:
+        if kind == Type.BOOL and isinstance(value, bool):
+            return value
+        if not isinstance(value, bool):
+            if kind == Type.INTEGER and isinstance(value, int):
+                return int(value)
+            if kind == Type.DOUBLE and isinstance(value, int | float):
+                return float(value)
+            if kind == Type.STRING and isinstance(value, str):
+                return value
+            if kind == Type.STRING and isinstance(value, int | float):
+                return str(value)  # `-p tool_id:=7` arrives as an integer
+        raise ParameterValidationError(
+            f"parameter {self.name}: expected {_TYPE_WORDS[kind]}, got {given!r}"
+        )
+
+    def _check(self, value: Any, given: Any) -> Any:
+        if self.range is not None:
+            low, high = self.range
+            if not low <= value <= high:  # NaN too
+                raise ParameterValidationError(
+                    f"parameter {self.name}: {given!r} is out of range [{low:g}, {high:g}]"
+                )
+        if self.choices is not None and value not in self.choices:
+            raise ParameterValidationError(
+                f"parameter {self.name}: {given!r} is not one of {', '.join(self.choices)}"
+            )
+        return value
+
+
+#: A node's reaction to accepted changes: ``apply(changes, values)`` with the
+#: changed parameters and every parameter's value after the change; it puts
+#: them into effect, or raises an Endo3dError to refuse them (nothing changes).
+ApplyCallback = Callable[[Mapping[str, Any], Mapping[str, Any]], None]
+
+
+class NodeParameters:
+    """The declared, validated parameters of one node (a read-only mapping of values).
+
+    Args:
+        node: the node to declare them on.
+        specs: the node's table.
+
+    Raises:
+        ParameterValidationError: a start-up value (override) is invalid.
+    """
+
+    def __init__(self, node: Node, specs: Sequence[ParameterSpec]) -> None:
+        self._node = node
+        self.specs: dict[str, ParameterSpec] = {spec.name: spec for spec in specs}
+        self._values: dict[str, Any] = {}
+        for spec in specs:
+            dynamic = ParameterDescriptor(dynamic_typing=True, description=spec.description)
+            given = node.declare_parameter(spec.name, spec.default, dynamic).value
+            value = spec.validate(given)
+            node.undeclare_parameter(spec.name)
+            node.declare_parameter(spec.name, value, spec.descriptor(), ignore_override=True)
+            self._values[spec.name] = value
+        self._apply: ApplyCallback | None = None
+        node.add_pre_set_parameters_callback(self._convert_numbers)
+        node.add_on_set_parameters_callback(self._on_set)
+
+    def __getitem__(self, name: str) -> Any:
+        return self._values[name]
+
+    def values(self) -> dict[str, Any]:
+        """A copy of every parameter's current value."""
+        return dict(self._values)
+
+    def on_change(self, apply: ApplyCallback) -> None:
+        """Hand accepted run-time changes to ``apply`` from now on (see :data:`ApplyCallback`).
+
+        Without it, an accepted change just updates the values this mapping
+        returns: a node that reads them where it uses them needs no callback.
+        """
+        self._apply = apply
+
+    def _convert_numbers(self, parameters: list[Parameter]) -> list[Parameter]:
+        """Integers given for double parameters become doubles before rclpy checks types."""
+        converted = []
+        for parameter in parameters:
+            spec = self.specs.get(parameter.name)
+            if spec is not None and spec.parameter_type in (Type.DOUBLE, Type.DOUBLE_ARRAY):
+                # A value that does not convert is left as it is: _on_set
+                # refuses it with the reason.
+                with contextlib.suppress(ParameterValidationError):
+                    parameter = Parameter(
+                        parameter.name, spec.parameter_type, spec.validate(parameter.value)
+                    )
+            converted.append(parameter)
+        return converted
+
+    def _on_set(self, parameters: list[Parameter]) -> SetParametersResult:
+        # Parameters not in the table (qos_overrides.*, use_sim_time) are
+        # not this table's business: rclpy declares them while the node
+        # builds its publishers.
+        changes: dict[str, Any] = {}
+        try:
+            for parameter in parameters:
+                spec = self.specs.get(parameter.name)
+                if spec is not None:
+                    changes[parameter.name] = spec.validate(parameter.value)
+            if not changes:
+                return SetParametersResult(successful=True)
+            values = {**self._values, **changes}
+            if self._apply is not None:
+                self._apply(changes, values)
+        except Endo3dError as error:
+            return SetParametersResult(successful=False, reason=str(error))
+        self._values = values
+        return SetParametersResult(successful=True)
