@@ -66,8 +66,9 @@ BRIDGE_DEFAULTS: dict[str, Any] = {
 }
 #: The SFS node's parameters that are :class:`SfsOptions` fields of the same name
 #: (the node builds its options from exactly these).
+SFS_DEFAULTS: dict[str, Any] = {spec.name: spec.default for spec in SFS_PARAMETERS}
 SFS_OPTION_PARAMETERS = tuple(
-    f.name for f in dataclasses.fields(SfsOptions) if f.name in SFS_PARAMETERS
+    f.name for f in dataclasses.fields(SfsOptions) if f.name in SFS_DEFAULTS
 )
 
 
@@ -133,7 +134,7 @@ class ProcessSettings:
 
     channel: str = "luminance"
     sfs: dict[str, Any] = field(
-        default_factory=lambda: {name: d for name, (d, _) in SFS_PARAMETERS.items()}
+        default_factory=lambda: dict(SFS_DEFAULTS)
     )
     bridge: dict[str, Any] = field(default_factory=lambda: dict(BRIDGE_DEFAULTS))
     flow: dict[str, Any] = field(default_factory=dict)
@@ -171,10 +172,9 @@ def load_settings(path: Path | None, *, solve_scale: float | None = None) -> Pro
     """
     nodes = read_parameter_file(path) if path is not None else {}
     where = str(path)
-    sfs_defaults = {name: default for name, (default, _) in SFS_PARAMETERS.items()}
     settings = ProcessSettings(
         channel=str(_node_values(nodes, CORRECTION_NODE, CORRECTION_DEFAULTS, where)["channel"]),
-        sfs=_node_values(nodes, SFS_NODE, sfs_defaults, where),
+        sfs=_node_values(nodes, SFS_NODE, SFS_DEFAULTS, where),
         bridge=_node_values(nodes, BRIDGE_NODE, BRIDGE_DEFAULTS, where),
         flow=dict(nodes.get(FLOW_NODE, {})),
     )

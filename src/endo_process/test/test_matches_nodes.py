@@ -76,9 +76,9 @@ def _live_outputs(photometric: Path, handeye: Path, params: Path) -> dict[str, d
         corrected = _capture(correction.publisher)
         depth = _capture(sfs.depth_publisher)
         poses = _capture(bridge._camera_publisher)
-        on_raw = _callback(correction, "image_raw")
-        on_corrected = _callback(sfs, "image_corrected")
-        on_info = _callback(sfs, "camera_info")
+        on_raw = _callback(correction, topics.IMAGE_RAW)
+        on_corrected = _callback(sfs, topics.IMAGE_CORRECTED)
+        on_info = _callback(sfs, topics.CAMERA_INFO)
         on_pose = _callback(bridge, topics.TRACKER_POSE)
         images = 0
         with BagReader(PHANTOM) as reader:
