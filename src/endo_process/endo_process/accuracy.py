@@ -10,8 +10,9 @@ an error a second way.
 * **relative depth**: AbsRel of ``/endoscope/depth_relative`` after one
   median scale per frame;
 * **oracle scale**: the one scale that best fits the relative depth to the
-  truth over the whole sequence (least squares over every pixel of every
-  frame with truth), the reference for the estimated scale;
+  truth over the whole sequence (least squares of the relative error over
+  every pixel of every frame with truth), the reference for the estimated
+  scale, and the oracle-scaled AbsRel it gives;
 * **metric depth**: MAE and AbsRel of ``/endoscope/depth`` with no scaling;
 * **scale over time**: the estimated scale against the oracle;
 * **cloud**: RMS distance of each world point of ``/endoscope/points`` to the
@@ -21,11 +22,11 @@ an error a second way.
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from endo_bringup.evaluation import (
     PoseComparison,
@@ -35,6 +36,11 @@ from endo_bringup.evaluation import (
     read_pose_stream,
 )
 from endo_io import topics
+from endo_io.bag import BagReader, deserialize
+from endo_io.camera import CameraModel
+from endo_io.pointcloud import pointcloud2_to_xyz
+from endo_io.pose import transform_points
+from endo_io.stamp import stamp_to_ns
 from endo_sfs.evaluation import DepthError, depth_error
 
 
@@ -62,8 +68,9 @@ class Accuracy:
     """Every figure of a scored recording (empty fields: the recording lacks that topic).
 
     relative: stamp -> median-scaled error of the relative depth;
-    oracle_scale: least-squares scale of relative depth to truth over the
-    sequence (NaN without truth); metric: stamp -> unscaled error of the
+    oracle_scale: the best single scale of relative depth to truth over the
+    sequence (NaN without truth); oracle: stamp -> error of the relative
+    depth times that scale; metric: stamp -> unscaled error of the
     metric depth; cloud_rms_m: stamp -> RMS distance of the world points
     to the true surface; poses: the camera poses against the truth; scale:
     the estimated scale over time.
@@ -72,6 +79,7 @@ class Accuracy:
     truth_frames: int = 0
     relative: dict[int, DepthError] = field(default_factory=dict)
     oracle_scale: float = float("nan")
+    oracle: dict[int, DepthError] = field(default_factory=dict)
     metric: dict[int, DepthError] = field(default_factory=dict)
     cloud_rms_m: dict[int, float] = field(default_factory=dict)
     poses: PoseComparison | None = None
@@ -84,18 +92,24 @@ class Accuracy:
 
 
 def oracle_scale(estimates: dict[int, np.ndarray], truths: dict[int, np.ndarray]) -> float:
-    """The single least-squares scale of relative depth to truth over all paired frames.
+    """The single scale that best fits relative depth to truth over all paired frames.
 
+    Best in the relative sense every depth figure here uses: s minimises
+    Σ ((s·d − d*)/d*)² over every pixel of every frame with both values,
+    i.e. the least-squares fit of d/d* to 1 (a fit of d to d* in absolute
+    terms would let the far, dark lumen, where SFS errs most, decide it).
     estimates, truths: stamp -> (H, W) depth (NaN invalid). NaN when no
     frame pairs.
     """
     stamps = sorted(set(estimates) & set(truths))
     if not stamps:
         return float("nan")
-    estimate = np.concatenate([estimates[s].ravel() for s in stamps])
-    truth = np.concatenate([truths[s].ravel() for s in stamps])
+    estimate = np.concatenate([estimates[s].ravel() for s in stamps]).astype(np.float64)
+    truth = np.concatenate([truths[s].ravel() for s in stamps]).astype(np.float64)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        ratio = np.where(truth > 0.0, estimate / truth, np.nan)
     try:
-        return depth_error(estimate, truth, scaling="least_squares").scale
+        return depth_error(ratio, np.ones_like(ratio), scaling="least_squares").scale
     except ValueError:
         return float("nan")
 
@@ -113,21 +127,63 @@ def metric_errors(
     return errors
 
 
-def score_recording(
-    path: Path,
-    *,
-    cloud_rms: Callable[[Path, dict[int, np.ndarray]], dict[int, float]] | None = None,
-    scale_stream: Callable[[Path], tuple[np.ndarray, np.ndarray]] | None = None,
-) -> Accuracy:
-    """Score a recording that holds the graph's outputs and the ground truth.
+def read_scale_stream(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """((K,) int64 stamps, (K,) float64 scale) of the scale topic (NaN while unusable)."""
+    stamps: list[int] = []
+    values: list[float] = []
+    with BagReader(path) as reader:
+        if topics.SCALE in reader.topics:
+            for message in reader.messages([topics.SCALE]):
+                msg = deserialize(message)
+                stamps.append(stamp_to_ns(msg.header.stamp))
+                values.append(float(msg.vector.x))
+    return np.asarray(stamps, np.int64), np.asarray(values, np.float64)
 
-    Args:
-        path: the MCAP.
-        cloud_rms: (path, true depth by stamp) -> stamp -> RMS, for the
-            world points (the flow stage's layout); None skips it.
-        scale_stream: path -> ((K,) stamps, (K,) scale), the scale topic
-            decoded; None skips it.
+
+def _messages_at(path: Path, topic: str, stamps: set[int]) -> dict[int, object]:
+    found: dict[int, object] = {}
+    with BagReader(path) as reader:
+        if topic in reader.topics:
+            for message in reader.messages([topic]):
+                msg = deserialize(message)
+                stamp = stamp_to_ns(msg.header.stamp)
+                if stamp in stamps:
+                    found[stamp] = msg
+    return found
+
+
+def cloud_rms_at_truth(path: Path, truths: dict[int, np.ndarray]) -> dict[int, float]:
+    """RMS distance (m) of each frame's world points to that frame's true surface.
+
+    The true surface is the true depth through the frame's camera model
+    (``CameraModel.depth_to_points``) and its true pose; each estimated
+    point's distance is to the nearest true point (the truth is dense, one
+    point per pixel, so this is the distance to the surface to within a
+    pixel footprint). Frames without points, camera_info or true pose are
+    left out.
     """
+    stamps = set(truths)
+    clouds = _messages_at(path, topics.POINTS, stamps)
+    infos = _messages_at(path, topics.CAMERA_INFO, stamps)
+    true_stamps, true_poses = read_pose_stream(path, topics.TRUE_CAMERA_POSE)
+    poses = dict(zip(true_stamps.tolist(), true_poses, strict=True))
+    rms: dict[int, float] = {}
+    for stamp in sorted(set(clouds) & set(infos) & set(poses)):
+        points, _ = pointcloud2_to_xyz(clouds[stamp])
+        points = points.reshape(-1, 3)
+        points = points[np.isfinite(points).all(axis=1)]
+        camera = CameraModel.from_camera_info(infos[stamp])
+        local = camera.depth_to_points(truths[stamp]).reshape(-1, 3)
+        truth = transform_points(poses[stamp], local[np.isfinite(local).all(axis=1)])
+        if len(points) == 0 or len(truth) == 0:
+            continue
+        distance, _ = cKDTree(truth).query(points)
+        rms[stamp] = float(np.sqrt(np.mean(distance**2)))
+    return rms
+
+
+def score_recording(path: Path) -> Accuracy:
+    """Score a recording that holds the graph's outputs and the ground truth (any may be absent)."""
     accuracy = Accuracy()
     truths = read_depth_frames(path, topics.TRUE_DEPTH)
     accuracy.truth_frames = len(truths)
@@ -136,15 +192,17 @@ def score_recording(
         relative = read_depth_frames(path, topics.DEPTH_RELATIVE, stamps)
         accuracy.relative = depth_errors_at_truth(relative, truths)
         accuracy.oracle_scale = oracle_scale(relative, truths)
+        if np.isfinite(accuracy.oracle_scale):
+            scaled = {k: v * np.float32(accuracy.oracle_scale) for k, v in relative.items()}
+            accuracy.oracle = metric_errors(scaled, truths)
         accuracy.metric = metric_errors(read_depth_frames(path, topics.DEPTH, stamps), truths)
-        if cloud_rms is not None:
-            accuracy.cloud_rms_m = cloud_rms(path, truths)
+        accuracy.cloud_rms_m = cloud_rms_at_truth(path, truths)
     true_stamps, true_poses = read_pose_stream(path, topics.TRUE_CAMERA_POSE)
     if len(true_stamps):
         estimated_stamps, estimated = read_pose_stream(path, topics.CAMERA_POSE)
         accuracy.poses = compare_poses(estimated_stamps, estimated, true_stamps, true_poses)
-    if scale_stream is not None and np.isfinite(accuracy.oracle_scale):
-        scale_stamps, scale = scale_stream(path)
+    if np.isfinite(accuracy.oracle_scale):
+        scale_stamps, scale = read_scale_stream(path)
         if len(scale_stamps):
             accuracy.scale = ScaleTrack(scale_stamps, scale, accuracy.oracle_scale)
     return accuracy

@@ -14,7 +14,11 @@
    ``/endoscope/depth_relative`` and ``/endoscope/camera_info``;
 4. the camera pose at each image stamp from a
    :class:`endo_io.pose_buffer.PoseBuffer` fed with those poses in stamp
-   order, as a live consumer sees them; frames without one are counted.
+   order, as a live consumer sees them; frames without one are counted;
+5. the flow step (:class:`endo_process.flow_stage.FlowStage`, i.e.
+   ``FlowPipeline.process``), written as ``/endoscope/depth``,
+   ``/endoscope/points`` and ``/endoscope/scale``, and at the end the voxel
+   map's last state as ``/endoscope/map`` (and ``--ply``).
 
 Ground truth in the input is copied through. A stop request (Ctrl-C,
 SIGTERM) ends the run after the current frame and the output is finalised.
@@ -43,6 +47,7 @@ from endo_io.pose import matrix_to_pose
 from endo_io.pose_buffer import PoseBuffer
 from endo_io.stamp import NS_PER_S, stamp_to_ns
 from endo_process.errors import ProcessInputError
+from endo_process.flow_stage import FlowStage, flow_options, grey_cloud, scale_message
 from endo_process.inputs import (
     InputTopics,
     RecordingInputs,
@@ -95,6 +100,11 @@ class ProcessReport:
     frames_total: int = 0
     frames_shaded: int = 0
     frames_with_pose: int = 0
+    frames_flow: int = 0
+    frames_metric: int = 0
+    flow_dropped: Counter[str] = field(default_factory=Counter)
+    map_points: int = 0
+    ply_vertices: int = 0
     dropped: Counter[str] = field(default_factory=Counter)
     without_pose: Counter[str] = field(default_factory=Counter)
     tracker_rejected: Counter[str] = field(default_factory=Counter)
@@ -238,6 +248,52 @@ def _write_frame(
         report.solve_ms.append(shaded.solve_ms)
 
 
+def _flow_frame(
+    output: OutputBag,
+    flow: FlowStage,
+    shaded: ShadedFrame,
+    T_world_camera: np.ndarray | None,
+    world_frame: str,
+    report: ProcessReport,
+) -> None:
+    """The flow step of one frame and its messages; a frame the pipeline refuses is counted."""
+    if shaded.irradiance is None or shaded.depth_relative is None or shaded.irradiance.ndim != 2:
+        return
+    stamp = shaded.stamp_ns
+    try:
+        result = flow.process(shaded, T_world_camera)
+    except Endo3dError as error:
+        report.flow_dropped[type(error).__name__] += 1
+        return
+    report.frames_flow += 1
+    if result.depth is not None:
+        output.write(topics.DEPTH, array_to_image(result.depth, "32FC1", stamp, shaded.frame_id),
+                     stamp)  # fmt: skip
+        report.frames_metric += 1
+    if len(result.points):
+        output.write(topics.POINTS, grey_cloud(result.points, result.intensity, stamp,
+                                               world_frame), stamp)  # fmt: skip
+    output.write(topics.SCALE, scale_message(result.scale, stamp, shaded.frame_id), stamp)
+
+
+def _write_map(
+    output: OutputBag,
+    flow: FlowStage,
+    options: ProcessOptions,
+    stamp_ns: int,
+    world_frame: str,
+    report: ProcessReport,
+) -> None:
+    """The voxel map's last state on /endoscope/map, and --ply."""
+    cloud = flow.map_cloud(stamp_ns, world_frame)
+    if cloud is None:
+        return
+    report.map_points = cloud.width * cloud.height
+    output.write(topics.MAP, cloud, stamp_ns)
+    if options.ply is not None and flow.pipeline.voxel_map is not None:
+        report.ply_vertices = flow.pipeline.voxel_map.export_ply(options.ply)
+
+
 def process_bag(options: ProcessOptions, stop: threading.Event | None = None) -> ProcessReport:
     """Run the offline graph over ``options.bag`` into ``options.output``.
 
@@ -279,6 +335,7 @@ def process_bag(options: ProcessOptions, stop: threading.Event | None = None) ->
     config = StageConfig(options.calibration, settings.channel, settings.sfs)
     stage = ShadingStage(photometric, settings.channel, settings.sfs) if options.jobs == 1 else None
     feed = _PoseFeed(poses)
+    flow = FlowStage(flow_options(settings.flow))
     truth: Iterator[BagMessage] = iter_ground_truth(inputs)
     truth_pending: list[BagMessage] = []
     total = inputs.frame_count if options.max_frames is None else min(
@@ -297,11 +354,13 @@ def process_bag(options: ProcessOptions, stop: threading.Event | None = None) ->
         for count, shaded in enumerate(pool.map(frames), start=1):
             output.copy_until(truth, truth_pending, shaded.stamp_ns)
             _write_frame(output, inputs, shaded, report)
+            T_world_camera: np.ndarray | None = None
             try:
-                feed.at(shaded.stamp_ns)
+                T_world_camera = feed.at(shaded.stamp_ns)
                 report.frames_with_pose += 1
             except PoseLookupError as error:
                 report.without_pose[type(error).__name__] += 1
+            _flow_frame(output, flow, shaded, T_world_camera, world_frame, report)
             first_stamp = shaded.stamp_ns if first_stamp is None else first_stamp
             last_stamp = shaded.stamp_ns
             if count % options.flush_every == 0:
@@ -318,6 +377,8 @@ def process_bag(options: ProcessOptions, stop: threading.Event | None = None) ->
         progress.close()
         if not report.interrupted:
             output.copy_until(truth, truth_pending, np.iinfo(np.int64).max)
+        if last_stamp is not None:
+            _write_map(output, flow, options, last_stamp, world_frame, report)
         output.close()
     report.interrupted = report.interrupted or stop.is_set()
     report.written = Counter(output.counts)

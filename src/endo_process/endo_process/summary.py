@@ -21,7 +21,11 @@ def _rows(report: ProcessReport) -> list[tuple[str, str]]:
         ("frames with relative depth", f"{report.frames_shaded}"),
         ("frames dropped or without depth", _causes(report.dropped)),
         ("frames with a camera pose", f"{report.frames_with_pose}"),
-        ("frames without a pose (skipped by flow)", _causes(report.without_pose)),
+        ("frames without a pose (no world points)", _causes(report.without_pose)),
+        ("frames through flow / with metric depth",
+         f"{report.frames_flow} / {report.frames_metric}"),
+        ("frames refused by flow", _causes(report.flow_dropped)),
+        ("map points (last state)", f"{report.map_points}"),
         ("tracker samples", f"{report.tracker_samples}"),
         ("tracker samples rejected", _causes(report.tracker_rejected)),
         ("camera poses written", f"{report.poses_written}"),
@@ -34,15 +38,18 @@ def _rows(report: ProcessReport) -> list[tuple[str, str]]:
         rows.append(("input damage", report.damage))
     if report.interrupted:
         rows.append(("interrupted", "yes (output finalised)"))
+    if report.ply_vertices:
+        rows.append(("PLY vertices", f"{report.ply_vertices}"))
     if report.output is not None:
         written = sum(report.written.values())
         rows.append(("output", f"{report.output} ({written} messages)"))
     return rows
 
 
-def _spread(values: list[float], unit: float = 1.0, digits: int = 4) -> str:
+def _spread(values: list[float], unit: float = 1.0, digits: int = 4, name: str = "") -> str:
     array = np.asarray(values, dtype=np.float64) * unit
-    return (f"{array.mean():.{digits}f} (min {array.min():.{digits}f}, "
+    suffix = f" {name}" if name else ""
+    return (f"{array.mean():.{digits}f}{suffix} (min {array.min():.{digits}f}, "
             f"max {array.max():.{digits}f}, {len(array)} frames)")  # fmt: skip
 
 
@@ -54,18 +61,21 @@ def accuracy_rows(accuracy: Accuracy) -> list[tuple[str, str]]:
                      _spread([e.abs_rel for e in accuracy.relative.values()])))  # fmt: skip
         coverage = [e.coverage for e in accuracy.relative.values()]
         rows.append(("relative depth coverage", _spread(coverage, digits=3)))
-        rows.append(("oracle scale (one LS fit, whole sequence)",
+        rows.append(("oracle scale (one fit, whole sequence)",
                      f"{accuracy.oracle_scale:.6g} m per unit"))  # fmt: skip
+    if accuracy.oracle:
+        rows.append(("oracle-scaled depth AbsRel",
+                     _spread([e.abs_rel for e in accuracy.oracle.values()])))  # fmt: skip
     if accuracy.metric:
         errors = list(accuracy.metric.values())
-        rows.append(("metric depth MAE (no scaling)", _spread([e.mae for e in errors], 1e3, 2)
-                     + " mm"))  # fmt: skip
+        mae = _spread([e.mae for e in errors], 1e3, 2, "mm")
+        rows.append(("metric depth MAE (no scaling)", mae))
         rows.append(("metric depth AbsRel (no scaling)", _spread([e.abs_rel for e in errors])))
     elif accuracy.truth_frames:
         rows.append(("metric depth", "no /endoscope/depth at the ground-truth frames"))
     if accuracy.cloud_rms_m:
         rows.append(("cloud-to-truth RMS",
-                     _spread(list(accuracy.cloud_rms_m.values()), 1e3, 2) + " mm"))  # fmt: skip
+                     _spread(list(accuracy.cloud_rms_m.values()), 1e3, 2, "mm")))  # fmt: skip
     if accuracy.scale is not None:
         error = accuracy.scale.relative_error
         finite = np.flatnonzero(np.isfinite(error))
