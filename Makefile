@@ -57,8 +57,11 @@ fuzz: export ENDO3D_FUZZ_EXAMPLES := $(FUZZ_EXAMPLES)
 fuzz: $(STAMP)
 	$(VBIN)/python -m pytest -m fuzz
 
+# ruff over everything; mypy (settings: pyproject.toml [tool.mypy]) over each
+# package's code, src/<package>/<package>.
 lint: $(STAMP)
-	$(VBIN)/ruff check src tests bench
+	$(VBIN)/ruff check src tests bench conftest.py
+	$(VBIN)/mypy $(foreach p,$(PACKAGES),$(p)/$(notdir $(p)))
 
 bench: export ROS_DOMAIN_ID := $(BENCH_DOMAIN_ID)
 bench: $(STAMP)

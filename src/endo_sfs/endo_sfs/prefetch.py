@@ -9,8 +9,10 @@ overlap with the current node's arithmetic.
 
 from __future__ import annotations
 
-from typing import Any
+from collections.abc import Callable
+from typing import Any, cast
 
+import numpy as np
 from llvmlite import ir
 from numba import types
 from numba.core import cgutils
@@ -22,12 +24,8 @@ _READ, _KEEP_IN_ALL_CACHES, _DATA_CACHE = 0, 3, 1
 
 
 @intrinsic
-def prefetch(typingctx: Any, array: types.Array, flat_index: types.Integer) -> Any:
-    """Hint the CPU to load ``array.flat[flat_index]`` into cache (numba only).
-
-    array: a C-contiguous numba array; flat_index: element offset from its
-    start. No bounds check and no effect on results: a hint only.
-    """
+def _prefetch(typingctx: Any, array: types.Array, flat_index: types.Integer) -> Any:
+    """Typing and code generation of :func:`prefetch` (numba passes the typing context)."""
     if not isinstance(array, types.Array) or not isinstance(flat_index, types.Integer):
         return None
     signature = types.void(array, flat_index)
@@ -52,3 +50,11 @@ def prefetch(typingctx: Any, array: types.Array, flat_index: types.Integer) -> A
         return context.get_dummy_value()
 
     return signature, codegen
+
+
+#: ``prefetch(array, flat_index)``: hint the CPU to load ``array.flat[flat_index]``
+#: into cache (inside numba kernels only). array: a C-contiguous array; flat_index:
+#: element offset from its start. No bounds check and no effect on results: a hint.
+#: (The cast gives type checkers the signature kernels call, without numba's typing
+#: context argument.)
+prefetch = cast("Callable[[np.ndarray, int], None]", _prefetch)

@@ -177,7 +177,9 @@ def _use_first_pass(warm_start: SfsSolution | np.ndarray | None) -> bool:
 def _numba_threads(threads: int) -> Iterator[None]:
     """Run the block with numba's parallel kernels on at most ``threads`` threads."""
     previous = numba.get_num_threads()
-    numba.set_num_threads(min(threads, numba.config.NUMBA_NUM_THREADS))
+    # numba.config sets its NUMBA_* names at run time, out of mypy's sight.
+    pool_size: int = numba.config.NUMBA_NUM_THREADS  # type: ignore[attr-defined]
+    numba.set_num_threads(min(threads, pool_size))
     try:
         yield
     finally:
