@@ -46,6 +46,7 @@ ROSDEP_KEYS = {
     "scipy": "python3-scipy",
     "sksurgerycore": "python3-scikit-surgerycore-pip",
     "sksurgerynditracker": "python3-scikit-surgerynditracker-pip",
+    "tqdm": "python3-tqdm",
     "yaml": "python3-yaml",
     "zstandard": "python3-zstandard",
 }
@@ -58,6 +59,7 @@ class Import:
     module: str  # absolute dotted name, as written (``from a.b import c`` gives a.b)
     names: tuple[str, ...]  # the names a ``from`` import takes (empty for ``import a.b``)
     type_checking: bool  # under ``if TYPE_CHECKING:``
+    relative: bool  # ``from . import x``, ``from .m import x``
     line: int
 
 
@@ -77,7 +79,7 @@ def _imports(path: Path, module: str) -> Iterator[Import]:
             inside = type_checking or (isinstance(child, ast.If) and _is_type_checking(child.test))
             if isinstance(child, ast.Import):
                 for alias in child.names:
-                    yield Import(alias.name, (), type_checking, child.lineno)
+                    yield Import(alias.name, (), type_checking, False, child.lineno)
             elif isinstance(child, ast.ImportFrom):
                 names = tuple(alias.name for alias in child.names)
                 if child.level:
@@ -85,7 +87,7 @@ def _imports(path: Path, module: str) -> Iterator[Import]:
                     target = ".".join([*base, *([child.module] if child.module else [])])
                 else:
                     target = child.module or ""
-                yield Import(target, names, type_checking, child.lineno)
+                yield Import(target, names, type_checking, child.level > 0, child.lineno)
             if isinstance(child, ast.If) and _is_type_checking(child.test):
                 for statement in child.body:
                     yield from walk(ast.Module(body=[statement], type_ignores=[]), True)
@@ -142,8 +144,8 @@ def test_every_import_is_declared_in_package_xml(package):
         sources.append((f"{package}_test.{path.stem}", path, test_keys, "test_depend"))
     for module, path, declared, tag in sources:
         for imported in _imports(path, module):
-            if imported.type_checking or not imported.module:
-                continue
+            if imported.type_checking or imported.relative or not imported.module:
+                continue  # relative: the package's own modules (or its test folder's)
             key = _dependency(imported.module.split(".")[0])
             if key is not None and key != package and key not in declared:
                 where = f"{path.relative_to(ROOT)}:{imported.line}"

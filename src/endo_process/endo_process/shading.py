@@ -113,8 +113,8 @@ class ShadingStage:
         """Correct and solve one frame; never raises for bad input (it is reported)."""
         if frame.chunk_start:
             self.reset()
-        base = {"index": frame.index, "stamp_ns": frame.stamp_ns, "frame_id": frame.frame_id,
-                "camera": frame.camera}  # fmt: skip
+        base: dict[str, Any] = {"index": frame.index, "stamp_ns": frame.stamp_ns,
+                                "frame_id": frame.frame_id, "camera": frame.camera}  # fmt: skip
         try:
             corrected = self.calibration.correct(to_raw_frame(frame.raw, frame.encoding))
             irradiance = select_channel(self.calibration, corrected, self.channel)

@@ -25,7 +25,7 @@ def simulated_parameters(bag: Path, **sfs: Any) -> dict[str, Any]:
 
     ``sfs`` adds or overrides SFS node parameters (e.g. ``solve_scale=0.5``).
     """
-    truth = ground_truth_of(Path(bag))
+    truth: dict[str, Any] = ground_truth_of(Path(bag))
     T_tracker_world = np.asarray(truth["tracker"]["T_tracker_world"], dtype=np.float64)
     roughness = float(truth["photometry"]["roughness_rad"])
     return {
