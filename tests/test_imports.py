@@ -33,6 +33,7 @@ PACKAGES = sorted(p.parent.name for p in (ROOT / "src").glob("*/package.xml"))
 #: Keys of packages that are on PyPI only follow rosdep's ``-pip`` convention.
 ROSDEP_KEYS = {
     "cv2": "python3-opencv",
+    "hypothesis": "python3-hypothesis",
     "llvmlite": "python3-numba",  # numba's code generator, installed with it
     "lz4": "python3-lz4",
     "matplotlib": "python3-matplotlib",
