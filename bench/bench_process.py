@@ -18,10 +18,10 @@ from __future__ import annotations
 import argparse
 import datetime
 import os
-import platform
-import subprocess
 import tempfile
 from pathlib import Path
+
+from machine import cpu_model
 
 from endo_bringup.graph import run_offline_calibrations
 from endo_process.runner import ProcessOptions, process_bag
@@ -32,13 +32,7 @@ BAGS = ROOT / "bags"
 
 
 def machine() -> str:
-    try:
-        text = subprocess.run(["lscpu"], capture_output=True, text=True, check=True).stdout
-        model = next(line.split(":", 1)[1].strip() for line in text.splitlines()
-                     if line.startswith("Model name"))
-    except (OSError, subprocess.CalledProcessError, StopIteration):
-        model = platform.processor() or "unknown"
-    return f"{model}, {os.cpu_count()} cores"
+    return f"{cpu_model()}, {os.cpu_count()} cores"
 
 
 def load() -> str:

@@ -15,6 +15,7 @@ Exit status:
 from __future__ import annotations
 
 import argparse
+import json
 import signal
 import sys
 import threading
@@ -27,7 +28,7 @@ from endo_io.errors import Endo3dError
 from endo_process.accuracy import score_recording
 from endo_process.inputs import InputTopics
 from endo_process.runner import ProcessOptions, ProcessReport, process_bag
-from endo_process.summary import format_report
+from endo_process.summary import format_report, summary_document
 
 PROGRAM = "endo-process"
 EXIT_OK, EXIT_DAMAGED, EXIT_INPUT, EXIT_INTERRUPTED = 0, 1, 2, 130
@@ -65,6 +66,8 @@ def build_parser() -> argparse.ArgumentParser:
                         help="consecutive frames per worker chunk with --jobs > 1")
     parser.add_argument("--compression", choices=("zstd", "lz4", "none"), default="lz4",
                         help="output chunk compression (default lz4: fast)")
+    parser.add_argument("--summary-json", type=Path,
+                        help="also write every summary figure to this JSON file")
     parser.add_argument("--max-frames", type=int, help="process only the first N images")
     parser.add_argument("--overwrite", action="store_true", help="replace an existing output")
     parser.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
@@ -137,6 +140,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     if report.frames_shaded and not report.interrupted:
         accuracy = score_recording(options.output)
     print(format_report(report, accuracy))
+    if args.summary_json is not None:
+        document = summary_document(report, accuracy)
+        args.summary_json.write_text(json.dumps(document, indent=1, allow_nan=False) + "\n")
     if report.damage:
         print(f"{PROGRAM}: input cut short, processed up to the damage: {report.damage}",
               file=sys.stderr)  # fmt: skip

@@ -1,13 +1,15 @@
-"""The summary table ``endo-process`` prints at the end of a run."""
+"""The summary ``endo-process`` prints at the end of a run, as a table and as JSON."""
 
 from __future__ import annotations
 
 from collections import Counter
+from typing import Any
 
 import numpy as np
 
 from endo_process.accuracy import Accuracy
 from endo_process.runner import ProcessReport
+from endo_sfs.evaluation import DepthError
 
 
 def _causes(counter: Counter[str]) -> str:
@@ -106,3 +108,98 @@ def format_report(report: ProcessReport, accuracy: Accuracy | None = None) -> st
     lines = ["endo-process summary", "-" * (width + 40)]
     lines += [f"{name:<{width}}  {value}" for name, value in rows]
     return "\n".join(lines)
+
+
+def _per_frame(errors: dict[int, DepthError]) -> list[dict[str, float]]:
+    return [
+        {"stamp_ns": stamp, "abs_rel": e.abs_rel, "mae_m": e.mae, "p95_rel": e.p95_rel,
+         "coverage": e.coverage, "scale": e.scale}
+        for stamp, e in sorted(errors.items())
+    ]  # fmt: skip
+
+
+def _mean(values: list[float]) -> float | None:
+    return float(np.mean(values)) if values else None
+
+
+def _finite(value: Any) -> Any:
+    """The value with every NaN or infinity (nested) replaced by None (JSON has neither)."""
+    if isinstance(value, dict):
+        return {k: _finite(v) for k, v in value.items()}
+    if isinstance(value, list):
+        return [_finite(v) for v in value]
+    if isinstance(value, float) and not np.isfinite(value):
+        return None
+    return value
+
+
+def summary_document(report: ProcessReport, accuracy: Accuracy | None) -> dict[str, Any]:
+    """Every figure of the summary as plain JSON-able data (``--summary-json``).
+
+    Lengths in metres, angles in degrees, times in seconds (``*_ms``:
+    milliseconds), stamps in integer ns; None where a figure does not apply.
+    """
+    document: dict[str, Any] = {
+        "format": "endo3d.process_summary",
+        "version": 1,
+        "output": str(report.output) if report.output else None,
+        "frames": {
+            "in_recording": report.frames_total, "read": report.frames_in,
+            "with_relative_depth": report.frames_shaded, "with_pose": report.frames_with_pose,
+            "through_flow": report.frames_flow, "with_metric_depth": report.frames_metric,
+            "dropped": dict(report.dropped), "without_pose": dict(report.without_pose),
+            "refused_by_flow": dict(report.flow_dropped),
+        },
+        "tracker": {
+            "samples": report.tracker_samples, "rejected": dict(report.tracker_rejected),
+            "camera_poses": report.poses_written,
+        },
+        "map_points": report.map_points,
+        "ply_vertices": report.ply_vertices,
+        "speed": {
+            "seconds": report.seconds, "setup_seconds": report.setup_seconds,
+            "recording_seconds": report.bag_seconds,
+            "frames_per_second": report.frames_per_second,
+            "real_time_factor": report.real_time_factor,
+            "median_solve_ms": report.median_solve_ms,
+        },
+        "damage": report.damage,
+        "interrupted": report.interrupted,
+        "written": dict(report.written),
+        "accuracy": None,
+    }  # fmt: skip
+    if accuracy is None or not accuracy.has_truth:
+        return _finite(document)
+    scored: dict[str, Any] = {
+        "truth_frames": accuracy.truth_frames,
+        "relative_abs_rel_mean": _mean([e.abs_rel for e in accuracy.relative.values()]),
+        "relative": _per_frame(accuracy.relative),
+        "oracle_scale": accuracy.oracle_scale if np.isfinite(accuracy.oracle_scale) else None,
+        "oracle_abs_rel_mean": _mean([e.abs_rel for e in accuracy.oracle.values()]),
+        "metric_abs_rel_mean": _mean([e.abs_rel for e in accuracy.metric.values()]),
+        "metric_mae_m_mean": _mean([e.mae for e in accuracy.metric.values()]),
+        "metric": _per_frame(accuracy.metric),
+        "cloud_rms_m_mean": _mean(list(accuracy.cloud_rms_m.values())),
+        "cloud_rms_m": {str(k): v for k, v in sorted(accuracy.cloud_rms_m.items())},
+        "scale": None,
+        "pose": None,
+    }
+    if accuracy.scale is not None:
+        track = accuracy.scale
+        scored["scale"] = {
+            "stamps_ns": track.stamps_ns.tolist(),
+            "value": [None if not np.isfinite(v) else float(v) for v in track.scale],
+            "relative_error": [None if not np.isfinite(v) else float(v)
+                               for v in track.relative_error],
+        }  # fmt: skip
+    poses = accuracy.poses
+    if poses is not None and poses.compared:
+        scored["pose"] = {
+            "compared": poses.compared, "missing": poses.missing,
+            "position_m_median": float(np.median(poses.position_mm)) * 1e-3,
+            "position_m_p95": float(np.percentile(poses.position_mm, 95)) * 1e-3,
+            "rotation_deg_median": float(np.median(poses.rotation_deg)),
+            "rotation_deg_p95": float(np.percentile(poses.rotation_deg, 95)),
+        }  # fmt: skip
+    document["accuracy"] = scored
+    return _finite(document)

@@ -13,6 +13,7 @@ final scale −4.1 % from the oracle), not endo_flow's acceptance bars.
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -23,6 +24,7 @@ from endo_io import topics
 from endo_io.bag import BagReader
 from endo_process.accuracy import read_scale_stream, score_recording
 from endo_process.runner import ProcessOptions, ProcessReport, process_bag
+from endo_process.summary import summary_document
 
 from .conftest import PHANTOM
 
@@ -83,6 +85,12 @@ def test_accuracy_against_the_ground_truth(full_run: tuple[ProcessReport, Path])
     assert accuracy.scale is not None
     error = accuracy.scale.relative_error
     assert abs(error[np.isfinite(error)][-1]) < 0.10
+    # --summary-json carries the same figures, as strict JSON.
+    document = json.loads(json.dumps(summary_document(full_run[0], accuracy), allow_nan=False))
+    assert document["frames"]["with_pose"] == 89
+    assert document["accuracy"]["metric_abs_rel_mean"] == pytest.approx(metric)
+    assert document["accuracy"]["pose"]["compared"] == 89
+    assert len(document["accuracy"]["scale"]["value"]) == 90
 
 
 def test_one_and_two_jobs_agree_to_the_solver_tolerance(
