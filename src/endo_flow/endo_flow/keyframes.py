@@ -17,6 +17,7 @@ triangulation only rotates rays into the world.
 from __future__ import annotations
 
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -33,12 +34,26 @@ class Keyframe:
         T_world_camera: (4, 4) float64 camera pose, metres.
         ids: (N,) int64 track ids, sorted.
         rays: (N, 3) float64 unit rays of those tracks, camera frame.
+        relative: (N,) float64 depth_relative at those tracks' pixels in
+            this view (NaN where it has none), or None.
     """
 
     stamp_ns: int
     T_world_camera: np.ndarray
     ids: np.ndarray
     rays: np.ndarray
+    relative: np.ndarray | None = None
+
+    def sorted_by_id(self) -> Keyframe:
+        """The same view with its tracks in id order."""
+        order = np.argsort(self.ids, kind="stable")
+        relative = None if self.relative is None else self.relative[order]
+        return Keyframe(self.stamp_ns, self.T_world_camera, self.ids[order], self.rays[order],
+                        relative)
+
+    def with_pose(self, T_world_camera: np.ndarray) -> Keyframe:
+        """The same view with another camera pose (e.g. a smoothed one)."""
+        return Keyframe(self.stamp_ns, T_world_camera, self.ids, self.rays, self.relative)
 
 
 @dataclass(frozen=True)
@@ -49,11 +64,16 @@ class TrackViews:
         centres: (N, V, 3) float64 camera centres in world, metres.
         directions: (N, V, 3) float64 unit rays in world.
         valid: (N, V) bool, which of the V views saw the track.
+        axes: (N, V, 3) float64 optical axes of the views in world, or None.
+        relative: (N, V) float64 depth_relative of the track in each view
+            (NaN where unknown), or None.
     """
 
     centres: np.ndarray
     directions: np.ndarray
     valid: np.ndarray
+    axes: np.ndarray | None = None
+    relative: np.ndarray | None = None
 
 
 class KeyframeWindow:
@@ -107,42 +127,55 @@ class KeyframeWindow:
 
     def add(self, keyframe: Keyframe) -> None:
         """Append a keyframe and drop those older than ``max_age_ns`` before it."""
-        order = np.argsort(keyframe.ids, kind="stable")
-        self._frames.append(
-            Keyframe(keyframe.stamp_ns, keyframe.T_world_camera, keyframe.ids[order],
-                     keyframe.rays[order])
-        )
+        self._frames.append(keyframe.sorted_by_id())
         while self._frames and keyframe.stamp_ns - self._frames[0].stamp_ns > self.max_age_ns:
             self._frames.popleft()
 
-    def views(self, ids: np.ndarray, current: Keyframe | None = None) -> TrackViews:
+    def views(
+        self,
+        ids: np.ndarray,
+        current: Keyframe | None = None,
+        pose_of: Callable[[Keyframe], np.ndarray] | None = None,
+    ) -> TrackViews:
         """Gather every held view of the tracks ``ids``, plus ``current`` if given.
 
         Args:
             ids: (N,) int64 track ids.
             current: the present frame as a last view (its ids need not be
-                sorted, and it need not be a keyframe), or None.
+                sorted, and it need not be a keyframe), or None. Its own
+                pose is used.
+            pose_of: the (4, 4) pose to use for a held keyframe (e.g. a
+                smoothed one); None uses each keyframe's recorded pose.
 
         Returns:
             The views, V = keyframes held (+ 1 with ``current``), oldest
-            first. A keyframe that is also ``current`` is not counted twice.
+            first. A keyframe that is also ``current`` is not counted twice
+            (``current`` replaces it).
         """
-        frames = list(self._frames)
-        if current is not None and not (frames and frames[-1].stamp_ns == current.stamp_ns):
-            order = np.argsort(current.ids, kind="stable")
-            frames.append(Keyframe(current.stamp_ns, current.T_world_camera,
-                                   current.ids[order], current.rays[order]))
+        frames = [
+            frame if pose_of is None else frame.with_pose(pose_of(frame))
+            for frame in self._frames
+        ]
+        if current is not None:
+            if frames and frames[-1].stamp_ns == current.stamp_ns:
+                frames.pop()
+            frames.append(current.sorted_by_id())
         n, v = len(ids), len(frames)
         centres = np.zeros((n, v, 3))
         directions = np.zeros((n, v, 3))
+        axes = np.zeros((n, v, 3))
+        relative = np.full((n, v), np.nan)
         valid = np.zeros((n, v), bool)
         for k, frame in enumerate(frames):
+            centres[:, k] = frame.T_world_camera[:3, 3]
+            axes[:, k] = frame.T_world_camera[:3, 2]
             if len(frame.ids) == 0:
                 continue
             at = np.minimum(np.searchsorted(frame.ids, ids), len(frame.ids) - 1)
             seen = frame.ids[at] == ids
             R = frame.T_world_camera[:3, :3]
             directions[seen, k] = frame.rays[at[seen]] @ R.T
-            centres[:, k] = frame.T_world_camera[:3, 3]
+            if frame.relative is not None:
+                relative[seen, k] = frame.relative[at[seen]]
             valid[:, k] = seen
-        return TrackViews(centres, directions, valid)
+        return TrackViews(centres, directions, valid, axes, relative)

@@ -27,20 +27,23 @@ every buffer, the filter, the shape correction and the map, and raises
 
 from __future__ import annotations
 
+import dataclasses
 import time
+import warnings
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from endo_flow.errors import FlowInputError, NoFeaturesError
-from endo_flow.keyframes import Keyframe, KeyframeWindow
+from endo_flow.keyframes import Keyframe, KeyframeWindow, TrackViews
+from endo_flow.pose_smoothing import PoseSmoother
 from endo_flow.scale import (
     ScaleEstimate,
     ScaleFilter,
     ScaleFilterOptions,
     ScaleObservation,
     ScaleState,
-    observe_scale,
+    observe_log_ratios,
 )
 from endo_flow.shape_correction import ShapeCorrectionOptions, ShapeCorrector
 from endo_flow.tracking import FeatureTracker, TrackingOptions
@@ -66,11 +69,20 @@ class FlowOptions:
         keyframe_step_m: camera motion that makes a new keyframe, metres.
         keyframe_turn_deg: camera rotation that also does, degrees.
         keyframe_max_age_s: keyframes older than this are dropped, seconds.
+        pose_smoothing_s: half-width of the local linear regression that
+            smooths the keyframes' poses (:mod:`endo_flow.pose_smoothing`),
+            seconds; 0 uses the raw poses.
         pose_noise_m: the camera-centre noise of one pose (tracker noise and
             its lever arm to the camera), metres; sets the part of a frame's
             scale error that its points share.
         observation_floor: least standard deviation of one frame's ln s
             observation (the frames' errors are correlated).
+        max_view_spread: a track's ln(z_k / d_rel_k) over its views k (the
+            triangulated point's depth in each view against that view's
+            depth_relative) must have a standard deviation at most this:
+            a track that slides over the surface (an occluding fold edge,
+            shading that moves with the light) triangulates to a point that
+            the SFS surfaces of its views do not agree on.
         min_observation_points: fewer accepted tracks give no observation.
         max_parallax_weight_deg: parallax beyond this gets no more weight.
         min_features: a frame with fewer features raises NoFeaturesError.
@@ -92,8 +104,10 @@ class FlowOptions:
     keyframe_step_m: float = 0.8e-3
     keyframe_turn_deg: float = 2.0
     keyframe_max_age_s: float = 4.0
+    pose_smoothing_s: float = 0.3
     pose_noise_m: float = 0.5e-3
-    observation_floor: float = 0.02
+    observation_floor: float = 0.03
+    max_view_spread: float = 0.05
     min_observation_points: int = 8
     max_parallax_weight_deg: float = 20.0
     min_features: int = 8
@@ -109,8 +123,12 @@ class FlowOptions:
             raise ValueError("keyframes must be >= 2 and keyframe_max_age_s > 0")
         if self.keyframe_step_m < 0.0 or self.keyframe_turn_deg < 0.0:
             raise ValueError("keyframe_step_m and keyframe_turn_deg must be >= 0")
+        if self.pose_smoothing_s < 0.0:
+            raise ValueError("pose_smoothing_s must be >= 0")
         if self.pose_noise_m < 0.0 or self.observation_floor < 0.0:
             raise ValueError("pose_noise_m and observation_floor must be >= 0")
+        if not self.max_view_spread > 0.0:
+            raise ValueError("max_view_spread must be > 0")
         if self.min_observation_points < 1 or self.min_features < 0:
             raise ValueError("min_observation_points must be >= 1, min_features >= 0")
         if not self.max_parallax_weight_deg > 0.0:
@@ -250,6 +268,39 @@ def sample_bilinear(image: np.ndarray, uv: np.ndarray, max_ratio: float = 1.1) -
     return out
 
 
+def view_log_ratios(views: TrackViews, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per track and view, ln(z_k / d_rel_k); and per track its spread over the views.
+
+    z_k is the depth of the triangulated point along view k's optical axis,
+    d_rel_k the depth_relative sampled at the track in view k. A static point
+    on the surface has the same ratio in every view, up to the view's own
+    scale (a gain step changes every ratio of a view alike), so each view's
+    median over the tracks is removed before the spread is taken.
+
+    Args:
+        views: (N, V) views with ``axes`` and ``relative``.
+        points: (N, 3) triangulated world points (NaN rows allowed).
+
+    Returns:
+        ((N, V) float64 ln ratios, NaN where unknown; (N,) float64 standard
+        deviation over a track's views after removing each view's median,
+        NaN with fewer than two views).
+    """
+    assert views.axes is not None and views.relative is not None
+    with np.errstate(invalid="ignore", divide="ignore"):
+        z = np.einsum("nvi,nvi->nv", points[:, None, :] - views.centres, views.axes)
+        values = np.log(z) - np.log(views.relative)
+    values[~views.valid] = np.nan
+    ok = np.isfinite(values)
+    count = ok.sum(axis=1)
+    with np.errstate(invalid="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN views
+        centred = values - np.nanmedian(values, axis=0)
+        spread = np.nanstd(centred, axis=1, ddof=1)
+    spread[count < 2] = np.nan
+    return values, spread
+
+
 def binned_camera(camera: CameraModel, factor: int) -> CameraModel:
     """The model of ``image[:H//f*f:f, :W//f*f:f]``: every f-th pixel of the camera's image.
 
@@ -302,6 +353,8 @@ class FlowPipeline:
             round(opts.keyframe_max_age_s * 1e9),
         )
         self.scale_filter = ScaleFilter(opts.scale)
+        self.smoother = PoseSmoother(round(opts.pose_smoothing_s * 1e9),
+                                     capacity=2048)
         self.voxel_map = VoxelMap(opts.voxel_size_m, opts.max_voxels) if opts.map_enabled else None
         self._shape: ShapeCorrector | None = None
         self._camera: CameraModel | None = None
@@ -324,6 +377,7 @@ class FlowPipeline:
         """Forget tracks, keyframes, the scale, the shape correction and the map."""
         self.tracker.reset()
         self.window.clear()
+        self.smoother.clear()
         self.scale_filter.reset()
         if self._shape is not None:
             self._shape.reset()
@@ -331,6 +385,18 @@ class FlowPipeline:
             self.voxel_map.reset()
         self._last_stamp_ns = None
         self.resets += 1
+
+    def set_cloud_decimation(self, factor: int) -> None:
+        """Change the world cloud's decimation (every ``factor``-th pixel); state is kept."""
+        self.options = dataclasses.replace(self.options, cloud_decimation=int(factor))
+        if self._camera is not None:
+            self._cloud_camera = binned_camera(self._camera, int(factor))
+
+    def _keyframe_pose(self, keyframe: Keyframe) -> np.ndarray:
+        try:
+            return self.smoother.smoothed(keyframe.stamp_ns)
+        except KeyError:  # older than the smoother holds
+            return keyframe.T_world_camera
 
     def _check(self, frame: FlowFrame) -> np.ndarray | None:
         cam = frame.camera
@@ -408,35 +474,38 @@ class FlowPipeline:
         update = None
         if T is not None:
             rays = camera.pixels_to_rays(features.uv)
-            current = Keyframe(frame.stamp_ns, T, features.ids, rays)
-            views = self.window.views(features.ids, current)
+            relative_now = sample_bilinear(frame.depth_relative, features.uv)
+            # the shape correction as it stands now goes with each view's sample
+            corrected_now = relative_now * np.exp(self._shape.log_correction(features.uv))
+            current = Keyframe(frame.stamp_ns, T, features.ids, rays, corrected_now)
+            self.smoother.add(frame.stamp_ns, T)
+            views = self.window.views(features.ids, current, self._keyframe_pose)
             result = triangulate(views, opts.gates, optical_axis=T[:3, 2])
-            accepted = result.accepted
-            n_accepted = int(accepted.sum())
-            triangulated = result.points[accepted]
             timings["triangulation"] = 1e3 * (time.perf_counter() - t0)
             t0 = time.perf_counter()
+            log_ratio, spread = view_log_ratios(views, result.points)
+            accepted = result.accepted & (spread <= opts.max_view_spread)
+            accepted &= np.isfinite(log_ratio[:, -1])  # the current view has depth_relative
+            n_accepted = int(accepted.sum())
+            triangulated = result.points[accepted]
             if n_accepted >= opts.min_observation_points:
-                uv = features.uv[accepted]
-                relative = sample_bilinear(frame.depth_relative, uv)
-                log_c = self._shape.log_correction(uv)
-                corrected = relative * np.exp(log_c)
                 cap = np.radians(opts.max_parallax_weight_deg)
                 weights = np.minimum(result.parallax_rad[accepted], cap) ** 2
                 baseline = float(np.median(result.baseline_m[accepted]))
                 shared = opts.pose_noise_m / max(baseline, 1e-6) / np.sqrt(
                     float(np.median(result.views[accepted])))
-                observation = observe_scale(
-                    result.depth_m[accepted], corrected, weights,
-                    min_points=opts.min_observation_points,
+                observation = observe_log_ratios(
+                    log_ratio[accepted, -1], weights, min_points=opts.min_observation_points,
                     floor_std=float(np.hypot(opts.observation_floor, shared)),
                 )
                 if observation is not None:
                     update = self.scale_filter.update(observation, frame.stamp_ns)
                     if update.accepted and self.scale_filter.estimate.usable:
                         log_s = np.log(self.scale_filter.estimate.value)
+                        uv = features.uv[accepted]
                         with np.errstate(invalid="ignore", divide="ignore"):
-                            residual = np.log(result.depth_m[accepted]) - np.log(relative) - log_s
+                            residual = (np.log(result.depth_m[accepted])
+                                        - np.log(relative_now[accepted]) - log_s)
                         self._shape.update(uv, residual, observation.spread, frame.stamp_ns)
             if observation is None:
                 self.scale_filter.predict(frame.stamp_ns)

@@ -16,11 +16,12 @@ its standard error.
 * **update**: an observation whose innovation is more than ``gate_sigma``
   standard deviations off is rejected and counted (a wild observation);
 * **steps**: a gain or exposure change multiplies ρ and so s by a constant
-  (a 20 % gain step moves s by √1.2, +9.5 %). When the last ``step_frames``
-  innovations (accepted or not) all have the same sign and their mean is
-  more than ``step_sigma`` standard deviations off, the filter jumps to that
-  mean with the spread of those observations as its variance (state
-  RECOVERING) instead of creeping towards it at the steady-state gain;
+  (a 20 % gain step moves s by √1.2, +9.5 %). A two-sided CUSUM of the
+  normalised innovations (accepted or gated), C⁺ = max(0, C⁺ + min(ν/σ, clip) − k) and
+  C⁻ likewise, signals a step when one side exceeds ``step_threshold``; the
+  filter then jumps to the median of the observations since that side last
+  was 0, with their spread as its variance (state RECOVERING), instead of
+  creeping towards it at the steady-state gain;
 * **hold**: without observations (a still camera, pure rotation, a tracker
   dropout) the estimate stays where it is; after ``hold_after_s`` the state
   says so (HOLDING).
@@ -34,7 +35,6 @@ filter is still the best available).
 from __future__ import annotations
 
 import enum
-from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
@@ -120,12 +120,34 @@ def observe_scale(
     """
     z = np.asarray(metric_depth, np.float64)
     d = np.asarray(relative_depth, np.float64)
-    w = np.ones_like(z) if weights is None else np.asarray(weights, np.float64)
     with np.errstate(invalid="ignore", divide="ignore"):
-        ok = np.isfinite(z) & np.isfinite(d) & (z > 0.0) & (d > 0.0) & np.isfinite(w) & (w > 0.0)
+        log_ratio = np.log(z) - np.log(d)
+    return observe_log_ratios(log_ratio, weights, min_points=min_points, huber_k=huber_k,
+                              floor_std=floor_std, iterations=iterations)
+
+
+def observe_log_ratios(
+    log_ratio: np.ndarray,
+    weights: np.ndarray | None = None,
+    *,
+    min_points: int = 8,
+    huber_k: float = 1.5,
+    floor_std: float = 0.0,
+    iterations: int = 10,
+) -> ScaleObservation | None:
+    """Robust ln s from per-point values of ln(z / d_rel); see :func:`observe_scale`.
+
+    Args:
+        log_ratio: (N,) float ln(metric / relative) per point (NaN ignored).
+        weights, min_points, huber_k, floor_std, iterations: as in
+            :func:`observe_scale`.
+    """
+    values = np.asarray(log_ratio, np.float64)
+    w = np.ones_like(values) if weights is None else np.asarray(weights, np.float64)
+    ok = np.isfinite(values) & np.isfinite(w) & (w > 0.0)
     if int(ok.sum()) < min_points:
         return None
-    r = np.log(z[ok]) - np.log(d[ok])
+    r = values[ok]
     w = w[ok] / w[ok].max()
     location = float(np.median(r))
     sigma = max(1.4826 * float(np.median(np.abs(r - location))), 1e-4)
@@ -164,8 +186,14 @@ class ScaleFilterOptions:
         process_noise: random-walk density of ln s, per √second.
         gate_sigma: innovations beyond this many standard deviations are
             rejected.
-        step_frames: innovations of one sign in a row that can signal a step.
-        step_sigma: their mean (in standard deviations) that does.
+        step_allowance: the CUSUM's allowance k, standard deviations per
+            observation (innovations below it never add up).
+        step_threshold: the CUSUM level that signals a step.
+        step_clip: an innovation adds at most this many standard deviations
+            to the CUSUM, so that one wild observation (which is gated)
+            cannot signal a step alone: at least
+            step_threshold / (step_clip − step_allowance) of one sign must
+            come in a row.
         converged_std: standard deviation of ln s below which the filter is
             converged (TRACKING, usable).
         hold_after_s: time without an accepted observation after which the
@@ -174,10 +202,11 @@ class ScaleFilterOptions:
             is the observation's own; this caps it from below.
     """
 
-    process_noise: float = 0.01
+    process_noise: float = 0.003
     gate_sigma: float = 4.0
-    step_frames: int = 10
-    step_sigma: float = 2.5
+    step_allowance: float = 1.0
+    step_threshold: float = 5.0
+    step_clip: float = 2.5
     converged_std: float = 0.03
     hold_after_s: float = 0.3
     initial_std: float = 0.0
@@ -185,10 +214,11 @@ class ScaleFilterOptions:
     def __post_init__(self) -> None:
         if self.process_noise < 0.0 or self.initial_std < 0.0:
             raise ValueError("process_noise and initial_std must be >= 0")
-        if not (self.gate_sigma > 0.0 and self.step_sigma > 0.0):
-            raise ValueError("gate_sigma and step_sigma must be > 0")
-        if self.step_frames < 2:
-            raise ValueError("step_frames must be >= 2")
+        if not (self.gate_sigma > 0.0 and self.step_allowance > 0.0
+                and self.step_threshold > 0.0):
+            raise ValueError("gate_sigma, step_allowance and step_threshold must be > 0")
+        if not self.step_clip > self.step_allowance:
+            raise ValueError("step_clip must exceed step_allowance")
         if not self.converged_std > 0.0 or self.hold_after_s < 0.0:
             raise ValueError("converged_std must be > 0 and hold_after_s >= 0")
 
@@ -229,7 +259,8 @@ class ScaleFilter:
         self._last_accepted_ns: int | None = None
         self._converged = False
         self._recovering = False
-        self._recent: deque[tuple[float, float, float]] = deque(maxlen=self.options.step_frames)
+        self._cusum = [0.0, 0.0]  # upper, lower
+        self._since_zero: list[list[float]] = [[], []]
         self.gated = 0
         self.steps = 0
         self.accepted = 0
@@ -277,12 +308,10 @@ class ScaleFilter:
         innovation = z - self._log_scale
         s = self._variance + r
         sigma = float(innovation / np.sqrt(s))
-        self._recent.append((innovation, sigma, z))
-        if self._step_detected():
-            values = np.array([entry[2] for entry in self._recent])
+        values = self._step_values(sigma, z)
+        if values is not None:
             self._log_scale = float(np.median(values))
             self._variance = float(np.var(values) + r)
-            self._recent.clear()
             self._recovering = True
             self.steps += 1
             self._accept(stamp_ns)
@@ -303,9 +332,21 @@ class ScaleFilter:
             self._converged = True
             self._recovering = False
 
-    def _step_detected(self) -> bool:
-        if len(self._recent) < self.options.step_frames:
-            return False
-        sigmas = np.array([entry[1] for entry in self._recent])
-        same_sign = bool(np.all(sigmas > 0.0) or np.all(sigmas < 0.0))
-        return same_sign and abs(float(sigmas.mean())) > self.options.step_sigma
+    def _step_values(self, sigma: float, z: float) -> np.ndarray | None:
+        """Update the CUSUM; the observations of the side that signals a step, or None."""
+        k, h = self.options.step_allowance, self.options.step_threshold
+        clipped = float(np.clip(sigma, -self.options.step_clip, self.options.step_clip))
+        for side, signed in ((0, clipped), (1, -clipped)):
+            level = max(0.0, self._cusum[side] + signed - k)
+            if level == 0.0:
+                self._since_zero[side] = []
+            else:
+                self._since_zero[side].append(z)
+            self._cusum[side] = level
+        for side in (0, 1):
+            if self._cusum[side] > h:
+                values = np.array(self._since_zero[side])
+                self._cusum = [0.0, 0.0]
+                self._since_zero = [[], []]
+                return values
+        return None

@@ -1,0 +1,287 @@
+#!/usr/bin/env python3
+"""Accuracy of endo_flow on endo_sim bags, with the real cores upstream.
+
+Per frame, as the live graph computes it: the raw image corrected by the
+``endo-calibrate`` calibration (``PhotometricCalibration.correct``), relative
+depth by ``endo_sfs.solve`` (near-light, warm-started, highlights masked), the
+camera pose from the bag's noisy ``/tracker/pose`` through the tracker
+bridge's chain (``endo_tracker_bridge.composition``: T_world_tracker ·
+T_tracker_marker · T_marker_camera, stamps put on the camera clock) with the
+hand–eye transform deliberately off by 1 mm / 0.3°, interpolated at the image
+stamp by ``endo_io.pose_buffer.PoseBuffer``, then ``FlowPipeline.process``.
+This is the minimum to feed the pipeline until ``endo-process`` exists; it
+is not a second offline processor (no output bag).
+
+Figures, on the frames with ground-truth depth:
+
+* scale: s / s_oracle − 1 after convergence, s_oracle the single scale that
+  best fits depth_relative to the truth over the whole sequence (the median
+  of the pooled log ratios);
+* metric depth MAE and AbsRel (no per-frame scaling) in 20–80 mm, and the
+  same with depth_relative · s_oracle (the oracle figures: SFS's own share);
+* the world cloud's RMS distance to the true surface (nearest true point of
+  the frame's ground-truth depth, back-projected with the true pose).
+
+Usage: ``bench/eval_flow.py BAG --calibration photometric.yaml [--light-error 0.1]
+[--shape none smooth] [--cache DIR]``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import yaml
+from scipy.spatial import cKDTree
+
+from endo_calib.calibration import PhotometricCalibration
+from endo_calib.raw_image import to_raw_frame
+from endo_flow.errors import FlowError
+from endo_flow.pipeline import FlowFrame, FlowOptions, FlowPipeline, sample_bilinear
+from endo_flow.shape_correction import ShapeCorrectionOptions
+from endo_io.bag import BagReader, deserialize
+from endo_io.camera import CameraModel
+from endo_io.errors import Endo3dError
+from endo_io.image import image_to_array
+from endo_io.pose import invert_transform, pose_to_matrix, rigid_transform, transform_points
+from endo_io.pose_buffer import PoseBuffer
+from endo_io.stamp import stamp_to_ns
+from endo_io.topics import CAMERA_INFO, IMAGE_RAW, TRACKER_POSE, TRUE_CAMERA_POSE, TRUE_DEPTH
+from endo_sfs import SfsOptions, solve
+from endo_tracker_bridge.composition import compose_camera_pose, corrected_stamp_ns
+
+#: the issue's hand–eye error: 1 mm and 0.3°, in fixed directions
+HANDEYE_ERROR = rigid_transform(np.radians(0.3) * np.array([0.6, 0.0, 0.8]),
+                                1e-3 * np.array([0.0, 0.6, 0.8]))
+
+
+@dataclasses.dataclass
+class Sequence:
+    """Everything read from one bag, plus the SFS output per frame."""
+
+    camera: CameraModel
+    stamps: list[int]
+    images: dict[int, np.ndarray]
+    relative: dict[int, np.ndarray]
+    true_depth: dict[int, np.ndarray]
+    true_pose: dict[int, np.ndarray]
+    poses: dict[int, np.ndarray | None]
+
+
+def read_bag(path: Path, calibration: PhotometricCalibration, light_error: float,
+             cache: Path | None, solve_scale: float) -> Sequence:
+    """Correct, solve SFS (cached) and compose the tracker poses of one bag."""
+    truth = yaml.safe_load(path.with_suffix(".ground_truth.yaml").read_text())
+    tracker = truth["tracker"]
+    T_tracker_world = np.array(tracker["T_tracker_world"])
+    X = np.array(tracker["T_marker_camera"]) @ HANDEYE_ERROR
+    latency_ns = round(tracker["latency_s"] * 1e9)
+    fov = truth["camera"]["fov_radius_px"]
+    wanted = [IMAGE_RAW, CAMERA_INFO, TRUE_DEPTH, TRUE_CAMERA_POSE, TRACKER_POSE]
+    raw: dict[int, np.ndarray] = {}
+    info = None
+    true_depth: dict[int, np.ndarray] = {}
+    true_pose: dict[int, np.ndarray] = {}
+    buffer = PoseBuffer(capacity=100_000, max_gap_ns=100_000_000)
+    with BagReader(path) as reader:
+        for message in reader.messages(wanted):
+            msg = deserialize(message)
+            stamp = stamp_to_ns(msg.header.stamp)
+            if message.topic == IMAGE_RAW:
+                raw[stamp] = to_raw_frame(image_to_array(msg), msg.encoding)
+            elif message.topic == CAMERA_INFO:
+                info = msg
+            elif message.topic == TRUE_DEPTH:
+                true_depth[stamp] = image_to_array(msg).copy()
+            elif message.topic == TRUE_CAMERA_POSE:
+                true_pose[stamp] = pose_to_matrix(msg)[0]
+            else:
+                T = compose_camera_pose(invert_transform(T_tracker_world),
+                                        pose_to_matrix(msg)[0], X)
+                buffer.insert(corrected_stamp_ns(stamp, latency_ns), T)
+    assert info is not None
+    camera = CameraModel.from_camera_info(info)
+    stamps = sorted(raw)
+    poses: dict[int, np.ndarray | None] = {}
+    for stamp in stamps:
+        try:
+            poses[stamp] = buffer.query(stamp)
+        except Endo3dError:
+            poses[stamp] = None
+    mask = camera.fov_mask(fov)
+    # a light map wrong by `light_error` at the rim of the field of view, radially
+    v, u = np.mgrid[0:camera.height, 0:camera.width]
+    rho2 = ((u - camera.cx) ** 2 + (v - camera.cy) ** 2) / fov**2
+    light_factor = (1.0 / (1.0 - light_error * rho2)).astype(np.float32)
+    images, relative = {}, {}
+    options = SfsOptions(roughness=0.3, mask_highlights=True, threads=2,
+                         solve_scale=solve_scale)
+    name = f"{path.stem}_le{light_error:g}_ss{solve_scale:g}"
+    cached = cache / f"{name}.npz" if cache else None
+    stored = dict(np.load(cached)) if cached and cached.exists() else None
+    previous = None
+    for stamp in stamps:
+        image = calibration.luminance(calibration.correct(raw[stamp])) * light_factor
+        images[stamp] = image
+        if stored is not None:
+            relative[stamp] = stored[str(stamp)].astype(np.float32)
+            continue
+        previous = solve(image, camera, options, mask=mask, warm_start=previous)
+        relative[stamp] = previous.depth
+    if cached and stored is None:
+        cached.parent.mkdir(parents=True, exist_ok=True)
+        np.savez(cached, **{str(s): relative[s].astype(np.float16) for s in stamps})
+    return Sequence(camera, stamps, images, relative, true_depth, true_pose, poses)
+
+
+def oracle_scale(seq: Sequence) -> float:
+    """exp(median of ln(true / relative)) over every pixel of every ground-truth frame."""
+    logs = []
+    for stamp, truth in seq.true_depth.items():
+        rel = seq.relative[stamp]
+        ok = np.isfinite(truth) & np.isfinite(rel) & (rel > 0) & (truth > 0)
+        logs.append(np.log(truth[ok] / rel[ok]))
+    return float(np.exp(np.median(np.concatenate(logs))))
+
+
+def depth_figures(depth: np.ndarray, truth: np.ndarray, lo: float, hi: float) -> tuple[float,
+                                                                                        float]:
+    """(MAE metres, AbsRel) over pixels with truth in [lo, hi] and an estimate."""
+    ok = np.isfinite(truth) & np.isfinite(depth) & (truth >= lo) & (truth <= hi)
+    err = np.abs(depth[ok] - truth[ok])
+    return float(err.mean()), float((err / truth[ok]).mean())
+
+
+def cloud_rms(points: np.ndarray, truth: np.ndarray, pose: np.ndarray,
+              camera: CameraModel) -> float:
+    """RMS distance of world points to the nearest true surface point of that frame."""
+    true_points = transform_points(pose, camera.depth_to_points(truth))
+    true_points = true_points[np.isfinite(true_points).all(axis=1 if true_points.ndim == 2
+                                                              else -1)]
+    tree = cKDTree(true_points.reshape(-1, 3))
+    distance, _ = tree.query(points.astype(np.float64), k=1)
+    return float(np.sqrt(np.mean(distance**2)))
+
+
+def evaluate(seq: Sequence, options: FlowOptions, depth_range: tuple[float, float],
+             label: str, trace: bool = False) -> dict[str, object]:
+    """Run the pipeline over the sequence and score it."""
+    pipe = FlowPipeline(options)
+    s_oracle = oracle_scale(seq)
+    t_start = seq.stamps[0]
+    rows = []
+    errors: dict[str, int] = {}
+    scales: list[tuple[float, float, str]] = []
+    wall = []
+    for stamp in seq.stamps:
+        frame = FlowFrame(stamp, seq.images[stamp], seq.relative[stamp], seq.camera,
+                          seq.poses[stamp])
+        start = time.perf_counter()
+        try:
+            out = pipe.process(frame)
+        except FlowError as error:
+            errors[type(error).__name__] = errors.get(type(error).__name__, 0) + 1
+            continue
+        wall.append(time.perf_counter() - start)
+        t = (stamp - t_start) / 1e9
+        if trace:
+            d = out.diagnostics
+            print(f"  t={t:5.2f} s/s*={out.scale.value / s_oracle:.4f} "
+                  f"obs/s*={d.observation / s_oracle:.4f}±{d.observation_std:.3f} "
+                  f"tri={d.triangulated:3d} tracks={d.tracks:3d} kf={d.keyframes:2d} "
+                  f"{out.scale.state.name} pose={d.has_pose}", flush=True)
+        scales.append((t, out.scale.value / s_oracle if out.scale.usable else np.nan,
+                       out.scale.state.name))
+        if stamp not in seq.true_depth or out.depth is None:
+            continue
+        truth = seq.true_depth[stamp]
+        if trace and len(out.triangulated) and seq.poses[stamp] is not None:
+            local = transform_points(invert_transform(seq.poses[stamp]), out.triangulated)
+            uv = seq.camera.project(local)
+            gt = sample_bilinear(truth, uv)
+            rel = sample_bilinear(seq.relative[stamp], uv) * s_oracle
+            print(f"  GT frame: z_tri/gt median {np.nanmedian(local[:, 2] / gt):.4f}, "
+                  f"s*·rel/gt at the tracks {np.nanmedian(rel / gt):.4f}, "
+                  f"everywhere {np.nanmedian(seq.relative[stamp] * s_oracle / truth):.4f}")
+        mae, absrel = depth_figures(out.depth, truth, *depth_range)
+        o_mae, o_absrel = depth_figures(seq.relative[stamp] * s_oracle, truth, *depth_range)
+        rms = (cloud_rms(out.points, truth, seq.true_pose[stamp], seq.camera)
+               if len(out.points) else np.nan)
+        rows.append((t, out.scale.value / s_oracle - 1.0, mae, absrel, o_mae, o_absrel, rms,
+                     out.diagnostics.shape_correction))
+    table = np.array([r[:7] for r in rows], dtype=np.float64)
+    first = next((t for t, s, _ in scales if np.isfinite(s)), np.nan)
+    # "converged": the first time after which |s/s* - 1| stays below 2 %
+    converged = np.nan
+    for i in range(len(scales)):
+        rest = np.array([s for _, s, _ in scales[i:]])
+        if np.all(np.abs(rest - 1.0) < 0.02):
+            converged = scales[i][0]
+            break
+    after = table[table[:, 0] >= (converged if np.isfinite(converged) else first)] if len(
+        table) else table
+    result = {
+        "label": label,
+        "frames": len(seq.stamps),
+        "gt_frames": len(rows),
+        "oracle_scale": s_oracle,
+        "first_usable_s": first,
+        "within_2pct_from_s": converged,
+        "scale_err_mean_pct": 100 * float(np.mean(np.abs(after[:, 1]))) if len(after) else np.nan,
+        "scale_err_max_pct": 100 * float(np.max(np.abs(after[:, 1]))) if len(after) else np.nan,
+        "final_scale_ratio": scales[-1][1],
+        "mae_mm": 1e3 * float(np.mean(after[:, 2])) if len(after) else np.nan,
+        "absrel": float(np.mean(after[:, 3])) if len(after) else np.nan,
+        "oracle_mae_mm": 1e3 * float(np.mean(after[:, 4])) if len(after) else np.nan,
+        "oracle_absrel": float(np.mean(after[:, 5])) if len(after) else np.nan,
+        "cloud_rms_mm": 1e3 * float(np.sqrt(np.nanmean(after[:, 6] ** 2))) if len(after)
+        else np.nan,
+        "shape_active_frames": int(sum(r[7] for r in rows)),
+        "dropped": errors,
+        "pipeline_ms_median": 1e3 * float(np.median(wall)),
+    }
+    return result
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("bags", nargs="+", type=Path)
+    parser.add_argument("--calibration", type=Path, required=True)
+    parser.add_argument("--light-error", type=float, default=0.0,
+                        help="light map wrong by this fraction at the field-of-view rim")
+    parser.add_argument("--shape", nargs="+", default=["none", "smooth"])
+    parser.add_argument("--range-mm", nargs=2, type=float, default=(20.0, 80.0))
+    parser.add_argument("--solve-scale", type=float, default=1.0)
+    parser.add_argument("--cache", type=Path, default=None)
+    parser.add_argument("--json", type=Path, default=None, help="append results here")
+    parser.add_argument("--trace", action="store_true", help="print every frame's scale")
+    args = parser.parse_args(argv)
+    try:
+        calibration = PhotometricCalibration.load(args.calibration)
+    except (OSError, Endo3dError) as error:
+        print(f"eval_flow: {error}", file=sys.stderr)
+        return 2
+    results = []
+    for bag in args.bags:
+        seq = read_bag(bag, calibration, args.light_error, args.cache, args.solve_scale)
+        for mode in args.shape:
+            options = FlowOptions(shape=ShapeCorrectionOptions(mode=mode))
+            label = f"{bag.stem} light_error={args.light_error:g} shape={mode}"
+            result = evaluate(seq, options, (args.range_mm[0] / 1e3, args.range_mm[1] / 1e3),
+                              label, args.trace)
+            results.append(result)
+            print(json.dumps(result), flush=True)
+    if args.json:
+        with args.json.open("a") as stream:
+            for result in results:
+                stream.write(json.dumps(result) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,396 @@
+"""``flow`` node: corrected image + relative depth + camera pose -> metric depth, cloud, map.
+
+A thin adapter around :class:`endo_flow.pipeline.FlowPipeline` (the per-frame
+step the offline processor calls too).
+
+Subscriptions (sensor-data QoS):
+
+* ``/endoscope/image_corrected`` (32FC1 linear irradiance), ``/endoscope/depth_relative``
+  (32FC1) and ``/endoscope/camera_info``, paired by header stamp with
+  :class:`endo_io.stamp_matching.StampMatcher` (exact stamps by default), so a
+  frame never mixes two images;
+* ``/endoscope/pose`` (``T_world_camera`` on the camera clock, from the tracker
+  bridge) into a :class:`endo_io.pose_buffer.PoseBuffer`.
+
+A complete frame waits (at most ``pose_wait_s``, and behind at most
+``max_pending`` earlier frames) until a pose after its stamp has arrived, then
+takes the interpolated pose at its stamp. A frame whose pose cannot come
+(a tracker dropout longer than ``pose_max_gap_s``, a wait that ran out) is
+counted under the lookup error's name and processed without a pose: tracking
+continues and its depth is published with the held scale, but it gives no
+triangulation, no world points and no map update. It is never paired with a
+stale pose.
+
+Publications (reliable, QoS overridable):
+
+* ``/endoscope/depth``: metric depth, 32FC1 metres, NaN invalid (REP 118), the
+  image's header, so ``/endoscope/camera_info`` describes it; nothing before
+  the scale has converged once;
+* ``/endoscope/points``: the frame's world cloud, PointCloud2 (x, y, z, rgb
+  grey from the image) in ``world_frame``, every ``cloud_decimation``-th
+  pixel;
+* ``/endoscope/map``: the fused voxel map, PointCloud2 in ``world_frame``,
+  transient-local, every ``map_period_s``;
+* ``/endoscope/scale``: ``geometry_msgs/Vector3Stamped`` with x = s (metres
+  per unit of depth_relative), y = the standard deviation of ln s, z = the
+  state (:class:`endo_flow.scale.ScaleState`: 0 initializing, 1 tracking,
+  2 holding, 3 recovering); header = the frame's;
+* ``/diagnostics``: processed and dropped frames per cause, and the scale,
+  its state and the track counts.
+
+Services (std_srvs/Trigger): ``~/reset_map`` empties the map; ``~/export_map``
+writes it to ``ply_path`` as binary PLY (:func:`endo_flow.voxel_map.write_ply`).
+
+Bad input (one log line, counted, that frame dropped, the node keeps
+running): an image that is not 32FC1, a depth_relative or image of another
+size than camera_info, a NaN pose (rejected by the pose buffer), a
+textureless frame, a clock jump backwards (a looping bag: every buffer, the
+scale filter and the map are reset and tracking resumes).
+"""
+
+from __future__ import annotations
+
+import time
+from collections import deque
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from geometry_msgs.msg import PoseStamped, Vector3Stamped
+from rclpy.node import Node
+from sensor_msgs.msg import CameraInfo, Image, PointCloud2
+from std_srvs.srv import Trigger
+
+from endo_flow.errors import FlowError, FlowInputError
+from endo_flow.pipeline import FlowFrame, FlowOptions, FlowOutput, FlowPipeline
+from endo_flow.scale import ScaleFilterOptions
+from endo_flow.shape_correction import SHAPE_CORRECTION_MODES, ShapeCorrectionOptions
+from endo_flow.tracking import TrackingOptions
+from endo_io import topics
+from endo_io.camera import CameraModel
+from endo_io.diagnostics import InputHealth
+from endo_io.errors import ClockJumpError, Endo3dError, PoseLookupError, PoseNotYetError
+from endo_io.image import array_to_image, image_to_array
+from endo_io.parameters import NodeParameters, ParameterSpec
+from endo_io.pointcloud import xyz_to_pointcloud2
+from endo_io.pose import pose_to_matrix
+from endo_io.pose_buffer import PoseBuffer
+from endo_io.process import run_node
+from endo_io.qos import SENSOR_DATA_QOS, create_reliable_publisher, reliable_qos
+from endo_io.stamp import NS_PER_S, stamp_to_ns
+from endo_io.stamp_matching import StampMatcher
+
+PARAMETERS: tuple[ParameterSpec, ...] = (
+    ParameterSpec("world_frame", topics.WORLD_FRAME,
+                  "frame id of the world cloud and the map (the tracker's world)",
+                  read_only=True),
+    ParameterSpec("stamp_tolerance", 0.0,
+                  "largest stamp difference of image, depth_relative and camera_info in one "
+                  "frame, seconds (0: exact)", range=(0.0, 1.0), read_only=True),
+    ParameterSpec("queue_size", 10,
+                  "unmatched messages of each stream kept while waiting for partners",
+                  range=(1, 1000), read_only=True),
+    ParameterSpec("pose_wait_s", 0.2,
+                  "longest time a frame waits for a pose after its stamp, seconds",
+                  range=(0.0, 5.0)),
+    ParameterSpec("max_pending", 5, "frames that may wait for poses at once; older ones go "
+                  "on without a pose", range=(1, 100)),
+    ParameterSpec("pose_max_gap_s", 0.1,
+                  "longest interval between two poses that is interpolated, seconds",
+                  range=(0.0, 2.0), read_only=True),
+    ParameterSpec("max_tracks", 200, "Lucas–Kanade tracks kept alive", range=(8, 2000),
+                  read_only=True),
+    ParameterSpec("tracking_downsample", 2,
+                  "integer factor from the image to the tracking resolution", range=(1, 8),
+                  read_only=True),
+    ParameterSpec("pyramid_levels", 2, "Lucas–Kanade pyramid levels above the base",
+                  range=(0, 6), read_only=True),
+    ParameterSpec("reseed_every", 10, "seed new features at least every this many frames "
+                  "(0: only when tracks run low)", range=(0, 1000), read_only=True),
+    ParameterSpec("min_parallax_deg", 4.0, "least parallax of a triangulated track, degrees",
+                  range=(0.1, 60.0), read_only=True),
+    ParameterSpec("min_baseline_m", 2.0e-3,
+                  "least camera-centre baseline of a triangulated track, metres",
+                  range=(0.0, 0.1), read_only=True),
+    ParameterSpec("pose_smoothing_s", 0.3,
+                  "half-width of the pose smoothing of keyframes, seconds (0: raw poses)",
+                  range=(0.0, 2.0), read_only=True),
+    ParameterSpec("scale_process_noise", 0.003,
+                  "random-walk density of ln s per square-root second", range=(0.0, 1.0),
+                  read_only=True),
+    ParameterSpec("shape_correction", "none",
+                  "smooth correction field of the SFS depth from the metric points",
+                  choices=SHAPE_CORRECTION_MODES, read_only=True),
+    ParameterSpec("cloud_decimation", 4, "the world cloud takes every n-th pixel per axis",
+                  range=(1, 32)),
+    ParameterSpec("map_enabled", True, "fuse the world clouds into the voxel map",
+                  read_only=True),
+    ParameterSpec("map_voxel_size_m", 1e-3, "voxel edge of the map, metres",
+                  range=(1e-5, 0.1), read_only=True),
+    ParameterSpec("map_max_voxels", 2_000_000,
+                  "map capacity (memory bound); the voxels seen longest ago go first",
+                  range=(1000, 100_000_000), read_only=True),
+    ParameterSpec("map_period_s", 2.0, "publishing period of the map, seconds",
+                  range=(0.1, 3600.0), read_only=True),
+    ParameterSpec("map_min_count", 1, "voxels fused from fewer points are not published or "
+                  "exported", range=(1, 1000)),
+    ParameterSpec("ply_path", "endo3d_map.ply", "file ~/export_map writes"),
+)
+
+
+def pipeline_options(values: dict[str, Any]) -> FlowOptions:
+    """The pipeline settings the parameter values describe."""
+    base = FlowOptions()
+    tracking = replace(TrackingOptions(), max_tracks=values["max_tracks"],
+                       downsample=values["tracking_downsample"],
+                       pyramid_levels=values["pyramid_levels"],
+                       reseed_every=values["reseed_every"])
+    gates = replace(base.gates, min_parallax_rad=float(np.radians(values["min_parallax_deg"])),
+                    min_baseline_m=values["min_baseline_m"])
+    return replace(
+        base, tracking=tracking, gates=gates,
+        scale=replace(ScaleFilterOptions(), process_noise=values["scale_process_noise"]),
+        shape=ShapeCorrectionOptions(mode=values["shape_correction"]),
+        pose_smoothing_s=values["pose_smoothing_s"],
+        cloud_decimation=values["cloud_decimation"], map_enabled=values["map_enabled"],
+        voxel_size_m=values["map_voxel_size_m"], max_voxels=values["map_max_voxels"],
+    )
+
+
+@dataclass
+class _Pending:
+    """A complete frame waiting for its pose."""
+
+    stamp_ns: int
+    image: Image
+    depth: Image
+    info: CameraInfo
+    deadline: float
+
+
+class FlowNode(Node):
+    """The ``flow`` node (see the module docstring)."""
+
+    def __init__(self, **kwargs: Any) -> None:
+        super().__init__("flow", **kwargs)
+        self.parameters = NodeParameters(self, PARAMETERS)
+        values = self.parameters.values()
+        self.parameters.on_change(self._apply)
+        self.pipeline = FlowPipeline(pipeline_options(values))
+        tolerance_ns = round(values["stamp_tolerance"] * NS_PER_S)
+        self._images: StampMatcher[Image, CameraInfo] = StampMatcher(
+            values["queue_size"], tolerance_ns)
+        self._frames: StampMatcher[tuple[Image, CameraInfo], Image] = StampMatcher(
+            values["queue_size"], tolerance_ns)
+        self.poses = PoseBuffer(capacity=6000,
+                                max_gap_ns=round(values["pose_max_gap_s"] * NS_PER_S))
+        self._pending: deque[_Pending] = deque()
+        self._camera: CameraModel | None = None
+        self._camera_key: tuple[Any, ...] | None = None
+        self.health = InputHealth(self, "frames")
+        self.pose_health = InputHealth(self, "poses")
+        self.depth_pub = create_reliable_publisher(self, Image, topics.DEPTH)
+        self.points_pub = create_reliable_publisher(self, PointCloud2, topics.POINTS, depth=2)
+        self.scale_pub = create_reliable_publisher(self, Vector3Stamped, topics.SCALE)
+        self.map_pub = self.create_publisher(PointCloud2, topics.MAP,
+                                             reliable_qos(1, latched=True))
+        self.create_subscription(Image, topics.IMAGE_CORRECTED,
+                                 self.health.guard(self._on_image), SENSOR_DATA_QOS)
+        self.create_subscription(Image, topics.DEPTH_RELATIVE,
+                                 self.health.guard(self._on_depth), SENSOR_DATA_QOS)
+        self.create_subscription(CameraInfo, topics.CAMERA_INFO,
+                                 self.health.guard(self._on_info), SENSOR_DATA_QOS)
+        self.create_subscription(PoseStamped, topics.CAMERA_POSE,
+                                 self.pose_health.guard(self._on_pose), SENSOR_DATA_QOS)
+        self.create_service(Trigger, "~/reset_map", self._reset_map)
+        self.create_service(Trigger, "~/export_map", self._export_map)
+        self.create_timer(0.02, self._expire_pending)
+        self.create_timer(values["map_period_s"], self._publish_map)
+        self._map_dirty = False
+        self.get_logger().info(
+            f"flow: {topics.IMAGE_CORRECTED} + {topics.DEPTH_RELATIVE} + {topics.CAMERA_INFO} "
+            f"+ {topics.CAMERA_POSE} -> {topics.DEPTH}, {topics.POINTS}, {topics.MAP}, "
+            f"{topics.SCALE}; shape_correction={values['shape_correction']}"
+        )
+
+    # ------------------------------------------------------------------ parameters
+
+    def _apply(self, changes: dict[str, Any], values: dict[str, Any]) -> None:
+        if "cloud_decimation" in changes:
+            # the decimation only changes the cloud; the pipeline keeps its state
+            self.pipeline.set_cloud_decimation(changes["cloud_decimation"])
+
+    # ------------------------------------------------------------------ inputs
+
+    def _on_image(self, msg: Image) -> None:
+        self._offer_pair(self._images.add_first(stamp_to_ns(msg.header.stamp), msg))
+
+    def _on_info(self, msg: CameraInfo) -> None:
+        self._offer_pair(self._images.add_second(stamp_to_ns(msg.header.stamp), msg))
+
+    def _on_depth(self, msg: Image) -> None:
+        pair = self._frames.add_second(stamp_to_ns(msg.header.stamp), msg)
+        if pair is not None:
+            self._enqueue(pair.stamp_ns, pair.first[0], msg, pair.first[1])
+
+    def _offer_pair(self, pair: Any) -> None:
+        if pair is None:
+            return
+        triple = self._frames.add_first(pair.stamp_ns, (pair.first, pair.second))
+        if triple is not None:
+            self._enqueue(triple.stamp_ns, pair.first, triple.second, pair.second)
+
+    def _on_pose(self, msg: PoseStamped) -> None:
+        T, stamp = pose_to_matrix(msg)
+        try:
+            self.poses.insert(stamp, T)
+        finally:
+            self._drain()
+
+    def _enqueue(self, stamp_ns: int, image: Image, depth: Image, info: CameraInfo) -> None:
+        wait = self.parameters["pose_wait_s"]
+        self._pending.append(_Pending(stamp_ns, image, depth, info, time.monotonic() + wait))
+        self._drain()
+
+    def _expire_pending(self) -> None:
+        self._drain()
+
+    def _drain(self) -> None:
+        """Process waiting frames in order while their pose is known or cannot come."""
+        now = time.monotonic()
+        while self._pending:
+            head = self._pending[0]
+            pose: np.ndarray | None = None
+            missing: PoseLookupError | None = None
+            try:
+                pose = self.poses.query(head.stamp_ns)
+            except PoseNotYetError as error:
+                too_many = len(self._pending) > self.parameters["max_pending"]
+                if now < head.deadline and not too_many:
+                    return  # the pose may still come; later frames wait behind this one
+                missing = error
+            except PoseLookupError as error:
+                missing = error
+            self._pending.popleft()
+            if missing is not None:
+                self.health.drop(type(missing).__name__,
+                                 f"frame {head.stamp_ns} ns has no pose, processed without: "
+                                 f"{missing}")
+            self._process(head, pose)
+
+    # ------------------------------------------------------------------ processing
+
+    def _camera_model(self, info: CameraInfo) -> CameraModel:
+        key = (info.width, info.height, info.distortion_model, tuple(info.d), tuple(info.k),
+               tuple(info.p), info.binning_x, info.binning_y, info.roi.x_offset,
+               info.roi.y_offset, info.roi.width, info.roi.height, info.header.frame_id)
+        if self._camera is None or key != self._camera_key:
+            self._camera = CameraModel.from_camera_info(info)  # keeps its ray table cached
+            self._camera_key = key
+        return self._camera
+
+    def _process(self, pending: _Pending, pose: np.ndarray | None) -> None:
+        try:
+            out = self._step(pending, pose)
+        except ClockJumpError as error:
+            self._pending.clear()
+            self.health.drop(type(error).__name__, str(error))
+            return
+        except Endo3dError as error:
+            self.health.drop(type(error).__name__, str(error))
+            return
+        except Exception as error:  # a bug on one frame must not stop the node
+            self.health.drop(type(error).__name__, f"unexpected: {error}")
+            return
+        self.health.ok()
+        self._publish(pending, out)
+
+    def _step(self, pending: _Pending, pose: np.ndarray | None) -> FlowOutput:
+        for name, msg in (("image_corrected", pending.image), ("depth_relative", pending.depth)):
+            if msg.encoding != "32FC1":
+                raise FlowInputError(f"{name} must be 32FC1, got {msg.encoding!r}")
+        camera = self._camera_model(pending.info)
+        frame = FlowFrame(pending.stamp_ns, image_to_array(pending.image),
+                          image_to_array(pending.depth), camera, pose)
+        return self.pipeline.process(frame)
+
+    def _publish(self, pending: _Pending, out: FlowOutput) -> None:
+        header = pending.image.header
+        scale = Vector3Stamped()
+        scale.header = header
+        scale.vector.x = out.scale.value if np.isfinite(out.scale.value) else float("nan")
+        scale.vector.y = out.scale.log_std if np.isfinite(out.scale.log_std) else float("inf")
+        scale.vector.z = float(int(out.scale.state))
+        self.scale_pub.publish(scale)
+        d = out.diagnostics
+        for key, value in (("scale", f"{out.scale.value:.6g}"),
+                           ("scale_log_std", f"{out.scale.log_std:.3g}"),
+                           ("scale_state", out.scale.state.name),
+                           ("tracks", d.tracks), ("triangulated", d.triangulated),
+                           ("scale_gated", self.pipeline.scale_filter.gated),
+                           ("scale_steps", self.pipeline.scale_filter.steps),
+                           ("shape_correction_active", d.shape_correction),
+                           ("map_voxels", len(self.pipeline.voxel_map or ()))):
+            self.health.set_value(key, value)
+        if d.gated:
+            self.get_logger().warning(
+                f"scale observation {d.observation:.4g} gated (filter at {out.scale.value:.4g})",
+                throttle_duration_sec=1.0)
+        if out.depth is None:
+            return
+        depth_msg = array_to_image(out.depth, "32FC1")
+        depth_msg.header = header
+        self.depth_pub.publish(depth_msg)
+        if len(out.points):
+            grey = np.repeat(out.intensity[:, None], 3, axis=1)
+            cloud = xyz_to_pointcloud2(out.points, pending.stamp_ns,
+                                       self.parameters["world_frame"], rgb=grey)
+            self.points_pub.publish(cloud)
+            self._map_dirty = True
+
+    # ------------------------------------------------------------------ map
+
+    def _publish_map(self) -> None:
+        voxel_map = self.pipeline.voxel_map
+        if voxel_map is None or not self._map_dirty:
+            return
+        cloud = voxel_map.points(self.parameters["map_min_count"])
+        grey = np.repeat(np.clip(np.rint(cloud.grey), 0, 255).astype(np.uint8)[:, None], 3, 1)
+        stamp = self.get_clock().now().nanoseconds
+        self.map_pub.publish(xyz_to_pointcloud2(cloud.points, stamp,
+                                                self.parameters["world_frame"], rgb=grey))
+        self._map_dirty = False
+
+    def _reset_map(self, _request: Trigger.Request, response: Trigger.Response
+                   ) -> Trigger.Response:
+        if self.pipeline.voxel_map is None:
+            response.success, response.message = False, "the map is disabled (map_enabled)"
+            return response
+        dropped = len(self.pipeline.voxel_map)
+        self.pipeline.voxel_map.reset()
+        self._map_dirty = True
+        response.success, response.message = True, f"map reset ({dropped} voxels dropped)"
+        self.get_logger().info(response.message)
+        return response
+
+    def _export_map(self, _request: Trigger.Request, response: Trigger.Response
+                    ) -> Trigger.Response:
+        voxel_map = self.pipeline.voxel_map
+        path = Path(self.parameters["ply_path"]).expanduser()
+        if voxel_map is None:
+            response.success, response.message = False, "the map is disabled (map_enabled)"
+            return response
+        try:
+            count = voxel_map.export_ply(path, self.parameters["map_min_count"])
+        except FlowError as error:
+            response.success, response.message = False, str(error)
+            return response
+        response.success, response.message = True, f"wrote {count} points to {path.resolve()}"
+        self.get_logger().info(response.message)
+        return response
+
+
+def main(args: list[str] | None = None) -> int:
+    """Console entry point ``endo-flow``."""
+    return run_node(FlowNode, args)
