@@ -1,0 +1,157 @@
+"""The flow node over DDS: pairing, pose waiting, outputs, services and bad input."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import PoseStamped, Vector3Stamped
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from sensor_msgs.msg import CameraInfo, Image, PointCloud2
+from std_srvs.srv import Trigger
+
+from endo_flow.node import PARAMETERS, FlowNode
+from endo_flow.scale import ScaleState
+from endo_io import topics
+from endo_io.image import array_to_image, image_to_array
+from endo_io.pointcloud import pointcloud2_to_xyz
+from endo_io.pose import matrix_to_pose
+from endo_io.qos import SENSOR_DATA_QOS, reliable_qos
+from endo_io.stamp import stamp_to_ns
+
+pytestmark = pytest.mark.ros
+
+
+@pytest.fixture
+def graph(tmp_path):
+    rclpy.init()
+    flow = FlowNode(parameter_overrides=[
+        Parameter("tracking_downsample", value=1),
+        Parameter("ply_path", value=str(tmp_path / "map.ply")),
+        Parameter("map_period_s", value=0.2),
+    ])
+    peer = Node("flow_test_peer")
+    got: dict[str, list] = {"depth": [], "scale": [], "points": [], "map": [], "diag": []}
+    peer.create_subscription(Image, topics.DEPTH, got["depth"].append, reliable_qos(100))
+    peer.create_subscription(Vector3Stamped, topics.SCALE, got["scale"].append,
+                             reliable_qos(100))
+    peer.create_subscription(PointCloud2, topics.POINTS, got["points"].append, reliable_qos(100))
+    peer.create_subscription(PointCloud2, topics.MAP, got["map"].append,
+                             reliable_qos(1, latched=True))
+    peer.create_subscription(DiagnosticArray, topics.DIAGNOSTICS, got["diag"].append,
+                             reliable_qos(50))
+    pubs = {
+        "image": peer.create_publisher(Image, topics.IMAGE_CORRECTED, SENSOR_DATA_QOS),
+        "depth": peer.create_publisher(Image, topics.DEPTH_RELATIVE, SENSOR_DATA_QOS),
+        "info": peer.create_publisher(CameraInfo, topics.CAMERA_INFO, SENSOR_DATA_QOS),
+        "pose": peer.create_publisher(PoseStamped, topics.CAMERA_POSE, reliable_qos(100)),
+    }
+    executor = SingleThreadedExecutor()
+    executor.add_node(flow)
+    executor.add_node(peer)
+
+    def spin_until(condition, timeout=10.0):
+        deadline = time.monotonic() + timeout
+        while not condition() and time.monotonic() < deadline:
+            executor.spin_once(timeout_sec=0.02)
+        return condition()
+
+    assert spin_until(lambda: all(p.get_subscription_count() > 0 for p in pubs.values())
+                      and flow.depth_pub.get_subscription_count() > 0)
+    yield flow, peer, pubs, got, spin_until
+    executor.shutdown()
+    flow.destroy_node()
+    peer.destroy_node()
+    rclpy.shutdown()
+
+
+def _publish_frame(pubs, frame, depth=None):
+    image = array_to_image(frame.image, "32FC1", frame.stamp_ns, topics.OPTICAL_FRAME)
+    rel = array_to_image(frame.depth_relative if depth is None else depth, "32FC1",
+                         frame.stamp_ns, topics.OPTICAL_FRAME)
+    info = frame.camera.to_camera_info(frame.stamp_ns)
+    info.header.frame_id = topics.OPTICAL_FRAME
+    pubs["info"].publish(info)
+    pubs["depth"].publish(rel)
+    pubs["image"].publish(image)
+
+
+def test_parameters_are_declared_and_a_bad_value_exits_with_code_2():
+    for spec in PARAMETERS:
+        assert spec.description
+    result = subprocess.run(
+        [sys.executable, "-c", "import sys; from endo_flow.node import main; sys.exit(main())",
+         "--ros-args", "-p", "shape_correction:=wobbly"],
+        capture_output=True, text=True, timeout=60,
+    )
+    assert result.returncode == 2
+    assert "shape_correction" in result.stderr and "Traceback" not in result.stderr
+
+
+def test_frames_become_metric_depth_points_map_and_scale(graph, moving, kit):
+    flow, peer, pubs, got, spin_until = graph
+    frames = moving.frames(moving.poses)
+    step = frames[1].stamp_ns - frames[0].stamp_ns
+    for k, frame in enumerate(frames[:60]):
+        for dt in (0, step // 2):  # poses at 60 Hz, on the camera clock
+            T = moving.poses[min(k + (dt > 0), len(frames) - 1)] if dt else frame.T_world_camera
+            pubs["pose"].publish(matrix_to_pose(T, frame.stamp_ns + dt, topics.WORLD_FRAME))
+        if k == 30:  # a depth_relative of another size than camera_info
+            _publish_frame(pubs, frame, depth=frame.depth_relative[:, :-8])
+        else:
+            _publish_frame(pubs, frame)
+        spin_until(lambda k=k: len(got["scale"]) >= k + (0 if k < 30 else -1) or False,
+                   timeout=2.0)
+    assert spin_until(lambda: len(got["scale"]) >= 59, timeout=15.0)
+    last = got["scale"][-1]
+    assert last.vector.z == float(ScaleState.TRACKING)
+    assert abs(last.vector.x / kit.S_TRUE - 1.0) < 0.02
+    assert got["depth"], "no metric depth"
+    depth_msg = got["depth"][-1]
+    stamp = stamp_to_ns(depth_msg.header.stamp)
+    assert depth_msg.header.frame_id == topics.OPTICAL_FRAME and depth_msg.encoding == "32FC1"
+    index = [f.stamp_ns for f in frames].index(stamp)
+    depth, truth = image_to_array(depth_msg), moving.depths[index]
+    ok = np.isfinite(depth) & np.isfinite(truth)
+    assert np.median(np.abs(depth[ok] / truth[ok] - 1.0)) < 0.02
+    cloud = got["points"][-1]
+    assert cloud.header.frame_id == topics.WORLD_FRAME
+    xyz, rgb = pointcloud2_to_xyz(cloud)
+    assert len(xyz) > 1000 and rgb is not None
+    assert spin_until(lambda: len(got["map"]) > 0, timeout=5.0)
+    # the wrong-size frame was dropped and counted; the node kept going
+    assert flow.health.dropped["FlowInputError"] == 1
+    assert spin_until(lambda: any(
+        kv.key == "dropped.FlowInputError" for a in got["diag"] for s in a.status
+        for kv in s.values), timeout=5.0)
+
+    client = peer.create_client(Trigger, "/flow/export_map")
+    assert client.wait_for_service(timeout_sec=5.0)
+    future = client.call_async(Trigger.Request())
+    assert spin_until(future.done, timeout=10.0)
+    assert future.result().success, future.result().message
+    path = flow.parameters["ply_path"]
+    header = Path(path).read_bytes()[:200]
+    assert header.startswith(b"ply\nformat binary_little_endian 1.0")
+    reset = peer.create_client(Trigger, "/flow/reset_map")
+    future = reset.call_async(Trigger.Request())
+    assert spin_until(future.done, timeout=10.0) and future.result().success
+    assert len(flow.pipeline.voxel_map) == 0
+
+
+def test_a_frame_without_poses_waits_then_goes_on_without(graph, moving):
+    flow, _peer, pubs, got, spin_until = graph
+    frame = moving.frames(moving.poses)[0]
+    _publish_frame(pubs, frame)
+    spin_until(lambda: False, timeout=0.1)
+    assert len(flow._pending) == 1  # waiting for a pose after its stamp
+    assert spin_until(lambda: len(got["scale"]) == 1, timeout=3.0)
+    assert flow.health.dropped["PoseNotYetError"] == 1
