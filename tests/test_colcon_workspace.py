@@ -9,6 +9,7 @@ script under lib/<package>/.
 from __future__ import annotations
 
 import ast
+import re
 import shutil
 import subprocess
 import sys
@@ -25,20 +26,46 @@ EXPECTED = {
 }
 
 
-def _console_scripts(setup_py: Path) -> list[str]:
-    """Names of the console scripts a setup.py declares, read without running it."""
+#: Executable names: ``endo-<name>`` in lowercase words joined by "-" (a node's
+#: executable is its ROS node name with "-": endo-photometric-correction,
+#: endo-sfs, endo-tracker-bridge; a CLI's names its task: endo-calibrate).
+EXECUTABLE_NAME = re.compile(r"endo(-[a-z0-9]+)+")
+#: Old executable names kept working for one release: old name → its new name.
+ALIASES = {"photometric_correction": "endo-photometric-correction"}
+
+
+def _console_script_targets(setup_py: Path) -> dict[str, str]:
+    """Console scripts a setup.py declares (name → module:function), read without running it."""
     tree = ast.parse(setup_py.read_text())
     for node in ast.walk(tree):
         if isinstance(node, ast.Dict):
             for key, value in zip(node.keys, node.values, strict=True):
                 if isinstance(key, ast.Constant) and key.value == "console_scripts":
                     assert isinstance(value, ast.List)
-                    return [ast.literal_eval(e).split("=")[0].strip() for e in value.elts]
-    return []
+                    pairs = [ast.literal_eval(e).split("=") for e in value.elts]
+                    return {name.strip(): target.strip() for name, target in pairs}
+    return {}
+
+
+def _console_scripts(setup_py: Path) -> list[str]:
+    """Names of the console scripts a setup.py declares."""
+    return list(_console_script_targets(setup_py))
 
 
 def test_workspace_has_every_package():
     assert set(PACKAGES) == EXPECTED
+
+
+def test_executables_follow_one_naming_scheme():
+    scripts: dict[str, str] = {}
+    for name in PACKAGES:
+        scripts.update(_console_script_targets(ROOT / "src" / name / "setup.py"))
+    assert {"endo-sfs", "endo-photometric-correction", "endo-tracker-bridge"} <= set(scripts)
+    for script, target in scripts.items():
+        if script in ALIASES:
+            assert scripts[ALIASES[script]] == target, f"{script} must run what replaced it"
+        else:
+            assert EXECUTABLE_NAME.fullmatch(script), f"{script} does not follow endo-<name>"
 
 
 @pytest.mark.parametrize("name", PACKAGES)

@@ -2,7 +2,7 @@
 
 ``endo_bringup.demo.run_graph_stage`` runs ``endo-calibrate`` and
 ``endo-handeye`` on the gray-card and hand–eye bags, then
-``photometric_correction``, ``endo-sfs``, ``endo-tracker-bridge`` and
+``endo-photometric-correction``, ``endo-sfs``, ``endo-tracker-bridge`` and
 ``endo-record`` as separate processes while ``endo-replay`` plays the phantom
 bag into them, and scores the recording against the bag's ground truth.
 

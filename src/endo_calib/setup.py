@@ -23,8 +23,9 @@ setup(
     entry_points={
         "console_scripts": [
             "endo-calibrate = endo_calib.cli:main",
-            "photometric_correction = endo_calib.node:main",
             "endo-photometric-correction = endo_calib.node:main",
+            # The old name, kept for one release (0.1.x); it goes in 0.2.
+            "photometric_correction = endo_calib.node:main",
         ],
     },
 )

@@ -1,7 +1,7 @@
 """A Fast DDS profile for moving full-size float images between local processes.
 
 Why: Fast DDS's shared-memory transport has 512 KB segments by default. A
-640×480 32FC1 frame (1.2 MB, what ``photometric_correction`` and ``endo-sfs``
+640×480 32FC1 frame (1.2 MB, what ``endo-photometric-correction`` and ``endo-sfs``
 publish) does not fit, so it goes over UDP in ~64 KB fragments. Reliable
 readers (``endo-record``) get lost fragments resent; best-effort readers
 (the SFS node's sensor-data subscription) lose the whole frame with any

@@ -12,7 +12,7 @@ in its own OS process, talking to the others over loopback DDS only:
 2. Offline calibrations: ``endo-calibrate`` on ``bags/graycard.mcap`` and
    ``endo-handeye`` on ``bags/handeye.mcap``, scored against the ground-truth
    files beside the bags.
-3. Live graph (:mod:`endo_bringup.graph`): ``photometric_correction``,
+3. Live graph (:mod:`endo_bringup.graph`): ``endo-photometric-correction``,
    ``endo-sfs`` and ``endo-tracker-bridge`` with those calibrations,
    ``endo-record`` of their outputs and the ground truth, and
    ``endo-replay`` of ``bags/phantom_colon.mcap`` into them; the recording is
@@ -505,7 +505,7 @@ def print_graph_report(report: GraphReport, rate: float) -> None:
                 played.get(topic_names.TRUE_DEPTH, 0),
             ),
             (
-                "photometric_correction",
+                "endo-photometric-correction",
                 topic_names.IMAGE_CORRECTED,
                 played.get(topic_names.IMAGE_RAW, 0),
             ),

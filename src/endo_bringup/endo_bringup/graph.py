@@ -4,7 +4,7 @@ Two parts, both driving the same command-line tools a user runs:
 
 * :func:`run_offline_calibrations`: ``endo-calibrate`` on the gray-card bag
   (photometric.yaml) and ``endo-handeye`` on the hand–eye bag (handeye.yaml).
-* :func:`run_live_graph`: ``photometric_correction``, ``endo-sfs`` and
+* :func:`run_live_graph`: ``endo-photometric-correction``, ``endo-sfs`` and
   ``endo-tracker-bridge`` (source ros) as nodes, ``endo-record`` recording
   their outputs and the ground truth, then ``endo-replay`` of a phantom bag
   into them. Every process talks to the others over DDS only:
@@ -18,7 +18,7 @@ Two parts, both driving the same command-line tools a user runs:
                                                                          bag's /tracker/pose),
                                                                          /ground_truth/depth,
                                                                          /ground_truth/camera_pose
-  photometric_correction        /endoscope/image_raw                     /endoscope/image_corrected
+  endo-photometric-correction   /endoscope/image_raw                     /endoscope/image_corrected
   endo-sfs                      /endoscope/image_corrected, camera_info  /endoscope/depth_relative
   endo-tracker-bridge           /tracker/driver_pose                     /endoscope/pose
   endo-record (graph.mcap)      the three outputs + the ground truth
@@ -195,8 +195,8 @@ def node_commands(
 ) -> dict[str, list[str]]:
     """Command lines of the three nodes, with their parameters and remappings."""
     return {
-        "photometric_correction": [
-            console_script("photometric_correction"),
+        "endo-photometric-correction": [
+            console_script("endo-photometric-correction"),
             "--ros-args",
             "-p", f"calibration_file:={photometric}",
             "-r", f"image_raw:={IMAGE_RAW}",
@@ -321,7 +321,7 @@ def run_live_graph(
     start = time.monotonic()
     with ProcessGroup(child_env, log_dir) as group:
         group.start("endo-record", commands["endo-record"])
-        for name in ("photometric_correction", "endo-sfs", "endo-tracker-bridge"):
+        for name in ("endo-photometric-correction", "endo-sfs", "endo-tracker-bridge"):
             group.start(name, commands[name])
         _wait_for_recorder(group, NODE_OUTPUT_TOPICS, settings.startup_timeout_s)
         replay = group.start("endo-replay", commands["endo-replay"])

@@ -154,7 +154,10 @@ class PhotometricCorrectionNode(Node):
 
 
 def main(args: list[str] | None = None) -> int:
-    """Console entry point of ``photometric_correction``."""
+    """Console entry point of ``endo-photometric-correction``.
+
+    Also installed under its old name ``photometric_correction`` for one release.
+    """
     return run_node(PhotometricCorrectionNode, args)
 
 
