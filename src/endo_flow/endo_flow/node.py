@@ -52,6 +52,7 @@ from __future__ import annotations
 
 import time
 from collections import deque
+from collections.abc import Mapping
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
@@ -216,7 +217,7 @@ class FlowNode(Node):
 
     # ------------------------------------------------------------------ parameters
 
-    def _apply(self, changes: dict[str, Any], values: dict[str, Any]) -> None:
+    def _apply(self, changes: Mapping[str, Any], values: Mapping[str, Any]) -> None:
         if "cloud_decimation" in changes:
             # the decimation only changes the cloud; the pipeline keeps its state
             self.pipeline.set_cloud_decimation(changes["cloud_decimation"])
