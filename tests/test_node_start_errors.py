@@ -80,6 +80,24 @@ def test_correction_with_a_colour_channel_of_a_mono_calibration_says_so_in_one_l
     assert "parameter channel: 'infrared' is not one of luminance, red, green, blue, rgb" in line
 
 
+@pytest.mark.parametrize("output", ["/tracker/marker_pose", "/endoscope/pose"])
+def test_bridge_listening_on_its_own_output_says_so_in_one_line(output):
+    line = _one_line(_run("endo-tracker-bridge", f"ros_topic:={output}"))
+    assert line == (
+        f"endo-tracker-bridge: parameter ros_topic: {output!r} is the bridge's own output "
+        f"{output}; set it to the tracker driver's topic (default /tracker/pose)"
+    )
+
+
+def test_bridge_with_an_unknown_source_or_unit_says_so_in_one_line():
+    line = _one_line(_run("endo-tracker-bridge", "source:=serial"))
+    assert line == (
+        "endo-tracker-bridge: parameter source: 'serial' is not one of ros, igtl, ndi, csv"
+    )
+    line = _one_line(_run("endo-tracker-bridge", "ros_unit:=cm"))
+    assert line == "endo-tracker-bridge: parameter ros_unit: 'cm' is not one of m, mm"
+
+
 def _start_and_stop(args: list[str], ready: str, timeout: float = 60.0) -> tuple[int, str]:
     """Start a node, wait for ``ready`` in its log, stop it with SIGINT; (exit code, log)."""
     process = subprocess.Popen(args, env=ENV, stdout=subprocess.PIPE,

@@ -37,8 +37,9 @@ from endo_sfs.node import PARAMETERS as SFS_PARAMETERS
 from endo_sfs.options import SfsOptions
 from endo_tracker_bridge.conventions import LengthUnit
 from endo_tracker_bridge.errors import TrackerSourceError
-from endo_tracker_bridge.node import IDENTITY_ROWS, world_tracker_from_parameter
-from endo_tracker_bridge.validation import DEFAULT_ROTATION_TOLERANCE, SpeedLimits
+from endo_tracker_bridge.node import PARAMETERS as BRIDGE_PARAMETERS
+from endo_tracker_bridge.node import world_tracker_from_parameter
+from endo_tracker_bridge.validation import SpeedLimits
 
 #: Node names of the live graph whose parameters the offline run takes.
 CORRECTION_NODE = "photometric_correction"
@@ -51,18 +52,13 @@ CORRECTION_DEFAULTS: dict[str, Any] = {"channel": "luminance", "calibration_file
 #: The bridge's parameters that apply to a recorded ``ros`` source
 #: (``endo_tracker_bridge.node``; the others choose and open a live source).
 BRIDGE_DEFAULTS: dict[str, Any] = {
-    "source": "ros",
-    "handeye_file": "",
-    "T_world_tracker": IDENTITY_ROWS,
-    "world_frame": "world",
-    "tracker_frame": "tracker",
-    "max_speed_m_s": SpeedLimits().linear_m_s,
-    "max_angular_speed_deg_s": SpeedLimits().angular_deg_s,
-    "rotation_tolerance": DEFAULT_ROTATION_TOLERANCE,
-    "ros_topic": "/tracker/driver_pose",
-    "ros_unit": "m",
-    "ros_frame_id": "",
-    "tool_id": "marker",
+    spec.name: spec.default
+    for spec in BRIDGE_PARAMETERS
+    if spec.name in (
+        "source", "handeye_file", "T_world_tracker", "world_frame", "tracker_frame",
+        "max_speed_m_s", "max_angular_speed_deg_s", "rotation_tolerance", "ros_topic",
+        "ros_unit", "ros_frame_id", "tool_id",
+    )
 }
 #: The SFS node's parameters that are :class:`SfsOptions` fields of the same name
 #: (the node builds its options from exactly these).

@@ -1,13 +1,22 @@
 """``endo-tracker-bridge``: one tracker in, the endoscope camera pose out.
 
-Parameter ``source`` picks the input (``ros``, ``igtl``, ``ndi``, ``csv``).
-Each accepted marker pose is published twice:
+Parameter ``source`` picks the input (``ros``, ``igtl``, ``ndi``, ``csv``);
+``source=ros`` listens on ``/tracker/pose`` by default, where tracker
+drivers and the sample bags publish. Each accepted marker pose is published
+twice (names from :mod:`endo_io.topics`):
 
-* ``/tracker/pose``: T_tracker_marker, frame ``tracker``, metres, stamped
-  with the tracker's own stamp (what ``endo-handeye`` reads back);
+* ``/tracker/marker_pose``: the validated T_tracker_marker, frame
+  ``tracker``, metres, stamped with the tracker's own stamp (what
+  ``endo-handeye`` can read back);
 * ``/endoscope/pose``: T_world_camera = T_world_tracker · T_tracker_marker ·
   T_marker_camera, frame ``world``, stamped at the tracker stamp minus the
   calibrated time offset (camera clock).
+
+An input topic equal to one of these outputs is refused at start-up (one
+line, exit code 2) and as a run-time change: the bridge would read its own
+poses. Every parameter can be changed at run time and the change takes
+effect (a new source, hand–eye file, transform, limits or frame); a value
+that cannot work is refused with the reason and changes nothing.
 
 Rejected samples (NaN, non-unit quaternion, tool missing, time going
 backwards, speed jump, bad message) are dropped and counted by cause on
@@ -19,43 +28,129 @@ from __future__ import annotations
 
 import math
 import sys
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 import numpy as np
 from geometry_msgs.msg import PoseStamped
-from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, ParameterType
+from rclpy.guard_condition import GuardCondition
 from rclpy.node import Node
+from rclpy.subscription import Subscription
 
+from endo_io import topics
 from endo_io.diagnostics import InputHealth
-from endo_io.errors import Endo3dError
+from endo_io.errors import ParameterValidationError
+from endo_io.parameters import NodeParameters, ParameterSpec
 from endo_io.pose import matrix_to_pose
 from endo_io.process import run_node
 from endo_io.qos import SENSOR_DATA_QOS, create_reliable_publisher
-from endo_tracker_bridge.composition import compose_camera_pose, corrected_stamp_ns
+from endo_tracker_bridge.chain import CameraPoseChain
 from endo_tracker_bridge.conventions import LengthUnit
 from endo_tracker_bridge.errors import TrackerSourceError
 from endo_tracker_bridge.handeye_file import HandEyeCalibration
 from endo_tracker_bridge.sample import TrackerSample
 from endo_tracker_bridge.sources.background import BackgroundSource
+from endo_tracker_bridge.sources.ndi import TRACKER_TYPES
 from endo_tracker_bridge.sources.ros import sample_from_pose_stamped
 from endo_tracker_bridge.validation import (
     DEFAULT_ROTATION_TOLERANCE,
-    SampleGate,
     SpeedLimits,
     check_rotation_matrix,
 )
 
 SOURCES = ("ros", "igtl", "ndi", "csv")
+UNITS = tuple(unit.value for unit in LengthUnit)
+IGTL_STAMPS = ("message", "receive")
 IDENTITY_ROWS = [1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 1.0]
 
+#: Every parameter of the node. All of them can be changed at run time, and
+#: each change takes effect: see :meth:`TrackerBridgeNode._apply_parameters`.
+PARAMETERS: tuple[ParameterSpec, ...] = (
+    ParameterSpec("source", "ros", "tracker input", choices=SOURCES),
+    ParameterSpec(
+        "handeye_file", "",
+        "handeye.yaml from endo-handeye; empty: identity hand-eye, no time offset",
+    ),
+    ParameterSpec(
+        "T_world_tracker", IDENTITY_ROWS,
+        "16 row-major numbers, tracker frame → world frame, metres",
+    ),
+    ParameterSpec("world_frame", topics.WORLD_FRAME, f"frame_id of {topics.CAMERA_POSE}"),
+    ParameterSpec("tracker_frame", topics.TRACKER_FRAME, f"frame_id of {topics.MARKER_POSE}"),
+    ParameterSpec(
+        "max_speed_m_s", 2.0, "reject a marker moving faster than this (m/s)",
+        range=(0.001, 1000.0),
+    ),
+    ParameterSpec(
+        "max_angular_speed_deg_s", 720.0, "reject a marker turning faster than this (degrees/s)",
+        range=(1.0, 1e6),
+    ),
+    ParameterSpec(
+        "rotation_tolerance", DEFAULT_ROTATION_TOLERANCE,
+        "allowed | |q| - 1 | and max |RᵀR - I| of input rotations", range=(1e-9, 0.1),
+    ),
+    ParameterSpec(
+        "ros_topic", topics.TRACKER_POSE,
+        "source=ros: PoseStamped topic of the tracker driver (not one of the bridge's outputs)",
+    ),
+    ParameterSpec("ros_unit", "m", "source=ros: unit of the driver's positions", choices=UNITS),
+    ParameterSpec("ros_frame_id", "", "source=ros: expected header.frame_id; empty accepts any"),
+    ParameterSpec("tool_id", "marker", "source=ros: name of the tool in diagnostics"),
+    ParameterSpec("igtl_host", "127.0.0.1", "source=igtl: OpenIGTLink server host"),
+    ParameterSpec("igtl_port", 18944, "source=igtl: OpenIGTLink server port", range=(1, 65535)),
+    ParameterSpec(
+        "igtl_device", "ScopeToTracker", "source=igtl: TRANSFORM device name; empty takes any"
+    ),
+    ParameterSpec(
+        "igtl_unit", "mm", "source=igtl: unit of the TRANSFORM translation", choices=UNITS
+    ),
+    ParameterSpec(
+        "igtl_stamp", "message",
+        "source=igtl: stamp from the message header, or this host's receive time",
+        choices=IGTL_STAMPS,
+    ),
+    ParameterSpec(
+        "igtl_reconnect_interval_s", 0.5, "source=igtl: pause between reconnection attempts (s)",
+        range=(0.01, 60.0),
+    ),
+    ParameterSpec(
+        "igtl_stale_timeout_s", 0.0,
+        "source=igtl: reconnect after this long without data (s); 0 disables",
+        range=(0.0, 3600.0),
+    ),
+    ParameterSpec(
+        "ndi_tracker_type", "polaris", "source=ndi: tracker model", choices=TRACKER_TYPES
+    ),
+    ParameterSpec("ndi_serial_port", "", "source=ndi: serial port (Polaris/Aurora); empty probes"),
+    ParameterSpec("ndi_ip_address", "", "source=ndi: Vega IP address"),
+    ParameterSpec("ndi_tcp_port", 8765, "source=ndi: Vega TCP port", range=(1, 65535)),
+    ParameterSpec("ndi_romfiles", [""], "source=ndi: tool ROM files (Polaris/Vega)"),
+    ParameterSpec(
+        "ndi_tool_index", 0, "source=ndi: which tool of the frame to follow", range=(0, 64)
+    ),
+    ParameterSpec("ndi_rate_hz", 60.0, "source=ndi: polling rate (Hz)", range=(1.0, 400.0)),
+    ParameterSpec(
+        "ndi_max_rms_error_mm", 1.0,
+        "source=ndi: reject a tool whose marker fit error exceeds this (mm); 0: no limit",
+        range=(0.0, 100.0),
+    ),
+    ParameterSpec("csv_path", "", "source=csv: tracker log file"),
+    ParameterSpec("csv_unit", "mm", "source=csv: unit of the log's translations", choices=UNITS),
+    ParameterSpec(
+        "csv_delimiter", "", "source=csv: column delimiter; empty detects tab/semicolon/comma"
+    ),
+    ParameterSpec("csv_tool", "", "source=csv: replay only rows of this tool; empty replays all"),
+    ParameterSpec(
+        "csv_rate", 1.0, "source=csv: replay speed factor; 0 = as fast as possible",
+        range=(0.0, 1000.0),
+    ),
+)
 
-def _float_range(low: float, high: float) -> list[FloatingPointRange]:
-    return [FloatingPointRange(from_value=low, to_value=high, step=0.0)]
-
-
-def _int_range(low: int, high: int) -> list[IntegerRange]:
-    return [IntegerRange(from_value=low, to_value=high, step=1)]
+#: Parameters whose change restarts the source with the new values.
+SOURCE_PARAMETERS = frozenset(
+    {"source", "tool_id", "rotation_tolerance"}
+    | {spec.name for spec in PARAMETERS if spec.name.startswith(("ros_", "igtl_", "ndi_", "csv_"))}
+)
 
 
 def world_tracker_from_parameter(values: Sequence[float]) -> np.ndarray:
@@ -69,199 +164,135 @@ def world_tracker_from_parameter(values: Sequence[float]) -> np.ndarray:
     return T
 
 
+def _speed_limits(values: Mapping[str, Any]) -> SpeedLimits:
+    return SpeedLimits(values["max_speed_m_s"], values["max_angular_speed_deg_s"])
+
+
 class TrackerBridgeNode(Node):
     """Reads one tracker source and publishes the marker and camera poses."""
 
     def __init__(self, **kwargs: Any) -> None:
         super().__init__("tracker_bridge", **kwargs)
-        p = self._declare_parameters()
-        self._world_frame, self._tracker_frame = p["world_frame"], p["tracker_frame"]
-        self._T_world_tracker = world_tracker_from_parameter(p["T_world_tracker"])
-        if p["handeye_file"]:
-            self.calibration = HandEyeCalibration.load(p["handeye_file"])
-            offset_ms = self.calibration.time_offset_ns * 1e-6
-            self.get_logger().info(
-                f"hand-eye from {p['handeye_file']}: time offset {offset_ms:.3f} ms, "
-                f"residuals {self.calibration.residuals}"
-            )
-        else:
-            self.calibration = HandEyeCalibration.identity()
-            self.get_logger().warning(
-                "no handeye_file: /endoscope/pose is the marker pose "
-                "(T_marker_camera = identity, no time offset)"
-            )
-        self._tolerance = p["rotation_tolerance"]
-        self._gate = SampleGate(SpeedLimits(p["max_speed_m_s"], p["max_angular_speed_deg_s"]))
-        self._health = InputHealth(self, f"tracker input ({p['source']})")
-        self._health.set_value("time_offset_ms", f"{self.calibration.time_offset_ns * 1e-6:.3f}")
-        self._marker_publisher = create_reliable_publisher(self, PoseStamped, "/tracker/pose")
-        self._camera_publisher = create_reliable_publisher(self, PoseStamped, "/endoscope/pose")
+        self.parameters = NodeParameters(self, PARAMETERS)
+        p = self.parameters.values()
+        # The per-sample chain endo-process runs offline too: gate, compose, restamp.
+        self._chain = CameraPoseChain(
+            self._load_handeye(p["handeye_file"]),
+            world_tracker_from_parameter(p["T_world_tracker"]),
+            _speed_limits(p),
+        )
+        self._health = InputHealth(self, "tracker input")
+        self._marker_publisher = create_reliable_publisher(self, PoseStamped, topics.MARKER_POSE)
+        self._camera_publisher = create_reliable_publisher(self, PoseStamped, topics.CAMERA_POSE)
         self._source: BackgroundSource | None = None
+        self._subscription: Subscription | None = None
+        self._wake: GuardCondition | None = None
         self._guarded_item = self._health.guard(self._process_item)
-        self._start_source(p)
+        source = self._build_source(p)  # refuses a configuration that cannot work first
+        self._report_handeye(p["handeye_file"])
+        self._run_source(p, source)
+        self.parameters.on_change(self._apply_parameters)
 
     # -- parameters ---------------------------------------------------------------
 
-    def _declare_parameters(self) -> dict[str, Any]:
-        spec: list[tuple[str, Any, str, Any]] = [
-            ("source", "ros", "Tracker input: ros | igtl | ndi | csv.", None),
-            (
-                "handeye_file",
-                "",
-                "handeye.yaml from endo-handeye; empty: identity hand-eye, no time offset.",
-                None,
-            ),
-            (
-                "T_world_tracker",
-                IDENTITY_ROWS,
-                "16 row-major numbers, tracker frame → world frame, metres.",
-                None,
-            ),
-            ("world_frame", "world", "frame_id of /endoscope/pose.", None),
-            ("tracker_frame", "tracker", "frame_id of /tracker/pose.", None),
-            (
-                "max_speed_m_s",
-                2.0,
-                "Reject a marker moving faster than this (m/s).",
-                _float_range(0.001, 1000.0),
-            ),
-            (
-                "max_angular_speed_deg_s",
-                720.0,
-                "Reject a marker turning faster than this (degrees/s).",
-                _float_range(1.0, 1e6),
-            ),
-            (
-                "rotation_tolerance",
-                DEFAULT_ROTATION_TOLERANCE,
-                "Allowed | |q| - 1 | and max |RᵀR - I| of input rotations.",
-                _float_range(1e-9, 0.1),
-            ),
-            (
-                "ros_topic",
-                "/tracker/driver_pose",
-                "source=ros: PoseStamped topic of the driver.",
-                None,
-            ),
-            ("ros_unit", "m", "source=ros: unit of the driver's positions, m | mm.", None),
-            ("ros_frame_id", "", "source=ros: expected header.frame_id; empty accepts any.", None),
-            ("tool_id", "marker", "source=ros: name of the tool in diagnostics.", None),
-            ("igtl_host", "127.0.0.1", "source=igtl: OpenIGTLink server host.", None),
-            ("igtl_port", 18944, "source=igtl: OpenIGTLink server port.", _int_range(1, 65535)),
-            (
-                "igtl_device",
-                "ScopeToTracker",
-                "source=igtl: TRANSFORM device name; empty takes any.",
-                None,
-            ),
-            ("igtl_unit", "mm", "source=igtl: unit of the TRANSFORM translation, mm | m.", None),
-            (
-                "igtl_stamp",
-                "message",
-                "source=igtl: stamp from the message header | receive time.",
-                None,
-            ),
-            (
-                "igtl_reconnect_interval_s",
-                0.5,
-                "source=igtl: pause between reconnection attempts (s).",
-                _float_range(0.01, 60.0),
-            ),
-            (
-                "igtl_stale_timeout_s",
-                0.0,
-                "source=igtl: reconnect after this long without data (s); 0 disables.",
-                _float_range(0.0, 3600.0),
-            ),
-            ("ndi_tracker_type", "polaris", "source=ndi: polaris | vega | aurora.", None),
-            (
-                "ndi_serial_port",
-                "",
-                "source=ndi: serial port (Polaris/Aurora); empty probes.",
-                None,
-            ),
-            ("ndi_ip_address", "", "source=ndi: Vega IP address.", None),
-            ("ndi_tcp_port", 8765, "source=ndi: Vega TCP port.", _int_range(1, 65535)),
-            ("ndi_romfiles", [""], "source=ndi: tool ROM files (Polaris/Vega).", None),
-            (
-                "ndi_tool_index",
-                0,
-                "source=ndi: which tool of the frame to follow.",
-                _int_range(0, 64),
-            ),
-            ("ndi_rate_hz", 60.0, "source=ndi: polling rate (Hz).", _float_range(1.0, 400.0)),
-            (
-                "ndi_max_rms_error_mm",
-                1.0,
-                "source=ndi: reject a tool whose marker fit error exceeds this (mm).",
-                _float_range(0.0, 100.0),
-            ),
-            ("csv_path", "", "source=csv: tracker log file.", None),
-            ("csv_unit", "mm", "source=csv: unit of the log's translations, mm | m.", None),
-            (
-                "csv_delimiter",
-                "",
-                "source=csv: column delimiter; empty detects tab/semicolon/comma.",
-                None,
-            ),
-            ("csv_tool", "", "source=csv: replay only rows of this tool; empty replays all.", None),
-            (
-                "csv_rate",
-                1.0,
-                "source=csv: replay speed factor; 0 = as fast as possible.",
-                _float_range(0.0, 1000.0),
-            ),
-        ]
-        values: dict[str, Any] = {}
-        for name, default, description, ranges in spec:
-            descriptor = ParameterDescriptor(description=description)
-            if isinstance(default, float):
-                descriptor.floating_point_range = ranges
-            elif isinstance(default, int):
-                descriptor.integer_range = ranges
-            elif isinstance(default, list) and isinstance(default[0], str):
-                descriptor.type = ParameterType.PARAMETER_STRING_ARRAY
-            values[name] = self.declare_parameter(name, default, descriptor).value
-        if values["source"] not in SOURCES:
-            raise TrackerSourceError(
-                f"unknown source '{values['source']}' (expected {', '.join(SOURCES)})"
+    def _apply_parameters(self, changes: Mapping[str, Any], values: Mapping[str, Any]) -> None:
+        """Put accepted run-time changes into effect; nothing changes if one is refused.
+
+        New values are checked first (the transform, the hand–eye file, the
+        new source's configuration and input topic), then applied: limits
+        at the next sample, frames at the next publish, a source parameter
+        by stopping the source and starting one with the new values.
+
+        Raises:
+            Endo3dError: a value that cannot work (TrackerSourceError,
+                HandEyeFileError, ParameterValidationError, ...); the
+                reason the caller gets.
+        """
+        chain = self._chain
+        T_world_tracker = chain.T_world_tracker
+        if "T_world_tracker" in changes:
+            T_world_tracker = world_tracker_from_parameter(values["T_world_tracker"])
+        calibration = chain.calibration
+        if "handeye_file" in changes:
+            calibration = self._load_handeye(values["handeye_file"])
+        restart = bool(changes.keys() & SOURCE_PARAMETERS)
+        source = self._build_source(values) if restart else None
+        chain.T_world_tracker = T_world_tracker
+        chain.gate.limits = _speed_limits(values)
+        if calibration is not chain.calibration:
+            chain.calibration = calibration
+            self._report_handeye(values["handeye_file"])
+        if restart:
+            self._stop_source()
+            chain.reset()  # the new source's stamps start their own history
+            self._run_source(values, source)
+
+    def _load_handeye(self, path: str) -> HandEyeCalibration:
+        return HandEyeCalibration.load(path) if path else HandEyeCalibration.identity()
+
+    @property
+    def calibration(self) -> HandEyeCalibration:
+        """The hand–eye and clock calibration in use."""
+        return self._chain.calibration
+
+    def _report_handeye(self, path: str) -> None:
+        offset_ms = self.calibration.time_offset_ns * 1e-6
+        self._health.set_value("time_offset_ms", f"{offset_ms:.3f}")
+        if path:
+            self.get_logger().info(
+                f"hand-eye from {path}: time offset {offset_ms:.3f} ms, "
+                f"residuals {self.calibration.residuals}"
             )
-        return values
+        else:
+            self.get_logger().warning(
+                f"no handeye_file: {topics.CAMERA_POSE} is the marker pose "
+                "(T_marker_camera = identity, no time offset)"
+            )
+
+    def _check_input_topic(self, topic: str) -> str:
+        """The resolved input topic; refused when it is one of the bridge's own outputs.
+
+        Raises:
+            ParameterValidationError: the bridge would consume its own poses.
+        """
+        resolved = self.resolve_topic_name(topic)
+        outputs = (self._marker_publisher.topic_name, self._camera_publisher.topic_name)
+        if resolved in outputs:
+            raise ParameterValidationError(
+                f"parameter ros_topic: {topic!r} is the bridge's own output {resolved}; "
+                f"set it to the tracker driver's topic (default {topics.TRACKER_POSE})"
+            )
+        return resolved
 
     # -- sources --------------------------------------------------------------------
 
-    def _start_source(self, p: dict[str, Any]) -> None:
+    def _build_source(self, p: Mapping[str, Any]) -> BackgroundSource | None:
+        """Check the source's configuration and build it, not yet running (None for ros).
+
+        Raises:
+            Endo3dError: a configuration that cannot work (a colliding
+                ros_topic, an unreadable CSV log, ...).
+        """
         log = self.get_logger().info
         source = p["source"]
         if source == "ros":
-            unit = LengthUnit.parse(p["ros_unit"])
-
-            def on_pose(msg: PoseStamped) -> None:
-                sample = sample_from_pose_stamped(
-                    msg, unit, p["ros_frame_id"], p["tool_id"], self._tolerance
-                )
-                self._publish(self._gate.check(sample))
-
-            self.create_subscription(
-                PoseStamped, p["ros_topic"], self._health.guard(on_pose), SENSOR_DATA_QOS
-            )
-            self.get_logger().info(f"source ros: {p['ros_topic']} ({unit.value})")
-            return
+            self._check_input_topic(p["ros_topic"])
+            return None
         if source == "igtl":
             from endo_tracker_bridge.sources.igtl import IgtlSource
 
-            self._source = IgtlSource(
+            return IgtlSource(
                 host=p["igtl_host"],
                 port=p["igtl_port"],
                 device_name=p["igtl_device"],
                 unit=LengthUnit.parse(p["igtl_unit"]),
                 stamp_from=p["igtl_stamp"],
-                tolerance=self._tolerance,
+                tolerance=p["rotation_tolerance"],
                 reconnect_interval_s=p["igtl_reconnect_interval_s"],
                 stale_timeout_s=p["igtl_stale_timeout_s"],
                 log=log,
             )
-        elif source == "ndi":
+        if source == "ndi":
             from endo_tracker_bridge.sources.ndi import NdiOptions, NdiSource
 
             options = NdiOptions(
@@ -274,63 +305,91 @@ class TrackerBridgeNode(Node):
                 rate_hz=p["ndi_rate_hz"],
                 max_rms_error_mm=p["ndi_max_rms_error_mm"] or math.inf,
             )
-            self._source = NdiSource(options, self._tolerance, log=log)
-        else:
-            from endo_tracker_bridge.sources.csv import CsvReplaySource
+            return NdiSource(options, p["rotation_tolerance"], log=log)
+        from endo_tracker_bridge.sources.csv import CsvReplaySource
 
-            self._source = CsvReplaySource(
-                p["csv_path"],
-                unit=LengthUnit.parse(p["csv_unit"]),
-                delimiter=p["csv_delimiter"],
-                tool=p["csv_tool"],
-                rate=p["csv_rate"],
-                tolerance=self._tolerance,
-                log=log,
+        return CsvReplaySource(
+            p["csv_path"],
+            unit=LengthUnit.parse(p["csv_unit"]),
+            delimiter=p["csv_delimiter"],
+            tool=p["csv_tool"],
+            rate=p["csv_rate"],
+            tolerance=p["rotation_tolerance"],
+            log=log,
+        )
+
+    def _run_source(self, p: Mapping[str, Any], source: BackgroundSource | None) -> None:
+        """Start reading ``source`` (built from ``p`` by :meth:`_build_source`)."""
+        self._health.set_value("source", p["source"])
+        if source is None:
+            unit = LengthUnit.parse(p["ros_unit"])
+            frame_id, tool_id, tolerance = p["ros_frame_id"], p["tool_id"], p["rotation_tolerance"]
+
+            def on_pose(msg: PoseStamped) -> None:
+                sample = sample_from_pose_stamped(msg, unit, frame_id, tool_id, tolerance)
+                self._publish(sample)
+
+            self._subscription = self.create_subscription(
+                PoseStamped, p["ros_topic"], self._health.guard(on_pose), SENSOR_DATA_QOS
             )
+            self.get_logger().info(f"source ros: {self._subscription.topic_name} ({unit.value})")
+            return
         # The source's thread wakes the executor through a guard condition, so
         # a pose is published as soon as it arrives, without a polling timer.
+        self._source = source
         self._wake = self.create_guard_condition(self._drain_source)
-        self._source.start(self._wake.trigger)
-        self.get_logger().info(f"source {source} started")
+        source.start(self._wake.trigger)
+        self.get_logger().info(f"source {p['source']} started")
+
+    def _stop_source(self) -> None:
+        """Stop the running source; poses it still held are dropped."""
+        if self._subscription is not None:
+            self.destroy_subscription(self._subscription)
+            self._subscription = None
+        if self._source is not None:
+            self._source.stop()
+            self._source = None
+        if self._wake is not None:
+            self.destroy_guard_condition(self._wake)
+            self._wake = None
 
     def _drain_source(self) -> None:
-        assert self._source is not None
-        for item in self._source.drain():
-            self._guarded_item(item)
-        for key, value in self._source.status().items():
+        source = self._source
+        if source is None:  # stopped while the wake-up was pending
+            return
+        for item in source.drain():
+            self._guarded_item(source, item)
+        for key, value in source.status().items():
             self._health.set_value(key, value)
 
-    def _process_item(self, item: Any) -> None:
-        assert self._source is not None
-        self._publish(self._gate.check(self._source.to_sample(item)))
+    def _process_item(self, source: BackgroundSource, item: Any) -> None:
+        self._publish(source.to_sample(item))
 
     # -- output ---------------------------------------------------------------------
 
     def _publish(self, sample: TrackerSample) -> None:
-        T_world_camera = compose_camera_pose(
-            self._T_world_tracker, sample.T_tracker_marker, self.calibration.T_marker_camera
-        )
-        camera_stamp_ns = corrected_stamp_ns(sample.stamp_ns, self.calibration.time_offset_ns)
+        """Gate the sample (raises to drop it), then publish the marker and camera poses."""
+        pose = self._chain.accept(sample)
+        tracker_frame = self.parameters["tracker_frame"]
         self._marker_publisher.publish(
-            matrix_to_pose(sample.T_tracker_marker, sample.stamp_ns, self._tracker_frame)
+            matrix_to_pose(sample.T_tracker_marker, sample.stamp_ns, tracker_frame)
         )
         self._camera_publisher.publish(
-            matrix_to_pose(T_world_camera, camera_stamp_ns, self._world_frame)
+            matrix_to_pose(pose.T_world_camera, pose.stamp_ns, self.parameters["world_frame"])
         )
 
     def close(self) -> None:
         """Stop the source's thread (called by run_node on shutdown)."""
-        if self._source is not None:
-            self._source.stop()
+        self._stop_source()
 
 
 def main(args: Sequence[str] | None = None) -> int:
-    """Console script ``endo-tracker-bridge`` (parameters via ``--ros-args -p ...``)."""
-    try:
-        return run_node(TrackerBridgeNode, args)
-    except Endo3dError as error:
-        print(f"endo-tracker-bridge: {type(error).__name__}: {error}", file=sys.stderr)
-        return 2
+    """Console script ``endo-tracker-bridge`` (parameters via ``--ros-args -p ...``).
+
+    A configuration that cannot work gives one line on stderr and exit code 2
+    (through :func:`endo_io.process.run_node`).
+    """
+    return run_node(TrackerBridgeNode, args)
 
 
 if __name__ == "__main__":

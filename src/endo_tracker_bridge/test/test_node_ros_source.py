@@ -12,6 +12,8 @@ from geometry_msgs.msg import PoseStamped
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
 
+from endo_io import topics
+from endo_io.errors import ParameterValidationError
 from endo_io.pose import matrix_to_pose, pose_to_matrix, rigid_transform
 from endo_tracker_bridge.handeye_file import HandEyeCalibration
 from endo_tracker_bridge.node import TrackerBridgeNode
@@ -48,7 +50,7 @@ def test_ros_source_in_millimetres(tmp_path):
         executor.add_node(bridge)
         executor.add_node(probe)
         driver = probe.create_publisher(PoseStamped, "/driver/pose", 10)
-        received: dict[str, list[PoseStamped]] = {"/tracker/pose": [], "/endoscope/pose": []}
+        received: dict[str, list[PoseStamped]] = {topics.MARKER_POSE: [], topics.CAMERA_POSE: []}
         diagnostics: list[DiagnosticArray] = []
         for topic, bucket in received.items():
             probe.create_subscription(PoseStamped, topic, bucket.append, 10)
@@ -63,7 +65,7 @@ def test_ros_source_in_millimetres(tmp_path):
         stamp_ns = 1_750_000_000_000_000_000
         end = time.monotonic() + 10.0
         k = 0
-        while not received["/endoscope/pose"] and time.monotonic() < end:
+        while not received[topics.CAMERA_POSE] and time.monotonic() < end:
             msg = matrix_to_pose(marker_mm, stamp_ns + k * 16_000_000, "polaris")
             driver.publish(msg)
             k += 1
@@ -82,13 +84,13 @@ def test_ros_source_in_millimetres(tmp_path):
     finally:
         rclpy.shutdown(context=context)
 
-    marker = received["/tracker/pose"][0]
+    marker = received[topics.MARKER_POSE][0]
     T_marker, marker_stamp = pose_to_matrix(marker)
     assert marker.header.frame_id == "tracker"
     np.testing.assert_allclose(T_marker[:3, 3], marker_mm[:3, 3] / 1000.0, atol=1e-12)
     np.testing.assert_allclose(T_marker[:3, :3], marker_mm[:3, :3], atol=1e-12)
 
-    camera = received["/endoscope/pose"][0]
+    camera = received[topics.CAMERA_POSE][0]
     T_camera, camera_stamp = pose_to_matrix(camera)
     assert camera.header.frame_id == "world"
     assert camera_stamp == marker_stamp - OFFSET_NS
@@ -112,7 +114,7 @@ def test_bad_configuration_is_refused_with_a_named_error(tmp_path):
     context = rclpy.Context()
     rclpy.init(context=context)
     try:
-        with pytest.raises(TrackerSourceError, match="unknown source 'serial'"):
+        with pytest.raises(ParameterValidationError, match="'serial' is not one of ros, igtl"):
             TrackerBridgeNode(
                 context=context, parameter_overrides=[Parameter("source", value="serial")]
             )
@@ -126,5 +128,11 @@ def test_bad_configuration_is_refused_with_a_named_error(tmp_path):
                 context=context,
                 parameter_overrides=[Parameter("handeye_file", value=str(tmp_path / "none.yaml"))],
             )
+        for output in (topics.MARKER_POSE, topics.CAMERA_POSE, "marker_pose"):
+            with pytest.raises(ParameterValidationError, match="the bridge's own output"):
+                TrackerBridgeNode(
+                    context=context, namespace="/tracker",
+                    parameter_overrides=[Parameter("ros_topic", value=output)],
+                )
     finally:
         rclpy.shutdown(context=context)

@@ -1,0 +1,98 @@
+"""A sample bag's /tracker/pose, replayed unchanged, into endo-tracker-bridge with its defaults.
+
+Tracker drivers and the sample bags publish the marker pose on
+``/tracker/pose``; the bridge listens there by default and publishes on
+names of its own, so no remapping is needed and it never reads its own
+output. endo-replay and the bridge run as their own OS processes; the test
+process receives ``/endoscope/pose`` and checks every pose against the bag
+(identity hand–eye and world transform by default: the camera pose is the
+marker pose, at the same stamp).
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import rclpy
+from geometry_msgs.msg import PoseStamped
+from rclpy.executors import SingleThreadedExecutor
+
+from endo_io import topics
+from endo_io.bag import BagReader, deserialize
+from endo_io.pose import pose_to_matrix
+from endo_io.qos import reliable_qos
+
+pytestmark = pytest.mark.ros
+
+BIN = Path(sys.executable).parent
+BAG = Path(__file__).resolve().parents[1] / "bags" / "phantom_colon.mcap"
+
+
+def _bag_poses() -> dict[int, np.ndarray]:
+    with BagReader(BAG) as reader:
+        poses = [pose_to_matrix(deserialize(m)) for m in reader.messages([topics.TRACKER_POSE])]
+    return {stamp: T for T, stamp in poses}
+
+
+def test_replayed_tracker_poses_come_out_as_camera_poses(tmp_path):
+    expected = _bag_poses()
+    assert len(expected) == 180
+    env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST", PYTHONUNBUFFERED="1")
+    previous_handlers = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
+    bridge_log = (tmp_path / "bridge.log").open("w+")
+    bridge = subprocess.Popen([str(BIN / "endo-tracker-bridge")], env=env, stdout=bridge_log,
+                              stderr=subprocess.STDOUT, text=True)
+    replay: subprocess.Popen[str] | None = None
+    context = rclpy.Context()
+    rclpy.init(context=context)
+    received: list[PoseStamped] = []
+    try:
+        listener = rclpy.create_node("camera_pose_listener", context=context)
+        listener.create_subscription(PoseStamped, topics.CAMERA_POSE, received.append,
+                                     reliable_qos(500))
+        executor = SingleThreadedExecutor(context=context)
+        executor.add_node(listener)
+
+        def spin_until(condition, seconds):
+            deadline = time.monotonic() + seconds
+            while not condition() and time.monotonic() < deadline:
+                executor.spin_once(timeout_sec=0.05)
+            return condition()
+
+        assert spin_until(lambda: listener.count_publishers(topics.CAMERA_POSE) > 0, 30.0)
+        # endo-replay waits until the bridge subscribes to /tracker/pose: the bag as recorded.
+        replay = subprocess.Popen(
+            [str(BIN / "endo-replay"), str(BAG), "--topics", topics.TRACKER_POSE,
+             "--wait-for-subscribers", "1"],
+            env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+        )
+        spin_until(lambda: replay.poll() is not None and len(received) >= len(expected), 30.0)
+        assert replay.poll() == 0, replay.communicate()[0]
+        spin_until(lambda: len(received) >= len(expected), 2.0)
+        executor.shutdown()
+        listener.destroy_node()
+    finally:
+        rclpy.shutdown(context=context)
+        for process in (replay, bridge):
+            if process is not None and process.poll() is None:
+                process.send_signal(signal.SIGINT)
+        for sig, handler in previous_handlers.items():
+            signal.signal(sig, handler)
+    assert bridge.wait(15) == 0
+    bridge_log.seek(0)
+    log = bridge_log.read()
+    assert "Traceback" not in log and "source ros: /tracker/pose" in log, log
+
+    # Sensor-data QoS on the input is best effort: allow a very few losses.
+    assert len(received) >= 0.98 * len(expected), (len(received), log)
+    for msg in received:
+        T, stamp = pose_to_matrix(msg)
+        assert msg.header.frame_id == "world"
+        np.testing.assert_allclose(T, expected[stamp], atol=1e-12)
