@@ -31,7 +31,7 @@ pre-set callback converts integers for doubles before rclpy checks types.
 from __future__ import annotations
 
 import contextlib
-from collections.abc import Callable, Iterable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -192,7 +192,7 @@ class ParameterSpec:
 #: A node's reaction to accepted changes: ``apply(changes, values)`` with the
 #: changed parameters and every parameter's value after the change; it puts
 #: them into effect, or raises an Endo3dError to refuse them (nothing changes).
-ApplyCallback = Callable[[Mapping[str, Any], Mapping[str, Any]], None]
+ApplyCallback = Callable[[dict[str, Any], dict[str, Any]], None]
 
 
 class NodeParameters:
