@@ -12,12 +12,14 @@ from __future__ import annotations
 
 import itertools
 import os
+import re
+import resource
 import signal
 import subprocess
 import sys
 import time
 from collections import defaultdict
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import numpy as np
@@ -146,10 +148,16 @@ class Processes:
         self.log_dir = log_dir
         self.started: list[subprocess.Popen[bytes]] = []
 
-    def start(self, script: str, *args: str | Path) -> subprocess.Popen[bytes]:
+    def start(
+        self, script: str, *args: str | Path, preexec_fn: Callable[[], None] | None = None
+    ) -> subprocess.Popen[bytes]:
         log = (self.log_dir / f"{script}-{len(self.started)}.log").open("wb")
         process = subprocess.Popen(
-            [str(BIN / script), *map(str, args)], env=self.env, stdout=log, stderr=subprocess.STDOUT
+            [str(BIN / script), *map(str, args)],
+            env=self.env,
+            stdout=log,
+            stderr=subprocess.STDOUT,
+            preexec_fn=preexec_fn,
         )
         self.started.append(process)
         return process
@@ -304,3 +312,152 @@ def test_clock_start_offset_remap_and_qos_override(
         (offer,) = qos_profiles_from_yaml(reader.topics[renamed].offered_qos_profiles)
     assert offer.durability == DurabilityPolicy.TRANSIENT_LOCAL
     assert offer.reliability == ReliabilityPolicy.RELIABLE
+
+
+# ----------------------------------------------------------------- faults (issue 16)
+
+
+@pytest.mark.parametrize("output_name", ["killed.mcap", "killed_dir"])
+def test_a_sigkilled_recording_is_recovered_message_for_message(
+    input_bag: Path, processes: Processes, tmp_path: Path, output_name: str
+):
+    expected, _ = read_all(input_bag)
+    output = tmp_path / output_name
+    recorder = processes.start("endo-record", "--all", "-o", output, "--flush-period", "0.2")
+    replay = processes.start("endo-replay", input_bag, "--wait-for-subscribers", "1")
+    assert replay.wait(30) == 0, processes.output(replay)
+    wait_until(
+        lambda: readable_count(output) >= len(expected), 10, "all messages in the recording"
+    )
+    if output.suffix != ".mcap":
+        # metadata.yaml is rewritten at each flush: it counts what the files hold.
+        def metadata_count() -> int:
+            text = (output / "metadata.yaml").read_text()
+            return int(re.search(r"^  message_count: (\d+)$", text, re.M).group(1))
+
+        wait_until(lambda: metadata_count() == len(expected), 5, "metadata.yaml to count them")
+    recorder.kill()
+    assert recorder.wait(5) == -signal.SIGKILL
+    killed, damaged = read_all(output)
+    assert damaged and len(killed) == len(expected)  # no summary, every chunk readable
+    if output.suffix != ".mcap":
+        assert metadata_count() == len(expected)  # not the 0 it used to keep
+
+    recovered = tmp_path / "recovered.mcap"
+    tool = processes.start("endo-bag", "recover", output, recovered)
+    assert tool.wait(30) == 0, processes.output(tool)
+    report = processes.output(tool)
+    assert f"total: kept {len(expected)} messages, lost 0" in report, report
+    messages, damaged = read_all(recovered)
+    assert not damaged  # a complete file: summary and footer
+    assert by_topic(messages) == by_topic(expected)  # every message published, byte for byte
+    with BagReader(recovered) as reader:
+        assert {t: i.msgtype for t, i in reader.topics.items()} == {
+            IMAGE: "sensor_msgs/msg/Image",
+            INFO: "sensor_msgs/msg/CameraInfo",
+            POSE: "geometry_msgs/msg/PoseStamped",
+            LEVEL: "std_msgs/msg/Float32",
+        }
+        offers = qos_profiles_from_yaml(reader.topics[INFO].offered_qos_profiles)
+    assert offers[0].durability == DurabilityPolicy.TRANSIENT_LOCAL  # the recorded offers kept
+
+
+def _large_frames_bag(path: Path) -> None:
+    """40 rgb8 320x240 frames (230 KB each) at 30 Hz and 80 poses at 60 Hz."""
+    rng = np.random.default_rng(3)
+    with BagWriter(path, compression="none") as writer:
+        writer.add_topic(IMAGE, "sensor_msgs/msg/Image", qos_profiles_to_yaml([RELIABLE]))
+        writer.add_topic(POSE, "geometry_msgs/msg/PoseStamped", qos_profiles_to_yaml([RELIABLE]))
+        events = []
+        for i in range(40):
+            image = Image(height=240, width=320, encoding="rgb8", step=960)
+            image.header.stamp, image.header.frame_id = ns_to_stamp(T0 + i * 33 * MS), FRAME
+            image.data = rng.integers(0, 256, 240 * 960, dtype=np.uint8).tobytes()
+            events.append((T0 + i * 33 * MS, IMAGE, image))
+        for i in range(80):
+            pose = PoseStamped()
+            pose.header.stamp = ns_to_stamp(T0 + i * 16 * MS + MS)
+            pose.pose.position.x, pose.pose.orientation.w = 0.001 * i, 1.0
+            events.append((T0 + i * 16 * MS + MS, POSE, pose))
+        for t, topic, msg in sorted(events, key=lambda e: e[0]):
+            writer.write(topic, serialize(msg), t)
+
+
+FILE_LIMIT = 2_000_000
+
+
+def _limit_file_size() -> None:
+    # A full disk without root: writes past the limit fail with EFBIG, as they
+    # would with ENOSPC (a short write, then an error); SIGXFSZ is ignored.
+    signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+    resource.setrlimit(resource.RLIMIT_FSIZE, (FILE_LIMIT, FILE_LIMIT))
+
+
+def test_a_recording_that_fills_the_disk_reports_what_the_file_holds(
+    processes: Processes, tmp_path: Path
+):
+    source = tmp_path / "large.mcap"
+    _large_frames_bag(source)
+    sent = by_topic(read_all(source)[0])
+    output = tmp_path / "full.mcap"
+    recorder = processes.start(
+        "endo-record", "--topics", IMAGE, POSE, "-o", output, "--flush-period", "0.2",
+        preexec_fn=_limit_file_size,
+    )  # fmt: skip
+    replay = processes.start(
+        "endo-replay", source, "--wait-for-subscribers", "1", "--ack-timeout", "1"
+    )
+    assert recorder.wait(60) == 1, processes.output(recorder)
+    replay.wait(30)
+    log = processes.output(recorder)
+    errors = [line for line in log.splitlines() if "stopping: " in line]
+    assert len(errors) == 1 and "File too large" in errors[0], log
+    got = by_topic(read_all(output)[0])
+    assert output.stat().st_size <= FILE_LIMIT
+    lost = 0
+    for topic in (IMAGE, POSE):
+        match = re.search(rf"{re.escape(topic)} \[[^]]+\]: (\d+) messages, (\d+) bytes", log)
+        assert match is not None, log
+        # The summary counts exactly what the file holds, a prefix of what was sent.
+        assert int(match.group(1)) == len(got.get(topic, [])), (topic, log)
+        assert int(match.group(2)) == sum(len(d) for d in got.get(topic, []))
+        assert got.get(topic, []) == sent[topic][: len(got.get(topic, []))]
+        lost_match = re.search(rf"{re.escape(topic)} .*, (\d+) received but lost", log)
+        lost += int(lost_match.group(1)) if lost_match else 0
+    assert 0 < len(got[IMAGE]) < len(sent[IMAGE])
+    assert lost > 0 and f"lost: {lost} of " in log, log
+
+
+def test_the_recorder_counts_undecodable_messages_and_keeps_their_bytes(
+    processes: Processes, tmp_path: Path
+):
+    import rclpy
+
+    output = tmp_path / "garbled.mcap"
+    recorder = processes.start(
+        "endo-record", "--topics", "/garbled", "-o", output, "--max-messages", "10"
+    )
+    good = Image(height=2, width=2, encoding="mono8", step=2, data=bytes(4))
+    # The frame_id length says 2 GiB: no subscriber can decode this.
+    garbled = b"\x00\x01\x00\x00" + bytes(8) + b"\xff\xff\xff\x7f" + bytes(36)
+    payloads = [garbled if i % 3 == 0 else serialize(good) for i in range(10)]
+    context = rclpy.Context()
+    rclpy.init(context=context)
+    try:
+        node = rclpy.create_node("garbler", context=context)
+        publisher = node.create_publisher(Image, "/garbled", RELIABLE)
+        wait_until(lambda: publisher.get_subscription_count() >= 1, 20, "the recorder")
+        time.sleep(0.5)
+        for data in payloads:
+            publisher.publish(data)  # raw bytes, sent as they are
+            time.sleep(0.02)
+        assert recorder.wait(20) == 0, processes.output(recorder)
+    finally:
+        rclpy.shutdown(context=context)
+    log = processes.output(recorder)
+    assert "/garbled [sensor_msgs/msg/Image]: 10 messages" in log, log
+    assert ", 4 undecodable (recorded as received; first: /garbled: 52 bytes are not a valid" in log
+    warnings = [line for line in log.splitlines() if "recording undecodable messages" in line]
+    assert len(warnings) == 1, log
+    recorded, damaged = read_all(output)
+    assert not damaged and [m.data for m in recorded] == payloads

@@ -24,6 +24,7 @@ setup(
         "console_scripts": [
             "endo-replay = endo_io.replay_node:main",
             "endo-record = endo_io.record_node:main",
+            "endo-bag = endo_io.bag_cli:main",
         ],
     },
 )

@@ -10,13 +10,14 @@ killed recorder still leaves a readable file).
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Protocol
 
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
-from endo_io.errors import Endo3dError
+from endo_io.bag.errors import MessageDeserializationError
+from endo_io.errors import BagError, Endo3dError
 
 #: Topics that ``--all`` leaves out unless they are asked for by name: every
 #: node has them, and they describe the recorder's own graph, not the data.
@@ -133,14 +134,35 @@ class RawBagWriter(Protocol):
 
     def close(self) -> None: ...
 
+    @property
+    def written(self) -> Mapping[str, tuple[int, int]]:
+        """Topic -> (messages, payload bytes) that are on disk."""
+        ...
+
+
+#: Checks that a message's bytes decode as its type; raises
+#: :class:`~endo_io.bag.MessageDeserializationError` when they do not.
+CdrCheck = Callable[[bytes], object]
+
 
 @dataclass
 class RecordedTopic:
-    """Counts of one recorded topic."""
+    """Counts of one recorded topic.
+
+    ``messages`` and ``bytes`` are what the file holds (messages in complete
+    chunks on disk, taken from the writer); ``received`` counts every message
+    handed to the writer, so ``received - messages`` were lost when a write
+    failed. ``undecodable`` messages did not decode as ``msgtype`` (they are
+    recorded anyway, as received); ``undecodable_reason`` is the first one's
+    error.
+    """
 
     msgtype: str
     messages: int = 0
     bytes: int = 0
+    received: int = 0
+    undecodable: int = 0
+    undecodable_reason: str = ""
 
 
 @dataclass
@@ -151,23 +173,46 @@ class RecordReport:
     first_ns: int | None = None
     last_ns: int | None = None
     stop_reason: str = ""
+    write_error: str = ""
 
     @property
     def messages(self) -> int:
-        """Messages written over all topics."""
+        """Messages the file holds over all topics."""
         return sum(t.messages for t in self.topics.values())
 
     @property
     def bytes(self) -> int:
-        """Payload bytes written over all topics."""
+        """Payload bytes the file holds over all topics."""
         return sum(t.bytes for t in self.topics.values())
+
+    @property
+    def received(self) -> int:
+        """Messages received (handed to the writer) over all topics."""
+        return sum(t.received for t in self.topics.values())
+
+    @property
+    def lost(self) -> int:
+        """Messages received that a failed write kept out of the file."""
+        return sum(max(0, t.received - t.messages) for t in self.topics.values())
+
+    @property
+    def undecodable(self) -> int:
+        """Messages whose bytes did not decode as their type (recorded anyway)."""
+        return sum(t.undecodable for t in self.topics.values())
 
     def summary_lines(self) -> list[str]:
         """Human-readable lines: one per topic, then the totals."""
-        lines = [
-            f"  {name} [{t.msgtype}]: {t.messages} messages, {t.bytes} bytes"
-            for name, t in sorted(self.topics.items())
-        ]
+        lines = []
+        for name, t in sorted(self.topics.items()):
+            line = f"  {name} [{t.msgtype}]: {t.messages} messages, {t.bytes} bytes"
+            if t.received > t.messages:
+                line += f", {t.received - t.messages} received but lost"
+            if t.undecodable:
+                line += (
+                    f", {t.undecodable} undecodable (recorded as received; first: "
+                    f"{t.undecodable_reason})"
+                )
+            lines.append(line)
         span = (
             (self.last_ns - self.first_ns) / 1e9
             if self.first_ns is not None and self.last_ns
@@ -177,6 +222,15 @@ class RecordReport:
             f"  total: {self.messages} messages, {self.bytes} bytes over {span:.3f} s"
             + (f"; stopped: {self.stop_reason}" if self.stop_reason else "")
         )
+        if self.lost:
+            lines.append(
+                f"  lost: {self.lost} of {self.received} received messages are not in the "
+                f"file ({self.write_error})"
+            )
+        if self.undecodable:
+            lines.append(
+                f"  undecodable: {self.undecodable} messages did not decode as their type"
+            )
         return lines
 
 
@@ -209,37 +263,71 @@ class Recording:
         self._max_duration_ns = max_duration_ns
         self._started_ns: int | None = None
         self._closed = False
+        self._checks: dict[str, CdrCheck] = {}
         self.report = RecordReport()
 
     def start(self, now_ns: int) -> None:
         """Mark the start of the recording (for ``max_duration_ns``)."""
         self._started_ns = now_ns
 
-    def add_topic(self, name: str, msgtype: str, offered_qos_profiles: str) -> None:
-        """Declare a topic before its first message."""
+    def add_topic(
+        self, name: str, msgtype: str, offered_qos_profiles: str, check: CdrCheck | None = None
+    ) -> None:
+        """Declare a topic before its first message.
+
+        ``check`` (optional) is called with each message's bytes and raises
+        :class:`~endo_io.bag.MessageDeserializationError` when they do not
+        decode as ``msgtype``; such messages are counted as undecodable.
+        """
         self._writer.add_topic(name, msgtype, offered_qos_profiles)
         self.report.topics[name] = RecordedTopic(msgtype)
+        if check is not None:
+            self._checks[name] = check
 
     def write(self, topic: str, data: bytes, receive_ns: int) -> bool:
         """Write one message received at ``receive_ns`` (log and publish time).
 
         Returns True when a limit has been reached and recording should stop;
-        messages arriving after that are not written.
+        messages arriving after that are not written. A message that does not
+        decode as its topic's type is written all the same and counted in
+        ``report.topics[topic].undecodable``.
+
+        Raises:
+            BagError: the writer failed (:meth:`close` then reports what the
+                file holds).
         """
         if self._closed or self.limit_reached(receive_ns):
             return True
-        self._writer.write(topic, data, receive_ns, receive_ns)
         tally = self.report.topics[topic]
-        tally.messages += 1
-        tally.bytes += len(data)
+        check = self._checks.get(topic)
+        if check is not None:
+            try:
+                check(data)
+            except MessageDeserializationError as error:
+                tally.undecodable += 1
+                tally.undecodable_reason = tally.undecodable_reason or str(error)
+        tally.received += 1
+        try:
+            self._writer.write(topic, data, receive_ns, receive_ns)
+        except BagError as error:
+            self.report.write_error = str(error)
+            self._take_written()
+            raise
         if self.report.first_ns is None:
             self.report.first_ns = receive_ns
         self.report.last_ns = receive_ns
         return self.limit_reached(receive_ns)
 
+    def _take_written(self) -> None:
+        """Set the report's file counts from what the writer has on disk."""
+        for name, (messages, size) in self._writer.written.items():
+            tally = self.report.topics.get(name)
+            if tally is not None:
+                tally.messages, tally.bytes = messages, size
+
     def limit_reached(self, now_ns: int) -> bool:
         """True when the message count or the duration limit has been reached."""
-        if self._max_messages is not None and self.report.messages >= self._max_messages:
+        if self._max_messages is not None and self.report.received >= self._max_messages:
             self.report.stop_reason = self.report.stop_reason or f"{self._max_messages} messages"
             return True
         if (
@@ -253,15 +341,35 @@ class Recording:
         return False
 
     def flush(self) -> None:
-        """Write buffered messages as a chunk, so a killed process leaves them readable."""
+        """Write buffered messages as a chunk, so a killed process leaves them readable.
+
+        Raises:
+            BagError: the writer failed (the report then counts what is on disk).
+        """
         if not self._closed:
-            self._writer.flush()
+            try:
+                self._writer.flush()
+            except BagError as error:
+                self.report.write_error = str(error)
+                raise
+            finally:
+                self._take_written()
 
     def close(self) -> RecordReport:
-        """Finalise the bag (summary, footer) once; returns the report."""
+        """Finalise the bag (summary, footer) once; returns the report.
+
+        The report's counts are what the file holds, also when finishing it
+        fails (then BagError is raised and :attr:`report` has the counts).
+        """
         if not self._closed:
             self._closed = True
-            self._writer.close()
+            try:
+                self._writer.close()
+            except BagError as error:
+                self.report.write_error = self.report.write_error or str(error)
+                raise
+            finally:
+                self._take_written()
         return self.report
 
 

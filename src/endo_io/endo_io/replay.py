@@ -36,6 +36,7 @@ from rclpy.qos import (
     ReliabilityPolicy,
 )
 
+from endo_io.bag.errors import MessageDeserializationError
 from endo_io.bag.qos_yaml import (
     QosYamlError,
     qos_profile_from_dict,
@@ -366,7 +367,12 @@ class EventWaiter:
 
 @dataclass
 class TopicTally:
-    """What happened to one bag topic during playback."""
+    """What happened to one bag topic during playback.
+
+    ``skipped`` messages were not published because their type is not
+    installed; ``undecodable`` ones because their bytes do not decode as
+    their type (``undecodable_reason`` is the first one's error).
+    """
 
     output_topic: str
     msgtype: str
@@ -374,6 +380,8 @@ class TopicTally:
     bytes: int = 0
     skipped: int = 0
     skip_reason: str = ""
+    undecodable: int = 0
+    undecodable_reason: str = ""
 
 
 @dataclass
@@ -407,6 +415,11 @@ class ReplayReport:
         return sum(t.skipped for t in self.topics.values())
 
     @property
+    def undecodable(self) -> int:
+        """Messages not published because their bytes do not decode, over all topics."""
+        return sum(t.undecodable for t in self.topics.values())
+
+    @property
     def achieved_rate(self) -> float:
         """Bag seconds played per wall second (NaN when nothing took time)."""
         return self.bag_span_ns / self.wall_ns if self.wall_ns > 0 else math.nan
@@ -419,6 +432,11 @@ class ReplayReport:
             text = f"  {name} [{tally.msgtype}]: {tally.published} messages, {tally.bytes} bytes"
             if tally.skipped:
                 text += f", {tally.skipped} not published ({tally.skip_reason})"
+            if tally.undecodable:
+                text += (
+                    f", {tally.undecodable} not published (undecodable; first: "
+                    f"{tally.undecodable_reason})"
+                )
             lines.append(text)
         wall_s = self.wall_ns / 1e9
         mb_s = self.published_bytes / 1e6 / wall_s if wall_s > 0 else math.nan
@@ -430,6 +448,11 @@ class ReplayReport:
         )
         if self.skipped:
             lines.append(f"  not published: {self.skipped} messages of uninstalled types")
+        if self.undecodable:
+            lines.append(
+                f"  not published: {self.undecodable} messages whose bytes do not decode "
+                "as their type"
+            )
         if self.interrupted:
             lines.append("  interrupted before the end of the bag")
         if self.error:
@@ -449,7 +472,10 @@ class Player:
         last intact message.
     publishers:
         Bag topic -> function publishing raw CDR bytes. Messages on topics
-        without a publisher (type not installed) are counted as skipped.
+        without a publisher (type not installed) are counted as skipped. A
+        function may raise :class:`~endo_io.bag.MessageDeserializationError`
+        for bytes that do not decode: that message is counted as
+        undecodable, not published, and playback goes on.
     tallies:
         Bag topic -> :class:`TopicTally` for every topic that may appear.
     schedule:
@@ -521,7 +547,12 @@ class Player:
                     if self._sleep_until(target):
                         report.interrupted = True
                         break
-                    publish(message.data)
+                    try:
+                        publish(message.data)
+                    except MessageDeserializationError as error:
+                        tally.undecodable += 1
+                        tally.undecodable_reason = tally.undecodable_reason or str(error)
+                        continue
                     tally.published += 1
                     tally.bytes += len(message.data)
                     last_log = message.log_time_ns

@@ -6,9 +6,16 @@ optionally waits until subscribers have matched, and hands raw CDR bytes to
 the publishers on the player's schedule. Nothing is deserialised. See
 ``docs/replay_record.md`` for the options and their behaviour.
 
+Each message is checked to decode as its type before it is published
+(rclpy's own deserialisation, about 0.1 ms for a 640x480 image): one that
+does not is not published, is logged once per topic and counted in the
+summary, and the exit status is then 1.
+
 Exit status: 0 when the bag played to its end (or was interrupted by SIGINT
 or SIGTERM), 1 when the bag is damaged (everything before the damage was
-played) or publishing failed, 2 when the options or the bag cannot be used.
+played, undecodable messages excepted) or publishing failed, 2 when the
+options or the bag cannot be used, including a bag with nothing to play
+(empty, or ``--start-offset`` at or past its end).
 """
 
 from __future__ import annotations
@@ -18,7 +25,7 @@ import math
 import sys
 import threading
 import time
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -28,7 +35,8 @@ from rclpy.publisher import Publisher
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from rosgraph_msgs.msg import Clock
 
-from endo_io.bag import BagMessage, BagReader, message_class
+from endo_io.bag import BagMessage, BagReader, MessageDeserializationError, message_class
+from endo_io.bag.serde import cdr_check
 from endo_io.errors import Endo3dError
 from endo_io.process import run_node, split_ros_args
 from endo_io.qos import create_reliable_publisher
@@ -183,15 +191,36 @@ def make_plan(reader: BagReader, options: argparse.Namespace) -> ReplayPlan:
             msg_class, reason = None, f"type {info.msgtype} not installed"
             warnings.append(f"not publishing {topic}: {error}")
         topics.append(PlayedTopic(topic, names[topic], info.msgtype, qos, msg_class, reason))
-    start_ns = bag_start_ns(reader)
+    time_range = reader.time_range_ns
+    if time_range is None:
+        damage = f" ({reader.damage})" if reader.damage else ""
+        raise ReplayOptionError(f"{reader.path} holds no messages, nothing to play{damage}")
+    start_ns, end_ns = time_range
     origin = start_ns + round(options.start_offset * 1e9)
+    if origin > end_ns:
+        raise ReplayOptionError(
+            f"--start-offset {options.start_offset:g} s is past the end of the bag, whose "
+            f"messages span {(end_ns - start_ns) / 1e9:.3f} s"
+        )
+    if not _any_message(reader, selected, origin):
+        which = "the selected topics" if options.topics else "the bag"
+        raise ReplayOptionError(
+            f"{which} have no message at or after --start-offset {options.start_offset:g} s"
+            + (f" ({reader.damage})" if reader.damage else "")
+        )
+    warnings += reader.warnings
     return ReplayPlan(topics, PlaybackSchedule(origin, options.rate), warnings)
 
 
-def bag_start_ns(reader: BagReader) -> int:
-    """Log time of the bag's first message over all topics (0 for an empty bag)."""
-    time_range = reader.time_range_ns
-    return time_range[0] if time_range is not None else 0
+def _any_message(reader: BagReader, topics: list[str], start_ns: int) -> bool:
+    """Whether an intact message of ``topics`` has a log time >= ``start_ns``."""
+    try:
+        next(reader.messages(topics=topics, start_ns=start_ns))
+    except StopIteration:
+        return False
+    except Endo3dError:  # damaged: nothing intact there
+        return False
+    return True
 
 
 class ReplayNode(Node):
@@ -204,15 +233,16 @@ class ReplayNode(Node):
         self._options = options
         self.exit_code = 0
         self._bag_publishers: dict[str, Publisher] = {}
+        publish_checked: dict[str, Callable[[bytes], None]] = {}
         tallies: dict[str, TopicTally] = {}
         for topic in plan.topics:
             tallies[topic.bag_topic] = TopicTally(
                 topic.output_topic, topic.msgtype, skip_reason=topic.skip_reason
             )
             if topic.msg_class is not None:
-                self._bag_publishers[topic.bag_topic] = self.create_publisher(
-                    topic.msg_class, topic.output_topic, topic.qos
-                )
+                publisher = self.create_publisher(topic.msg_class, topic.output_topic, topic.qos)
+                self._bag_publishers[topic.bag_topic] = publisher
+                publish_checked[topic.bag_topic] = self._checked(topic, publisher)
         for text in plan.warnings:
             self.get_logger().warning(text)
         selected = [t.bag_topic for t in plan.topics]
@@ -224,7 +254,7 @@ class ReplayNode(Node):
         self._stop = threading.Event()
         self._player = Player(
             open_messages,
-            {topic: publisher.publish for topic, publisher in self._bag_publishers.items()},
+            publish_checked,
             tallies,
             plan.schedule,
             loop=options.loop,
@@ -242,6 +272,27 @@ class ReplayNode(Node):
         # Start playing from inside spin(): a short bag must not end (and shut
         # the context down) before the node is up and spinning.
         self._start_timer = self.create_timer(0.0, self._start_playback)
+
+    def _checked(self, topic: PlayedTopic, publisher: Publisher) -> Callable[[bytes], None]:
+        """Publish bytes that decode as the topic's type; raise (and log once) for others."""
+        check = cdr_check(topic.msgtype, topic.bag_topic)
+        logged = False
+
+        def publish(data: bytes) -> None:
+            nonlocal logged
+            try:
+                check(data)
+            except MessageDeserializationError as error:
+                if not logged:
+                    logged = True
+                    self.get_logger().error(
+                        f"not publishing undecodable messages of {topic.bag_topic}, counting "
+                        f"them: {error}"
+                    )
+                raise
+            publisher.publish(data)
+
+        return publish
 
     def _start_playback(self) -> None:
         self._start_timer.cancel()
@@ -317,7 +368,7 @@ class ReplayNode(Node):
                 self._player_done = True
                 if not report.interrupted:
                     self._wait_for_acks()
-                if report.error:
+                if report.error or report.undecodable:
                     self.exit_code = 1
             else:
                 self._player.report.interrupted = True

@@ -137,6 +137,14 @@ class FakeWriter:
     def close(self) -> None:
         self.closes += 1
 
+    @property
+    def written(self) -> dict[str, tuple[int, int]]:
+        counts: dict[str, tuple[int, int]] = {}
+        for topic, data, _, _ in self.messages:
+            messages, size = counts.get(topic, (0, 0))
+            counts[topic] = (messages + 1, size + len(data))
+        return counts
+
 
 def test_recording_writes_receive_time_as_log_and_publish_time_and_counts():
     writer = FakeWriter()

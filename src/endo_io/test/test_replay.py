@@ -7,6 +7,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
+from mcap.reader import make_reader
 from rclpy.duration import Duration
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
@@ -349,6 +350,32 @@ def test_topics_without_publisher_are_counted_not_sent_and_not_waited_for():
     assert report.bag_span_ns == 20 * MS
 
 
+def test_undecodable_messages_are_counted_not_published_and_playback_goes_on():
+    from endo_io.bag import MessageDeserializationError
+
+    msgs = _messages([("/a", 0), ("/a", 10), ("/b", 15), ("/a", 20), ("/a", 30)])
+    waiter = FakeWaiter()
+    sent: list = []
+
+    def publish_a(data: bytes) -> None:
+        if data[0] in (1, 3):  # the 2nd and 4th message do not decode
+            raise MessageDeserializationError(f"/a: {len(data)} bytes are not a valid Float32")
+        sent.append(("/a", data))
+
+    tallies = {t: TopicTally(t, "std_msgs/msg/Float32") for t in ("/a", "/b")}
+    publishers = {"/a": publish_a, "/b": lambda data: sent.append(("/b", data))}
+    player = Player(lambda: iter(msgs), publishers, tallies, PlaybackSchedule(T0), waiter=waiter)
+    report = player.run()
+    assert [m for _, m in sent] == [msgs[0].data, msgs[2].data, msgs[4].data]
+    assert (report.topics["/a"].published, report.topics["/a"].undecodable) == (2, 2)
+    assert report.undecodable == 2 and report.error == ""
+    lines = report.summary_lines()
+    assert "/a [std_msgs/msg/Float32]: 2 messages, 16 bytes, 2 not published (undecodable; " in (
+        lines[0]
+    )
+    assert "  not published: 2 messages whose bytes do not decode as their type" in lines
+
+
 def test_damaged_bag_plays_up_to_the_damage_and_reports_it():
     msgs = _messages([("/a", 0), ("/b", 10), ("/a", 20)])
 
@@ -466,7 +493,10 @@ def test_cli_plays_a_truncated_bag_up_to_the_damage_and_fails(
     _write_bag_with_unknown_type(whole)
     cut = tmp_path / "cut.mcap"
     data = whole.read_bytes()
-    cut.write_bytes(data[: len(data) // 2])
+    with whole.open("rb") as stream:
+        summary = make_reader(stream).get_summary()
+    chunks = sorted(c.chunk_start_offset for c in summary.chunk_indexes)
+    cut.write_bytes(data[: chunks[len(chunks) // 2] + 10])  # inside the middle chunk
     intact = 0
     with BagReader(cut) as reader, pytest.raises(BagCorruptError):
         for message in reader.messages():
@@ -493,6 +523,68 @@ def test_cli_rejects_bad_options_before_starting_ros(tmp_path: Path, capsys):
     assert "remap rule" in capsys.readouterr().err
     assert main(["endo-replay", str(bag), "--topics", "/nope"]) == 2
     assert "none of the topics /nope is in the bag" in capsys.readouterr().err
+
+
+def _write_three_second_bag(path: Path) -> None:
+    from std_msgs.msg import Float32
+
+    from endo_io.bag import BagWriter
+
+    with BagWriter(path) as writer:
+        for i in range(31):
+            writer.write_message("/a", Float32(data=0.1 * i), T0 + i * 100 * MS)
+        writer.write_message("/b", Float32(data=1.0), T0 + 500 * MS)
+
+
+def test_cli_refuses_a_start_offset_with_nothing_after_it(tmp_path: Path, capsys):
+    # Issue 16: --start-offset 999 on a 3 s bag exited 0 having sent nothing.
+    from endo_io.bag import BagWriter
+    from endo_io.replay_node import main
+
+    bag = tmp_path / "three_seconds.mcap"
+    _write_three_second_bag(bag)
+    assert main(["endo-replay", str(bag), "--start-offset", "999"]) == 2
+    err = capsys.readouterr().err
+    assert err == (
+        "endo-replay: error: --start-offset 999 s is past the end of the bag, whose messages "
+        "span 3.000 s\n"
+    )
+    assert main(["endo-replay", str(bag), "--start-offset", "1", "--topics", "/b"]) == 2
+    err = capsys.readouterr().err
+    assert "the selected topics have no message at or after --start-offset 1 s" in err
+    assert len(err.splitlines()) == 1
+    empty = tmp_path / "empty.mcap"
+    with BagWriter(empty) as writer:
+        writer.add_topic("/a", "std_msgs/msg/Float32")
+    assert main(["endo-replay", str(empty)]) == 2
+    err = capsys.readouterr().err
+    assert f"{empty} holds no messages, nothing to play" in err and len(err.splitlines()) == 1
+
+
+@pytest.mark.ros
+def test_cli_drops_undecodable_messages_with_one_line_and_a_count(
+    tmp_path: Path, capfd, fresh_default_context
+):
+    from sensor_msgs.msg import Image
+
+    from endo_io.bag import BagWriter, serialize
+    from endo_io.replay_node import main
+
+    bag = tmp_path / "garbled.mcap"
+    good = Image(height=2, width=2, encoding="mono8", step=2, data=bytes(4))
+    with BagWriter(bag) as writer:
+        writer.add_topic("/image", "sensor_msgs/msg/Image")
+        for i in range(10):
+            # the frame_id length (after the stamp) says 2 GiB: that cannot decode
+            garbled = b"\x00\x01\x00\x00" + bytes(8) + b"\xff\xff\xff\x7f" + bytes(36)
+            data = serialize(good) if i % 3 else garbled
+            writer.write("/image", data, T0 + i * MS)
+    assert main(["endo-replay", str(bag), "--rate", "inf"]) == 1
+    out = capfd.readouterr()
+    assert "/image [sensor_msgs/msg/Image]: 6 messages" in out.out
+    assert "4 not published (undecodable; first: /image: 52 bytes are not a valid " in out.out
+    logged = [line for line in out.err.splitlines() if "not publishing undecodable" in line]
+    assert len(logged) == 1 and "/image" in logged[0]
 
 
 def test_ros_arguments_are_split_from_ours_and_remap_values_stay_ours():

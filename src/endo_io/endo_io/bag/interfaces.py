@@ -1,8 +1,8 @@
-"""The two value types a bag reader hands out: one message, and one topic's summary."""
+"""The value types a bag reader hands out: one message, one topic's summary, chunk totals."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 
 @dataclass(frozen=True, slots=True)
@@ -46,3 +46,21 @@ class TopicInfo:
     offered_qos_profiles: str
     message_count: int
     type_description_hash: str = ""
+
+
+@dataclass(frozen=True, slots=True)
+class ChunkStats:
+    """The chunks of a bag (of its intact part, for a damaged one).
+
+    Attributes:
+        count: Number of chunks.
+        compression: Compression name (``zstd``, ``lz4``, "" for none) ->
+            number of chunks using it.
+        compressed_bytes: Their stored data size.
+        uncompressed_bytes: Their declared uncompressed size.
+    """
+
+    count: int = 0
+    compression: dict[str, int] = field(default_factory=dict)
+    compressed_bytes: int = 0
+    uncompressed_bytes: int = 0

@@ -57,7 +57,7 @@ from mcap.records import (
 from mcap.stream_reader import MAGIC_SIZE
 
 from endo_io.bag.errors import BagCorruptError, BagError, BagNotFoundError
-from endo_io.bag.interfaces import BagMessage, TopicInfo
+from endo_io.bag.interfaces import BagMessage, ChunkStats, TopicInfo
 from endo_io.bag.mcap_records import (
     DEFAULT_MAX_CHUNK_BYTES,
     RECORD_PREFIX,
@@ -72,6 +72,7 @@ from endo_io.bag.metadata import (
     SERIALIZED_METADATA_KEY,
     parse_bag_metadata,
 )
+from endo_io.bag.msgdef import MessageDefinition
 
 MCAP_MAGIC = b"\x89MCAP0\r\n"
 _RECORD_PREFIX = RECORD_PREFIX
@@ -161,6 +162,8 @@ class McapFile:
             self._segments: list[_Segment] = []
             self._damage: dict[int, str] = {}
             self._recovered: dict[int, list[Any]] = {}
+            self._chunk_compression: dict[str, int] = {}
+            self._chunk_bytes = [0, 0]  # compressed, uncompressed
             head = self._raw.read(MAGIC_SIZE)
             self._file.seek(len(head))
             if head != MCAP_MAGIC:
@@ -223,6 +226,8 @@ class McapFile:
         for channel in summary.channels.values():
             self._add_channel(channel)
         self._counts.update(stats.channel_message_counts)
+        for index in summary.chunk_indexes:
+            self._count_chunk(index.compression, index.compressed_size, index.uncompressed_size)
         self._segments = [
             _Segment(
                 index.message_start_time,
@@ -309,9 +314,15 @@ class McapFile:
                 self._finish_scanned_chunk(*pending, pending_counts)
         self._damage.setdefault(position, "file ends before the MCAP footer")
 
+    def _count_chunk(self, compression: str, compressed: int, uncompressed: int) -> None:
+        self._chunk_compression[compression] = self._chunk_compression.get(compression, 0) + 1
+        self._chunk_bytes[0] += compressed
+        self._chunk_bytes[1] += uncompressed
+
     def _finish_scanned_chunk(
         self, chunk: Chunk, offset: int, end: int, index_counts: dict[int, int]
     ) -> None:
+        self._count_chunk(chunk.compression, len(chunk.data), chunk.uncompressed_size)
         if index_counts and all(cid in self._channels for cid in index_counts):
             for cid, count in index_counts.items():
                 self._counts[cid] = self._counts.get(cid, 0) + count
@@ -434,6 +445,30 @@ class McapFile:
                 message_count=count,
                 type_description_hash=info.type_description_hash,
             )
+        return result
+
+    def chunk_stats(self) -> ChunkStats:
+        """Count, compression and sizes of the complete chunks found."""
+        return ChunkStats(
+            count=sum(self._chunk_compression.values()),
+            compression=dict(self._chunk_compression),
+            compressed_bytes=self._chunk_bytes[0],
+            uncompressed_bytes=self._chunk_bytes[1],
+        )
+
+    def definitions(self) -> dict[str, MessageDefinition]:
+        """Topic -> the message definition stored in its schema (topics with a schema only)."""
+        result: dict[str, MessageDefinition] = {}
+        for cid in sorted(self._channel_records):
+            channel = self._channel_records[cid]
+            schema = self._schemas.get(channel.schema_id)
+            if schema is None or channel.topic in result:
+                continue
+            try:
+                text = schema.data.decode("utf-8")
+            except UnicodeDecodeError:
+                continue
+            result[channel.topic] = MessageDefinition(schema.encoding, text)
         return result
 
     def time_range(self) -> tuple[int, int] | None:

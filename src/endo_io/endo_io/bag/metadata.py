@@ -15,6 +15,7 @@ Jazzy). It is stored twice:
 from __future__ import annotations
 
 import os
+import re
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -168,6 +169,12 @@ def read_metadata_yaml(directory: Path) -> dict[str, Any]:
     if not isinstance(paths, list) or not paths or not all(isinstance(p, str) for p in paths):
         raise BagError(f"{path}: 'relative_file_paths' lists no files")
     return metadata
+
+
+def split_file_order(path: Path) -> tuple[int, str]:
+    """Sort key of a bag directory's files: rosbag2 names them ``<bag>_<n>.mcap``, by ``n``."""
+    match = re.search(r"_(\d+)$", path.stem)
+    return (int(match.group(1)) if match else -1, path.name)
 
 
 def parse_bag_metadata(text: str) -> dict[str, Any] | None:

@@ -4,6 +4,19 @@ A bag directory is described by its ``metadata.yaml``; its
 ``relative_file_paths`` name the MCAP files, whose messages are merged here
 into one log-time-ordered stream. See :mod:`endo_io.bag.mcap_file` for how a
 single file is read, including damaged ones.
+
+When metadata.yaml and the directory disagree, the files decide, and each
+discrepancy is one line in :attr:`BagReader.warnings`:
+
+* a file listed twice (or under two spellings) is read once;
+* an ``.mcap`` file in the directory that metadata.yaml does not list is read
+  too (a writer stopped between creating a split file and rewriting the
+  metadata, or a hand-edited list);
+* a message count that differs from what the files hold is reported as
+  stale (``endo-bag reindex DIR`` rewrites metadata.yaml from the files).
+
+A listed file that is missing is still an error: data that the bag says
+exists is gone, and playing the rest must be a deliberate choice (reindex).
 """
 
 from __future__ import annotations
@@ -17,10 +30,11 @@ from pathlib import Path
 from typing import Any
 
 from endo_io.bag.errors import BagCorruptError, BagError, BagNotFoundError
-from endo_io.bag.interfaces import BagMessage, TopicInfo
+from endo_io.bag.interfaces import BagMessage, ChunkStats, TopicInfo
 from endo_io.bag.mcap_file import McapFile
 from endo_io.bag.mcap_records import DEFAULT_MAX_CHUNK_BYTES
-from endo_io.bag.metadata import read_metadata_yaml
+from endo_io.bag.metadata import read_metadata_yaml, split_file_order
+from endo_io.bag.msgdef import MessageDefinition
 from endo_io.bag.qos_yaml import qos_profiles_text
 
 
@@ -46,6 +60,8 @@ class BagReader:
         topics: Topic name -> :class:`TopicInfo`, over all files.
         metadata: The rosbag2 ``BagMetadata`` mapping (from metadata.yaml or
             the file's ``rosbag2`` record), or None if the bag has none.
+        warnings: One line per way a bag directory's metadata.yaml disagrees
+            with its files (see the module docstring); empty for a file.
     """
 
     def __init__(
@@ -57,6 +73,7 @@ class BagReader:
     ) -> None:
         self.path = Path(path)
         self.metadata: dict[str, Any] | None = None
+        self.warnings: list[str] = []
         self._files: list[McapFile] = []
         if not self.path.exists():
             raise BagNotFoundError(f"{self.path}: no such bag file or directory")
@@ -71,12 +88,10 @@ class BagReader:
                         f"{self.path}: rosbag2 {self.metadata['compression_mode']} compression "
                         "is not supported (MCAP chunk compression is)"
                     )
-                for relative in self.metadata["relative_file_paths"]:
+                for member in self._member_paths(self.metadata["relative_file_paths"]):
                     self._files.append(
                         McapFile(
-                            self._member_path(relative),
-                            validate_crcs=validate_crcs,
-                            max_chunk_bytes=max_chunk_bytes,
+                            member, validate_crcs=validate_crcs, max_chunk_bytes=max_chunk_bytes
                         )
                     )
             else:
@@ -90,6 +105,8 @@ class BagReader:
             self.close()
             raise
         self.topics: dict[str, TopicInfo] = self._merge_topics()
+        if self.path.is_dir():
+            self._check_count()
 
     def _member_path(self, relative: str) -> Path:
         candidate = self.path / relative
@@ -98,8 +115,54 @@ class BagReader:
             fallback = self.path / Path(relative).name
             if fallback.exists():
                 return fallback
-            raise BagNotFoundError(f"{candidate}: listed in {self.path}/metadata.yaml but missing")
+            raise BagNotFoundError(
+                f"{candidate}: listed in {self.path}/metadata.yaml but missing "
+                f"(endo-bag reindex {self.path} lists the files that are there)"
+            )
         return candidate
+
+    def _member_paths(self, listed: list[str]) -> list[Path]:
+        """The files to read: each listed file once, then the unlisted ``*.mcap`` files."""
+        members: list[Path] = []
+        seen: set[Path] = set()
+        repeated: list[str] = []
+        for relative in listed:
+            member = self._member_path(relative)
+            key = member.resolve()
+            if key in seen:
+                repeated.append(member.name)
+                continue
+            seen.add(key)
+            members.append(member)
+        if repeated:
+            names = ", ".join(dict.fromkeys(repeated))
+            self.warnings.append(
+                f"{self.path}/metadata.yaml lists {names} more than once; reading each file once"
+            )
+        unlisted = sorted(
+            (p for p in self.path.glob("*.mcap") if p.resolve() not in seen), key=split_file_order
+        )
+        if unlisted:
+            names = ", ".join(p.name for p in unlisted)
+            self.warnings.append(
+                f"{self.path}/metadata.yaml does not list {names}; reading "
+                f"{'it' if len(unlisted) == 1 else 'them'} too "
+                f"(endo-bag reindex {self.path} rewrites metadata.yaml)"
+            )
+        return members + unlisted
+
+    def _check_count(self) -> None:
+        assert self.metadata is not None
+        listed = self.metadata.get("message_count")
+        held = self.message_count
+        if not isinstance(listed, int) or listed == held:
+            return
+        if held < listed and self.damage is not None:
+            return  # a damaged file: the damage error says what is missing
+        self.warnings.append(
+            f"{self.path}/metadata.yaml counts {listed} messages, the files hold {held}: it is "
+            f"stale (endo-bag reindex {self.path} rewrites it)"
+        )
 
     def _merge_topics(self) -> dict[str, TopicInfo]:
         merged: dict[str, TopicInfo] = {}
@@ -131,6 +194,28 @@ class BagReader:
     def message_count(self) -> int:
         """Messages in the (intact part of the) bag."""
         return sum(t.message_count for t in self.topics.values())
+
+    @property
+    def chunk_stats(self) -> ChunkStats:
+        """Chunk count, compression and sizes over all files (complete chunks only)."""
+        compression: dict[str, int] = {}
+        count = compressed = uncompressed = 0
+        for mcap_file in self._files:
+            stats = mcap_file.chunk_stats()
+            count += stats.count
+            compressed += stats.compressed_bytes
+            uncompressed += stats.uncompressed_bytes
+            for name, n in stats.compression.items():
+                compression[name] = compression.get(name, 0) + n
+        return ChunkStats(count, compression, compressed, uncompressed)
+
+    def definitions(self) -> dict[str, MessageDefinition]:
+        """Topic -> message definition as the bag's schemas store it (first file wins)."""
+        result: dict[str, MessageDefinition] = {}
+        for mcap_file in self._files:
+            for topic, definition in mcap_file.definitions().items():
+                result.setdefault(topic, definition)
+        return result
 
     @property
     def time_range_ns(self) -> tuple[int, int] | None:

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import functools
 import importlib
+from collections.abc import Callable
 from typing import Any
 
 from rclpy.serialization import deserialize_message, serialize_message
@@ -58,15 +59,53 @@ def deserialize(message: BagMessage) -> Any:
             yields it raw; only decoding is impossible).
         MessageDeserializationError: the bytes do not decode as that type.
     """
-    cls = message_class(message.msgtype)
+    return decode_cdr(
+        message.data, message.msgtype, where=f"{message.topic} @ {message.log_time_ns} ns"
+    )
+
+
+def decode_cdr(data: bytes, msgtype: str, *, where: str) -> Any:
+    """Decode CDR bytes as an installed type, with rclpy's own deserialisation.
+
+    Args:
+        data: The serialised message.
+        msgtype: ROS 2 type name, e.g. ``sensor_msgs/msg/Image``.
+        where: What the bytes are (a topic, a time), for the error message.
+
+    Raises:
+        UnknownMessageTypeError: the type is not installed.
+        MessageDeserializationError: the bytes do not decode as that type. A
+            declared string or sequence length larger than the bytes is
+            refused before anything is allocated (rmw's typesupport checks
+            it; it also prints its own line to stderr).
+    """
+    cls = message_class(msgtype)
     try:
-        return deserialize_message(message.data, cls)
+        return deserialize_message(data, cls)
     except Exception as exc:  # rclpy raises bare RuntimeError/TypeError subclasses
         detail = str(exc).strip().splitlines()
         raise MessageDeserializationError(
-            f"{message.topic} @ {message.log_time_ns} ns: bytes are not a valid "
-            f"{message.msgtype} ({type(exc).__name__}: {detail[0] if detail else ''})"
+            f"{where}: {len(data)} bytes are not a valid {msgtype} "
+            f"({type(exc).__name__}: {detail[0] if detail else ''})"
         ) from exc
+
+
+def cdr_check(msgtype: str, where: str) -> Callable[[bytes], object]:
+    """A function that decodes bytes as ``msgtype`` and raises if they do not decode.
+
+    For checking messages that are passed on raw (endo-replay, endo-record):
+    the decoded message is discarded; decoding a 640x480 rgb8 image costs
+    about 0.1 ms.
+
+    Raises:
+        UnknownMessageTypeError: the type is not installed (raised at once).
+    """
+    message_class(msgtype)
+
+    def check(data: bytes) -> object:
+        return decode_cdr(data, msgtype, where=where)
+
+    return check
 
 
 @functools.lru_cache(maxsize=1)
