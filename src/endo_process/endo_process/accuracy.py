@@ -127,20 +127,26 @@ def metric_errors(
     return errors
 
 
-def read_scale_stream(path: Path) -> tuple[np.ndarray, np.ndarray]:
-    """((K,) int64 stamps, (K,) float64 scale) of the scale topic (NaN while unusable)."""
-    stamps: list[int] = []
-    values: list[float] = []
+def read_scale_stream(path: Path, *, with_std: bool = False) -> tuple[np.ndarray, ...]:
+    """((K,) int64 stamps, (K,) float64 scale[, (K,) std of ln s]) of the scale topic.
+
+    The scale is NaN before the first observation.
+    """
+    rows: list[tuple[int, float, float]] = []
     with BagReader(path) as reader:
         if topics.SCALE in reader.topics:
             for message in reader.messages([topics.SCALE]):
                 msg = deserialize(message)
-                stamps.append(stamp_to_ns(msg.header.stamp))
-                values.append(float(msg.vector.x))
-    return np.asarray(stamps, np.int64), np.asarray(values, np.float64)
+                rows.append((stamp_to_ns(msg.header.stamp), msg.vector.x, msg.vector.y))
+    stamps = np.asarray([r[0] for r in rows], np.int64)
+    scale = np.asarray([r[1] for r in rows], np.float64)
+    if with_std:
+        return stamps, scale, np.asarray([r[2] for r in rows], np.float64)
+    return stamps, scale
 
 
-def _messages_at(path: Path, topic: str, stamps: set[int]) -> dict[int, object]:
+def messages_at(path: Path, topic: str, stamps: set[int]) -> dict[int, object]:
+    """Header stamp -> the decoded message of ``topic`` with one of ``stamps`` (others skipped)."""
     found: dict[int, object] = {}
     with BagReader(path) as reader:
         if topic in reader.topics:
@@ -152,32 +158,46 @@ def _messages_at(path: Path, topic: str, stamps: set[int]) -> dict[int, object]:
     return found
 
 
+def cloud_distances(
+    points: np.ndarray, true_depth: np.ndarray, camera: CameraModel, T_world_camera: np.ndarray
+) -> np.ndarray:
+    """Distance (m) of each world point to the true surface of one frame.
+
+    points: (N, 3) world points (non-finite rows are dropped); true_depth:
+    (H, W) metres; camera: its model; T_world_camera: (4, 4) the true pose.
+    Returns (N',) distances to the nearest true point (the truth is dense, one
+    point per pixel, so this is the distance to the surface to within a pixel
+    footprint), for the finite points; empty when either side is.
+    """
+    points = np.asarray(points, np.float64).reshape(-1, 3)
+    points = points[np.isfinite(points).all(axis=1)]
+    local = camera.depth_to_points(true_depth).reshape(-1, 3)
+    truth = transform_points(T_world_camera, local[np.isfinite(local).all(axis=1)])
+    if len(points) == 0 or len(truth) == 0:
+        return np.empty(0)
+    distance, _ = cKDTree(truth).query(points)
+    return np.asarray(distance, np.float64)
+
+
 def cloud_rms_at_truth(path: Path, truths: dict[int, np.ndarray]) -> dict[int, float]:
     """RMS distance (m) of each frame's world points to that frame's true surface.
 
-    The true surface is the true depth through the frame's camera model
-    (``CameraModel.depth_to_points``) and its true pose; each estimated
-    point's distance is to the nearest true point (the truth is dense, one
-    point per pixel, so this is the distance to the surface to within a
-    pixel footprint). Frames without points, camera_info or true pose are
-    left out.
+    The true surface is the true depth through the frame's camera model and
+    its true pose (:func:`cloud_distances`). Frames without points,
+    camera_info or true pose are left out.
     """
     stamps = set(truths)
-    clouds = _messages_at(path, topics.POINTS, stamps)
-    infos = _messages_at(path, topics.CAMERA_INFO, stamps)
+    clouds = messages_at(path, topics.POINTS, stamps)
+    infos = messages_at(path, topics.CAMERA_INFO, stamps)
     true_stamps, true_poses = read_pose_stream(path, topics.TRUE_CAMERA_POSE)
     poses = dict(zip(true_stamps.tolist(), true_poses, strict=True))
     rms: dict[int, float] = {}
     for stamp in sorted(set(clouds) & set(infos) & set(poses)):
         points, _ = pointcloud2_to_xyz(clouds[stamp])
-        points = points.reshape(-1, 3)
-        points = points[np.isfinite(points).all(axis=1)]
         camera = CameraModel.from_camera_info(infos[stamp])
-        local = camera.depth_to_points(truths[stamp]).reshape(-1, 3)
-        truth = transform_points(poses[stamp], local[np.isfinite(local).all(axis=1)])
-        if len(points) == 0 or len(truth) == 0:
+        distance = cloud_distances(points, truths[stamp], camera, poses[stamp])
+        if len(distance) == 0:
             continue
-        distance, _ = cKDTree(truth).query(points)
         rms[stamp] = float(np.sqrt(np.mean(distance**2)))
     return rms
 

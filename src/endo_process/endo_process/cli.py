@@ -25,8 +25,9 @@ from types import FrameType
 
 from endo_io.bag import BagError
 from endo_io.errors import Endo3dError
-from endo_process.accuracy import score_recording
+from endo_process.accuracy import Accuracy, score_recording
 from endo_process.inputs import InputTopics
+from endo_process.report import write_report_figure
 from endo_process.runner import ProcessOptions, ProcessReport, process_bag
 from endo_process.summary import format_report, summary_document
 
@@ -66,6 +67,9 @@ def build_parser() -> argparse.ArgumentParser:
                         help="consecutive frames per worker chunk with --jobs > 1")
     parser.add_argument("--compression", choices=("zstd", "lz4", "none"), default="lz4",
                         help="output chunk compression (default lz4: fast)")
+    parser.add_argument("--report", type=Path,
+                        help="draw a figure of the run (PNG): frames, errors, cloud, scale, "
+                        "calibration")
     parser.add_argument("--summary-json", type=Path,
                         help="also write every summary figure to this JSON file")
     parser.add_argument("--max-frames", type=int, help="process only the first N images")
@@ -140,6 +144,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     if report.frames_shaded and not report.interrupted:
         accuracy = score_recording(options.output)
     print(format_report(report, accuracy))
+    if args.report is not None and report.frames_shaded:
+        write_report_figure(options.output, accuracy or Accuracy(), options.calibration,
+                            args.report)  # fmt: skip
     if args.summary_json is not None:
         document = summary_document(report, accuracy)
         args.summary_json.write_text(json.dumps(document, indent=1, allow_nan=False) + "\n")

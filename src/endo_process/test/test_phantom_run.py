@@ -16,6 +16,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import matplotlib.pyplot as plt
 import numpy as np
 import pytest
 
@@ -23,6 +24,7 @@ from endo_bringup.evaluation import read_depth_frames
 from endo_io import topics
 from endo_io.bag import BagReader
 from endo_process.accuracy import read_scale_stream, score_recording
+from endo_process.report import write_report_figure
 from endo_process.runner import ProcessOptions, ProcessReport, process_bag
 from endo_process.summary import summary_document
 
@@ -91,6 +93,16 @@ def test_accuracy_against_the_ground_truth(full_run: tuple[ProcessReport, Path])
     assert document["accuracy"]["metric_abs_rel_mean"] == pytest.approx(metric)
     assert document["accuracy"]["pose"]["compared"] == 89
     assert len(document["accuracy"]["scale"]["value"]) == 90
+
+
+def test_report_figure(
+    full_run: tuple[ProcessReport, Path], calibrations: tuple[Path, Path], tmp_path: Path
+) -> None:
+    figure = write_report_figure(full_run[1], score_recording(full_run[1]), calibrations[0],
+                                 tmp_path / "report.png")  # fmt: skip
+    image = plt.imread(figure)
+    assert image.shape[0] > 600 and image.shape[1] > 1200
+    assert image[..., :3].std() > 0.1  # drawn, not blank
 
 
 def test_one_and_two_jobs_agree_to_the_solver_tolerance(

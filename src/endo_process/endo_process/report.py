@@ -1,0 +1,159 @@
+"""``endo-process --report report.png``: one figure of a scored run.
+
+Panels (matplotlib, Agg):
+
+* top row, the last frame that has ground truth and metric depth: the
+  corrected image, the relative depth, the metric depth, and the error map
+  ``|depth − truth| / truth``;
+* bottom left, that frame's world points in 3-D, coloured by their distance
+  to the true surface (:func:`endo_process.accuracy.cloud_distances`);
+* bottom middle, the scale over time with its ±1σ band (``exp(±std ln s)``)
+  and the oracle scale;
+* bottom right, the photometric calibration: the inverse response g(v) and
+  the light map L(x).
+
+Without ground truth the truth panels say so and the rest is drawn.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt
+import numpy as np
+
+from endo_bringup.evaluation import read_depth_frames, read_pose_stream
+from endo_calib.calibration import PhotometricCalibration
+from endo_io import topics
+from endo_io.camera import CameraModel
+from endo_io.pointcloud import pointcloud2_to_xyz
+from endo_process.accuracy import Accuracy, cloud_distances, messages_at, read_scale_stream
+
+
+def _frame_stamp(accuracy: Accuracy) -> int | None:
+    for errors in (accuracy.metric, accuracy.relative):
+        if errors:
+            return max(errors)
+    return None
+
+
+def _range(image: np.ndarray | None) -> dict[str, float]:
+    """Colour limits at the 2nd and 98th percentiles (the far lumen would take the scale)."""
+    if image is None or not np.isfinite(image).any():
+        return {}
+    low, high = np.nanpercentile(image, [2.0, 98.0])
+    return {"vmin": float(low), "vmax": float(high)}
+
+
+def _image(axis: Any, image: np.ndarray | None, title: str, **style: Any) -> None:
+    axis.set_title(title, fontsize=9)
+    axis.axis("off")
+    if image is None:
+        axis.text(0.5, 0.5, "not available", ha="center", va="center", transform=axis.transAxes)
+        return
+    shown = axis.imshow(image, **style)
+    plt.colorbar(shown, ax=axis, fraction=0.046, pad=0.02)
+
+
+def write_report_figure(
+    recording: Path, accuracy: Accuracy, calibration: Path, path: Path
+) -> Path:
+    """Draw the figure of a run's output ``recording`` into ``path`` (PNG); returns ``path``."""
+    figure = plt.figure(figsize=(16, 8.5), constrained_layout=True)
+    grid = figure.add_gridspec(2, 4)
+    stamp = _frame_stamp(accuracy)
+    frames: dict[str, np.ndarray | None] = dict.fromkeys(
+        ("image", "relative", "metric", "truth"), None
+    )
+    if stamp is not None:
+        for key, topic in (("image", topics.IMAGE_CORRECTED), ("relative", topics.DEPTH_RELATIVE),
+                           ("metric", topics.DEPTH), ("truth", topics.TRUE_DEPTH)):  # fmt: skip
+            frames[key] = read_depth_frames(recording, topic, {stamp}).get(stamp)
+    first = read_scale_stream(recording)[0]
+    start = int(first[0]) if len(first) else (stamp or 0)
+    when = "" if stamp is None else f", t = {(stamp - start) / 1e9:.2f} s"
+    _image(figure.add_subplot(grid[0, 0]), frames["image"], f"corrected image{when}", cmap="gray")
+    _image(figure.add_subplot(grid[0, 1]), frames["relative"], "relative depth (SFS)",
+           cmap="viridis", **_range(frames["relative"]))  # fmt: skip
+    metric, truth = frames["metric"], frames["truth"]
+    _image(figure.add_subplot(grid[0, 2]), metric, "metric depth (m)", cmap="viridis",
+           **_range(truth if truth is not None else metric))  # fmt: skip
+    error = None
+    if metric is not None and truth is not None:
+        with np.errstate(invalid="ignore", divide="ignore"):
+            error = np.abs(metric - truth) / truth
+    title = "|depth − truth| / truth"
+    if stamp is not None and stamp in accuracy.metric:
+        title += f" (AbsRel {accuracy.metric[stamp].abs_rel:.3f})"
+    _image(figure.add_subplot(grid[0, 3]), error, title, cmap="magma", vmin=0.0, vmax=0.3)
+
+    cloud_axis = figure.add_subplot(grid[1, 0:2], projection="3d")
+    _cloud_panel(cloud_axis, recording, stamp, truth)
+    _scale_panel(figure.add_subplot(grid[1, 2]), recording, accuracy)
+    _calibration_panel(figure, grid[1, 3], calibration)
+    figure.suptitle(f"endo-process: {Path(recording).name}", fontsize=12)
+    figure.savefig(path, dpi=90)
+    plt.close(figure)
+    return Path(path)
+
+
+def _cloud_panel(axis: Any, recording: Path, stamp: int | None, truth: np.ndarray | None) -> None:
+    axis.set_title("world points of that frame, distance to the true surface (mm)", fontsize=9)
+    if stamp is None:
+        return
+    cloud = messages_at(recording, topics.POINTS, {stamp}).get(stamp)
+    info = messages_at(recording, topics.CAMERA_INFO, {stamp}).get(stamp)
+    true_stamps, true_poses = read_pose_stream(recording, topics.TRUE_CAMERA_POSE)
+    if cloud is None or info is None or truth is None or stamp not in set(true_stamps.tolist()):
+        axis.text2D(0.5, 0.5, "not available", ha="center", transform=axis.transAxes)
+        return
+    points, _ = pointcloud2_to_xyz(cloud)
+    points = points.reshape(-1, 3)
+    points = points[np.isfinite(points).all(axis=1)]
+    pose = true_poses[true_stamps.tolist().index(stamp)]
+    distance = cloud_distances(points, truth, CameraModel.from_camera_info(info), pose)
+    shown = axis.scatter(*(points * 1e3).T, c=distance * 1e3, s=0.5, cmap="turbo", vmin=0.0,
+                         vmax=max(1e-3, float(np.percentile(distance * 1e3, 98))))  # fmt: skip
+    axis.set_xlabel("x (mm)")
+    axis.set_ylabel("y (mm)")
+    axis.set_zlabel("z (mm)")
+    plt.colorbar(shown, ax=axis, fraction=0.03, pad=0.08)
+
+
+def _scale_panel(axis: Any, recording: Path, accuracy: Accuracy) -> None:
+    axis.set_title("scale over time", fontsize=9)
+    stamps, scale, log_std = read_scale_stream(recording, with_std=True)
+    if len(stamps) == 0:
+        axis.text(0.5, 0.5, "no scale topic", ha="center", transform=axis.transAxes)
+        return
+    t = (stamps - stamps[0]) / 1e9
+    axis.plot(t, scale, color="C0", label="estimate")
+    axis.fill_between(t, scale * np.exp(-log_std), scale * np.exp(log_std), color="C0",
+                      alpha=0.25, label="±1σ")  # fmt: skip
+    if np.isfinite(accuracy.oracle_scale):
+        axis.axhline(accuracy.oracle_scale, color="k", ls="--", label="oracle (truth)")
+        finite = scale[np.isfinite(scale)]
+        if len(finite):
+            span = np.percentile(np.abs(finite / accuracy.oracle_scale - 1.0), 95)
+            margin = accuracy.oracle_scale * max(0.05, 1.3 * span)
+            axis.set_ylim(accuracy.oracle_scale - margin, accuracy.oracle_scale + margin)
+    axis.set_xlabel("time (s)")
+    axis.set_ylabel("metres per unit of relative depth")
+    axis.legend(fontsize=8)
+
+
+def _calibration_panel(figure: Any, cell: Any, calibration: Path) -> None:
+    inner = cell.subgridspec(2, 1)
+    response, light = figure.add_subplot(inner[0]), figure.add_subplot(inner[1])
+    cal = PhotometricCalibration.load(calibration)
+    g = cal.inverse_response
+    response.plot(np.arange(len(g)), g if g.ndim == 1 else g[:, 1])
+    response.set_title("calibration: inverse response g(v)", fontsize=9)
+    response.set_xlabel("raw value")
+    response.set_ylabel("irradiance")
+    light_map = cal.light_map if cal.light_map.ndim == 2 else cal.light_map[..., 1]
+    _image(light, light_map, "light map L(x)", cmap="inferno", vmin=0.0, vmax=1.0)
