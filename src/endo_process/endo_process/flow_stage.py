@@ -8,21 +8,24 @@ the scale is usable), ``/endoscope/points`` (the frame's world points,
 PointCloud2 in ``world``, grey as rgb), ``/endoscope/scale`` and, at the end,
 ``/endoscope/map`` (the fused voxel map's last state).
 
-The scale message is ``geometry_msgs/Vector3Stamped``: x = s (metres per
-unit of depth_relative, NaN before the first observation), y = the standard
-deviation of ln s, z = the filter state (``endo_flow.scale.ScaleState``
-value); ``header.frame_id`` is the optical frame.
+The messages are the ``flow`` node's (``endo_flow.node``): the scale is
+``geometry_msgs/Vector3Stamped`` with x = s (metres per unit of
+depth_relative, NaN before the first observation), y = the standard
+deviation of ln s (inf while unknown), z = the filter state
+(``endo_flow.scale.ScaleState`` value), the image's header; the clouds carry
+the grey level as rgb; the map holds the voxels fused from at least
+``map_min_count`` points.
 """
 
 from __future__ import annotations
 
-import dataclasses
 from typing import Any
 
 import numpy as np
 from geometry_msgs.msg import Vector3Stamped
 from sensor_msgs.msg import PointCloud2
 
+from endo_flow.node import pipeline_options
 from endo_flow.pipeline import FlowFrame, FlowOptions, FlowOutput, FlowPipeline
 from endo_flow.scale import ScaleEstimate
 from endo_io.pointcloud import xyz_to_pointcloud2
@@ -32,17 +35,13 @@ from endo_process.shading import ShadedFrame
 
 
 def flow_options(values: dict[str, Any]) -> FlowOptions:
-    """FlowOptions with the parameter file's ``flow`` values (its scalar fields by name).
+    """The FlowOptions the flow node builds from its parameters (``pipeline_options``).
 
     Raises:
-        ParameterFileError: a name FlowOptions does not have, or a value it refuses.
+        ParameterFileError: a value the options refuse.
     """
-    fields = {f.name for f in dataclasses.fields(FlowOptions)}
-    unknown = sorted(set(values) - fields)
-    if unknown:
-        raise ParameterFileError(f"flow: no parameter {unknown[0]!r}")
     try:
-        return FlowOptions(**values)
+        return pipeline_options(values)
     except (TypeError, ValueError) as error:
         raise ParameterFileError(f"flow: {error}") from None
 
@@ -52,8 +51,8 @@ def scale_message(estimate: ScaleEstimate, stamp_ns: int, frame_id: str) -> Vect
     msg = Vector3Stamped()
     msg.header.stamp = ns_to_stamp(stamp_ns)
     msg.header.frame_id = frame_id
-    msg.vector.x = float(estimate.value)
-    msg.vector.y = float(estimate.log_std)
+    msg.vector.x = float(estimate.value) if np.isfinite(estimate.value) else float("nan")
+    msg.vector.y = float(estimate.log_std) if np.isfinite(estimate.log_std) else float("inf")
     msg.vector.z = float(int(estimate.state))
     return msg
 
@@ -69,8 +68,9 @@ def grey_cloud(points: np.ndarray, grey: np.ndarray, stamp_ns: int, frame_id: st
 class FlowStage:
     """One FlowPipeline over the shaded frames, in stamp order."""
 
-    def __init__(self, options: FlowOptions) -> None:
+    def __init__(self, options: FlowOptions, map_min_count: int = 1) -> None:
         self.pipeline = FlowPipeline(options)
+        self.map_min_count = map_min_count
 
     def process(self, shaded: ShadedFrame, T_world_camera: np.ndarray | None) -> FlowOutput:
         """Run the pipeline on one frame (raises the pipeline's errors: see FlowPipeline)."""
@@ -86,5 +86,5 @@ class FlowStage:
         voxel_map = self.pipeline.voxel_map
         if voxel_map is None or len(voxel_map) == 0:
             return None
-        cloud = voxel_map.points()
+        cloud = voxel_map.points(self.map_min_count)
         return grey_cloud(cloud.points, cloud.grey, stamp_ns, frame_id)

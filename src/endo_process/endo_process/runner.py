@@ -35,6 +35,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+from geometry_msgs.msg import PoseStamped
 from sensor_msgs.msg import Image
 
 from endo_calib.calibration import PhotometricCalibration
@@ -43,7 +44,7 @@ from endo_io import topics
 from endo_io.bag import BagMessage, BagReader
 from endo_io.errors import Endo3dError, PoseLookupError
 from endo_io.image import array_to_image, image_to_array
-from endo_io.pose import matrix_to_pose
+from endo_io.pose import matrix_to_pose, pose_to_matrix
 from endo_io.pose_buffer import PoseBuffer
 from endo_io.stamp import NS_PER_S, stamp_to_ns
 from endo_process.errors import ProcessInputError
@@ -174,20 +175,25 @@ def camera_poses(
 
 
 class _PoseFeed:
-    """Feeds a PoseBuffer in stamp order up to just past each query, as poses arrive live."""
+    """Feeds a PoseBuffer in stamp order up to just past each query, as poses arrive live.
 
-    def __init__(self, poses: list[CameraPose]) -> None:
-        self._poses = sorted(poses, key=lambda p: p.stamp_ns)
+    It takes the ``/endoscope/pose`` messages themselves through
+    ``pose_to_matrix``, as the flow node does, into a buffer made as the flow
+    node makes it (capacity 6000, its ``pose_max_gap_s``).
+    """
+
+    def __init__(self, messages: list[PoseStamped], max_gap_ns: int) -> None:
+        poses = [pose_to_matrix(m) for m in messages]
+        self._poses = sorted(((stamp, T) for T, stamp in poses), key=lambda p: p[0])
         self._next = 0
-        self.buffer = PoseBuffer()
+        self.buffer = PoseBuffer(capacity=6000, max_gap_ns=max_gap_ns)
 
     def at(self, stamp_ns: int) -> np.ndarray:
         """T_world_camera at ``stamp_ns``; raises PoseLookupError when there is none."""
         while self._next < len(self._poses):
-            pose = self._poses[self._next]
             if self.buffer.newest_ns is not None and self.buffer.newest_ns > stamp_ns:
                 break
-            self.buffer.insert(pose.stamp_ns, pose.T_world_camera)
+            self.buffer.insert(*self._poses[self._next])
             self._next += 1
         return self.buffer.query(stamp_ns)
 
@@ -321,12 +327,13 @@ def process_bag(options: ProcessOptions, stop: threading.Event | None = None) ->
     with BagReader(options.bag) as reader:
         copied = {name: reader.topics[name] for name in inputs.ground_truth}
     output = OutputBag(options.output, options.compression, copied)
-    world_frame = str(settings.bridge["world_frame"])
+    pose_frame = str(settings.bridge["world_frame"])
     tracker_frame = str(settings.bridge["tracker_frame"])
+    world_frame = str(settings.flow["world_frame"])
+    pose_messages: list[PoseStamped] = []
     for pose in poses:
-        output.hold(topics.CAMERA_POSE,
-                    matrix_to_pose(pose.T_world_camera, pose.stamp_ns, world_frame),
-                    pose.stamp_ns)  # fmt: skip
+        pose_messages.append(matrix_to_pose(pose.T_world_camera, pose.stamp_ns, pose_frame))
+        output.hold(topics.CAMERA_POSE, pose_messages[-1], pose.stamp_ns)
         output.hold(topics.MARKER_POSE,
                     matrix_to_pose(pose.sample.T_tracker_marker, pose.sample.stamp_ns,
                                    tracker_frame),
@@ -334,8 +341,11 @@ def process_bag(options: ProcessOptions, stop: threading.Event | None = None) ->
     report.poses_written = len(poses)
     config = StageConfig(options.calibration, settings.channel, settings.sfs)
     stage = ShadingStage(photometric, settings.channel, settings.sfs) if options.jobs == 1 else None
-    feed = _PoseFeed(poses)
-    flow = FlowStage(flow_options(settings.flow))
+    feed = _PoseFeed(
+        pose_messages,
+        round(float(settings.flow["pose_max_gap_s"]) * NS_PER_S),
+    )
+    flow = FlowStage(flow_options(settings.flow), int(settings.flow["map_min_count"]))
     truth: Iterator[BagMessage] = iter_ground_truth(inputs)
     truth_pending: list[BagMessage] = []
     total = inputs.frame_count if options.max_frames is None else min(

@@ -31,6 +31,7 @@ from typing import Any
 import numpy as np
 import yaml
 
+from endo_flow.node import PARAMETERS as FLOW_PARAMETERS
 from endo_process.errors import ParameterFileError
 from endo_sfs.errors import SfsError
 from endo_sfs.node import PARAMETERS as SFS_PARAMETERS
@@ -63,6 +64,8 @@ BRIDGE_DEFAULTS: dict[str, Any] = {
 #: The SFS node's parameters that are :class:`SfsOptions` fields of the same name
 #: (the node builds its options from exactly these).
 SFS_DEFAULTS: dict[str, Any] = {spec.name: spec.default for spec in SFS_PARAMETERS}
+#: The flow node's parameters (``endo_flow.node.PARAMETERS``) and their defaults.
+FLOW_DEFAULTS: dict[str, Any] = {spec.name: spec.default for spec in FLOW_PARAMETERS}
 SFS_OPTION_PARAMETERS = tuple(
     f.name for f in dataclasses.fields(SfsOptions) if f.name in SFS_DEFAULTS
 )
@@ -124,8 +127,7 @@ class ProcessSettings:
         channel: the correction node's ``channel``.
         sfs: the SFS node's parameters (name -> value), every one of them.
         bridge: the tracker bridge's parameters for a ``ros`` source.
-        flow: the flow node's parameters given in the file (its defaults
-            are the flow package's own).
+        flow: the flow node's parameters, every one of them.
     """
 
     channel: str = "luminance"
@@ -133,7 +135,7 @@ class ProcessSettings:
         default_factory=lambda: dict(SFS_DEFAULTS)
     )
     bridge: dict[str, Any] = field(default_factory=lambda: dict(BRIDGE_DEFAULTS))
-    flow: dict[str, Any] = field(default_factory=dict)
+    flow: dict[str, Any] = field(default_factory=lambda: dict(FLOW_DEFAULTS))
 
     @property
     def sfs_options(self) -> SfsOptions:
@@ -172,7 +174,7 @@ def load_settings(path: Path | None, *, solve_scale: float | None = None) -> Pro
         channel=str(_node_values(nodes, CORRECTION_NODE, CORRECTION_DEFAULTS, where)["channel"]),
         sfs=_node_values(nodes, SFS_NODE, SFS_DEFAULTS, where),
         bridge=_node_values(nodes, BRIDGE_NODE, BRIDGE_DEFAULTS, where),
-        flow=dict(nodes.get(FLOW_NODE, {})),
+        flow=_node_values(nodes, FLOW_NODE, FLOW_DEFAULTS, where),
     )
     if solve_scale is not None:
         settings.sfs["solve_scale"] = float(solve_scale)

@@ -1,11 +1,12 @@
 """endo-process gives what the live nodes' own code gives, frame by frame.
 
-The three nodes are built in this process (real rclpy nodes with their real
+The four nodes (correction, SFS, tracker bridge, flow) are built in this process (real rclpy nodes with their real
 parameters) and fed the phantom bag's messages by calling their subscription
 callbacks directly, in bag order; their publishers are captured. The
 offline run of the same frames must match: corrected images bit for bit,
 relative depth bit for bit (one solver thread on both sides, which the
-solver makes bit-reproducible), camera poses exactly.
+solver makes bit-reproducible), camera poses exactly, and the flow node's
+metric depth and scale bit for bit.
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ import rclpy
 from rclpy.parameter import Parameter
 
 from endo_calib.node import PhotometricCorrectionNode
+from endo_flow.node import FlowNode
 from endo_io import topics
 from endo_io.bag import BagReader, deserialize
 from endo_io.image import image_to_array
@@ -31,7 +33,7 @@ from endo_tracker_bridge.node import TrackerBridgeNode
 
 from .conftest import PHANTOM
 
-FRAMES = 8
+FRAMES = 24  # the scale becomes usable (and metric depth appears) after ~15 frames
 
 pytestmark = pytest.mark.ros
 
@@ -81,6 +83,7 @@ def _live_outputs(photometric: Path, handeye: Path, params: Path) -> dict[str, d
         on_info = _callback(sfs, topics.CAMERA_INFO)
         on_pose = _callback(bridge, topics.TRACKER_POSE)
         images = 0
+        infos: dict[int, Any] = {}
         with BagReader(PHANTOM) as reader:
             for message in reader.messages(
                 [topics.IMAGE_RAW, topics.CAMERA_INFO, topics.TRACKER_POSE]
@@ -89,6 +92,7 @@ def _live_outputs(photometric: Path, handeye: Path, params: Path) -> dict[str, d
                 if message.topic == topics.TRACKER_POSE:
                     on_pose(msg)
                 elif message.topic == topics.CAMERA_INFO:
+                    infos[stamp_to_ns(msg.header.stamp)] = msg
                     if images <= FRAMES:
                         on_info(msg)
                 elif images < FRAMES:
@@ -97,7 +101,19 @@ def _live_outputs(photometric: Path, handeye: Path, params: Path) -> dict[str, d
                     on_raw(msg)
                     for out in corrected[before:]:
                         on_corrected(out)
-        for node in (correction, sfs, bridge):
+        # The flow node gets the bridge's poses, then each frame's three messages.
+        flow = FlowNode(context=context)
+        metric = _capture(flow.depth_pub)
+        scale = _capture(flow.scale_pub)
+        for pose in poses:
+            _callback(flow, topics.CAMERA_POSE)(pose)
+        depth_by_stamp = {stamp_to_ns(m.header.stamp): m for m in depth}
+        for image in corrected:
+            stamp = stamp_to_ns(image.header.stamp)
+            _callback(flow, topics.CAMERA_INFO)(infos[stamp])
+            _callback(flow, topics.IMAGE_CORRECTED)(image)
+            _callback(flow, topics.DEPTH_RELATIVE)(depth_by_stamp[stamp])
+        for node in (correction, sfs, bridge, flow):
             node.destroy_node()
     finally:
         rclpy.shutdown(context=context)
@@ -105,12 +121,16 @@ def _live_outputs(photometric: Path, handeye: Path, params: Path) -> dict[str, d
         "corrected": {stamp_to_ns(m.header.stamp): image_to_array(m) for m in corrected},
         "depth": {stamp_to_ns(m.header.stamp): image_to_array(m) for m in depth},
         "poses": {stamp_to_ns(m.header.stamp): pose_to_matrix(m)[0] for m in poses},
+        "metric": {stamp_to_ns(m.header.stamp): image_to_array(m) for m in metric},
+        "scale": {stamp_to_ns(m.header.stamp): (m.vector.x, m.vector.y, m.vector.z)
+                  for m in scale},
     }
 
 
 def _offline_outputs(path: Path) -> dict[str, dict[int, Any]]:
     wanted = {topics.IMAGE_CORRECTED: "corrected", topics.DEPTH_RELATIVE: "depth",
-              topics.CAMERA_POSE: "poses"}  # fmt: skip
+              topics.CAMERA_POSE: "poses", topics.DEPTH: "metric",
+              topics.SCALE: "scale"}  # fmt: skip
     out: dict[str, dict[int, Any]] = {name: {} for name in wanted.values()}
     with BagReader(path) as reader:
         for message in reader.messages(list(wanted)):
@@ -118,6 +138,8 @@ def _offline_outputs(path: Path) -> dict[str, dict[int, Any]]:
             stamp = stamp_to_ns(msg.header.stamp)
             if message.topic == topics.CAMERA_POSE:
                 out["poses"][stamp] = pose_to_matrix(msg)[0]
+            elif message.topic == topics.SCALE:
+                out["scale"][stamp] = (msg.vector.x, msg.vector.y, msg.vector.z)
             else:
                 out[wanted[message.topic]][stamp] = image_to_array(msg)
     return out
@@ -153,3 +175,12 @@ def test_offline_run_matches_the_live_nodes_frame_by_frame(
     assert sorted(offline["poses"]) == sorted(live["poses"])
     for stamp, pose in live["poses"].items():
         np.testing.assert_allclose(offline["poses"][stamp], pose, rtol=0, atol=1e-12)
+    # The flow step: the flow node's own metric depth and scale, frame by frame.
+    assert len(live["scale"]) == FRAMES
+    assert sorted(offline["scale"]) == sorted(live["scale"])
+    for stamp, value in live["scale"].items():
+        np.testing.assert_array_equal(offline["scale"][stamp], value)
+    assert len(live["metric"]) >= 5
+    assert sorted(offline["metric"]) == sorted(live["metric"])
+    for stamp, depth in live["metric"].items():
+        np.testing.assert_array_equal(offline["metric"][stamp], depth)
