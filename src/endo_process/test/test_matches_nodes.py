@@ -1,8 +1,9 @@
 """endo-process gives what the live nodes' own code gives, frame by frame.
 
-The four nodes (correction, SFS, tracker bridge, flow) are built in this process (real rclpy nodes with their real
-parameters) and fed the phantom bag's messages by calling their subscription
-callbacks directly, in bag order; their publishers are captured. The
+The four nodes (correction, SFS, tracker bridge, flow) are built in this
+process (real rclpy nodes with their real parameters) and fed the phantom
+bag's messages by calling their subscription callbacks directly, in bag
+order; their publishers are captured. The
 offline run of the same frames must match: corrected images bit for bit,
 relative depth bit for bit (one solver thread on both sides, which the
 solver makes bit-reproducible), camera poses exactly, and the flow node's
