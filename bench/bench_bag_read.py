@@ -16,6 +16,7 @@ Run by hand: ``.venv/bin/python bench/bench_bag_read.py``.
 
 from __future__ import annotations
 
+import os
 import platform
 import tempfile
 import time
@@ -25,6 +26,7 @@ import numpy as np
 from machine import cpu_model
 from mcap.reader import make_reader
 from rclpy.serialization import serialize_message
+from results import BENCHMARKS, replace_section
 from sensor_msgs.msg import Image
 
 from endo_io.bag import BagReader, BagWriter
@@ -33,7 +35,6 @@ FRAMES = 200
 HEIGHT, WIDTH = 480, 640
 REPEATS = 3
 SECTION = "## endo_io bag reading and writing"
-BENCHMARKS = Path(__file__).resolve().parents[1] / "docs" / "benchmarks.md"
 
 
 def make_payloads() -> list[bytes]:
@@ -136,23 +137,15 @@ def main() -> None:
     print(table)
     section = (
         f"{SECTION}\n\n"
-        f"`bench/bench_bag_read.py`, 2026-11-22, {machine()}, Python {platform.python_version()}.\n"
+        f"`bench/bench_bag_read.py`, {time.strftime('%Y-%m-%d')}, {machine()}, "
+        f"load average {os.getloadavg()[0]:.1f} at the end, Python {platform.python_version()}.\n"
         f"{FRAMES} frames of {WIDTH}x{HEIGHT} rgb8 (sensor_msgs/Image CDR, "
         f"{payload_mb:.0f} MB of payload), 1 MiB chunks, best of {REPEATS}. "
         "MB/s = payload bytes / wall time; raw mcap = `make_reader(f).iter_messages()` "
         "(log-time order, no decoding).\n\n"
         f"{table}\n"
     )
-    # Re-read right before editing: other benches append to the same file.
-    text = BENCHMARKS.read_text(encoding="utf-8") if BENCHMARKS.exists() else "# Benchmarks\n"
-    if SECTION in text:
-        start = text.index(SECTION)
-        following = text.find("\n## ", start + len(SECTION))
-        end = len(text) if following < 0 else following + 1
-        text = text[:start] + section + ("\n" + text[end:] if following >= 0 else "")
-    else:
-        text = text.rstrip("\n") + "\n\n" + section
-    BENCHMARKS.write_text(text, encoding="utf-8")
+    replace_section(section, SECTION)
     print(f"updated {BENCHMARKS}")
 
 

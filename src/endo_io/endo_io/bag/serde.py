@@ -95,7 +95,7 @@ def cdr_check(msgtype: str, where: str) -> Callable[[bytes], object]:
 
     For checking messages that are passed on raw (endo-replay, endo-record):
     the decoded message is discarded; decoding a 640x480 rgb8 image costs
-    about 0.1 ms.
+    about 0.06 ms (bench/bench_bag_checks.py).
 
     Raises:
         UnknownMessageTypeError: the type is not installed (raised at once).
