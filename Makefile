@@ -7,6 +7,7 @@ PYTHON ?= python3
 VENV := .venv
 VBIN := $(VENV)/bin
 STAMP := $(VENV)/.endo3d-installed
+KERNELS := $(VENV)/.endo3d-kernels
 PACKAGES := $(sort $(patsubst %/setup.py,%,$(wildcard src/*/setup.py)))
 
 # DDS stays on this machine: Fast DDS's default discovery multicasts on every
@@ -41,14 +42,22 @@ $(STAMP): $(VBIN)/python requirements.txt constraints.txt $(wildcard src/*/setup
 	@touch $@
 	@echo "endo3d: environment ready in $(VENV)"
 
-venv: $(STAMP)
+# The SFS solver's numba kernels, compiled once into the kernel cache
+# (~/.cache/endo3d/numba, or NUMBA_CACHE_DIR; see endo_io.kernel_cache) after
+# installing and again when their sources change: about 20 s of CPU the first
+# time, a second to check after that. Nodes then start without compiling.
+$(KERNELS): $(STAMP) $(wildcard src/endo_sfs/endo_sfs/*.py)
+	$(VBIN)/python -m endo_sfs.warm_up
+	@touch $@
+
+venv: $(STAMP) $(KERNELS)
 
 demo: export ROS_DOMAIN_ID := $(DEMO_DOMAIN_ID)
-demo: $(STAMP)
+demo: $(STAMP) $(KERNELS)
 	$(VBIN)/endo-demo
 
 test: export ROS_DOMAIN_ID := $(TEST_DOMAIN_ID)
-test: $(STAMP)
+test: $(STAMP) $(KERNELS)
 	$(VBIN)/python -m pytest
 
 # The fuzz tests of untrusted input (bags, CDR messages) with a large budget.
@@ -64,7 +73,7 @@ lint: $(STAMP)
 	$(VBIN)/mypy $(foreach p,$(PACKAGES),$(p)/$(notdir $(p)))
 
 bench: export ROS_DOMAIN_ID := $(BENCH_DOMAIN_ID)
-bench: $(STAMP)
+bench: $(STAMP) $(KERNELS)
 	@for b in bench/bench_*.py; do echo "== $$b"; $(VBIN)/python $$b || exit 1; done
 
 # Prints the DDS settings a node started by this Makefile actually gets.

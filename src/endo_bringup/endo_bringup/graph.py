@@ -154,9 +154,9 @@ class GraphSettings:
     rate: playback speed factor of the phantom bag. model, roughness,
     solve_scale: the SFS node's parameters. T_world_tracker: (4, 4) tracker
     frame → world frame (metres), the bridge's registration parameter.
-    startup_timeout_s: how long the nodes may take to come up (on a fresh
-    checkout the SFS node first compiles its numba kernels: about 8 s alone,
-    more while the other processes start);
+    startup_timeout_s: how long the nodes may take to come up (when the
+    kernel cache is empty the SFS node first compiles its numba kernels:
+    about 20 s of CPU, more while the other processes start);
     drain_timeout_s: how long to wait for the outputs after the replay ends.
     """
 

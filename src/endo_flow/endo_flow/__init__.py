@@ -7,7 +7,10 @@ step shared by the ``endo-flow`` node and the offline processor; see
 
 from typing import TYPE_CHECKING
 
+from endo_io.kernel_cache import use_kernel_cache
 from endo_io.lazy_exports import lazy_exports
+
+use_kernel_cache()  # before any kernel module is imported: see endo_io.kernel_cache
 
 if TYPE_CHECKING:
     from endo_flow.errors import FlowError, FlowInputError, NoFeaturesError

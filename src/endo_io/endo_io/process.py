@@ -9,6 +9,7 @@ that nodes holding files (the recorder) can finalise them.
 
 from __future__ import annotations
 
+import contextvars
 import os
 import sys
 from collections.abc import Callable, Sequence
@@ -94,12 +95,28 @@ def describe_parameters(node: Node) -> str:
     return "\n".join(lines)
 
 
+_describing: contextvars.ContextVar[bool] = contextvars.ContextVar("describing", default=False)
+
+
+def describing_only() -> bool:
+    """True while ``--help`` creates a node only to list its parameters.
+
+    A node whose start-up does slow work that a description does not need
+    (the SFS node loads or compiles its kernels) skips that work then.
+    """
+    return _describing.get()
+
+
 def print_node_help(factory: Callable[[], Node], argv: Sequence[str]) -> int:
     """``--help`` of a node executable: create the node once, print its parameters."""
     program = Path(argv[0]).name if argv else "node"
     rclpy.init(args=[program])
     try:
-        node = factory()
+        token = _describing.set(True)
+        try:
+            node = factory()
+        finally:
+            _describing.reset(token)
         doc = (sys.modules[type(node).__module__].__doc__ or "").strip().split("\n\n")[0]
         print(f"usage: {program} [--ros-args [-p NAME:=VALUE] [-r FROM:=TO] ...]\n")
         if doc:

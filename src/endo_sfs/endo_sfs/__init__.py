@@ -9,7 +9,13 @@ the entry point; the names below are imported on first use.
 import os
 from typing import TYPE_CHECKING
 
+from endo_io.kernel_cache import use_kernel_cache
 from endo_io.lazy_exports import lazy_exports
+
+# Compiled kernels go to ~/.cache/endo3d/numba (or NUMBA_CACHE_DIR), not beside
+# the sources; numba picks the folder when a kernel is decorated, so this runs
+# before any kernel module is imported.
+use_kernel_cache()
 
 # The solver's parallel regions (numba on OpenMP) are short and alternate
 # with single-threaded work; OpenMP's default is to keep idle workers

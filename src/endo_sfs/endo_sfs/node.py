@@ -17,9 +17,10 @@ Every frame goes through :func:`endo_sfs.relative_depth.solve`, the function
 offline tools call; with ``mask_highlights`` (default true) specular
 highlights are masked by :func:`endo_sfs.highlights.detect_highlights`.
 The near-light solve is warm-started from the previous frame. The numba
-kernels are loaded (compiled on the very first run, then from the on-disk
-cache) by a warm-up solve of a tiny synthetic image before
-the subscriptions exist, so the first real frame is not slow.
+kernels are loaded (compiled on the very first run, which the node says up
+front, then from the kernel cache) by :func:`endo_sfs.warm_up.warm_up_kernels`
+before the subscriptions exist, so the first real frame is not slow;
+``--help`` skips that.
 
 Bad input never stops the node: a wrong encoding, a camera_info of another
 size, or a frame with no usable pixel (all dark, all saturated, all NaN) is
@@ -44,7 +45,7 @@ from endo_io.diagnostics import InputHealth
 from endo_io.errors import ParameterValidationError
 from endo_io.image import array_to_image, image_to_array
 from endo_io.parameters import NodeParameters, ParameterSpec
-from endo_io.process import run_node
+from endo_io.process import describing_only, run_node
 from endo_io.qos import SENSOR_DATA_QOS, create_reliable_publisher
 from endo_io.stamp import NS_PER_S, stamp_to_ns
 from endo_io.stamp_matching import StampMatcher
@@ -52,11 +53,9 @@ from endo_sfs.errors import NoValidPixelsError, SfsError, SfsInputError
 from endo_sfs.near_light import MAX_ROUGHNESS
 from endo_sfs.options import DEFAULT_MAX_ITERATIONS, DEFAULT_TOLERANCE, MODELS, SfsOptions
 from endo_sfs.relative_depth import SfsSolution, solve, surface_normals
-from endo_sfs.synthetic import near_light_surface, render_near_light, scene_camera
+from endo_sfs.warm_up import warm_up_kernels
 
 #: Side of the synthetic image solved at start-up to load the kernels.
-_WARM_UP_SIZE = 24
-_WARM_UP_PARALLEL_SIZE = 192
 
 
 #: Every parameter of the node.
@@ -158,29 +157,6 @@ def _tolerance_ns(seconds: float) -> int:
     return round(seconds * NS_PER_S)
 
 
-def warm_up_kernels() -> float:
-    """Solve a tiny synthetic frame with every model and order; returns seconds taken.
-
-    The kernels' numba signatures depend only on dtypes, so this loads (or,
-    on a fresh checkout, compiles) exactly what real frames use.
-    """
-    start = time.perf_counter()
-    camera = scene_camera(_WARM_UP_SIZE)
-    rendering = render_near_light(camera, near_light_surface("sphere"))
-    image = rendering.irradiance.astype(np.float32)
-    for order in (1, 2, 3):
-        near_light = SfsOptions(model="near_light", order=order)
-        previous = solve(image, camera, near_light)
-        solve(image, camera, near_light, warm_start=previous)
-        solve(image, camera, SfsOptions(model="orthographic", order=order, solve_scale=0.5))
-    surface_normals(previous.depth, camera)
-    # The two-thread first pass only runs on grids of near_light.MIN_PARALLEL_NODES+.
-    camera = scene_camera(_WARM_UP_PARALLEL_SIZE)
-    image = render_near_light(camera, near_light_surface("tilted_plane")).irradiance
-    solve(image, camera, SfsOptions(model="near_light", threads=2))
-    return time.perf_counter() - start
-
-
 class SfsNode(Node):
     """Shape from shading of every matched (image_corrected, camera_info) pair."""
 
@@ -191,8 +167,9 @@ class SfsNode(Node):
             self._options = _solver_options(self.parameters.values())
         except SfsError as error:
             raise ParameterValidationError(str(error)) from None
-        seconds = warm_up_kernels()
-        self.get_logger().info(f"shape-from-shading kernels ready in {seconds:.2f} s")
+        if not describing_only():  # --help lists parameters and must not compile
+            seconds = warm_up_kernels(announce=self.get_logger().info)
+            self.get_logger().info(f"shape-from-shading kernels ready in {seconds:.2f} s")
 
         self.health = InputHealth(self, "image input")
         self._camera: CameraModel | None = None

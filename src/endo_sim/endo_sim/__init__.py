@@ -8,7 +8,10 @@ The names below are imported on first use, so ``import endo_sim`` is cheap.
 
 from typing import TYPE_CHECKING
 
+from endo_io.kernel_cache import use_kernel_cache
 from endo_io.lazy_exports import lazy_exports
+
+use_kernel_cache()  # before any kernel module is imported: see endo_io.kernel_cache
 
 if TYPE_CHECKING:
     from endo_sim.bagout import write_bag, write_ground_truth
