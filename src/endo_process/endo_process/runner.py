@@ -46,6 +46,7 @@ from endo_io.errors import Endo3dError, PoseLookupError
 from endo_io.image import array_to_image, image_to_array
 from endo_io.pose import matrix_to_pose, pose_to_matrix
 from endo_io.pose_buffer import PoseBuffer
+from endo_io.progress import Progress
 from endo_io.stamp import NS_PER_S, stamp_to_ns
 from endo_process.errors import ProcessInputError
 from endo_process.flow_stage import FlowStage, flow_options, grey_cloud, scale_message
@@ -59,7 +60,6 @@ from endo_process.inputs import (
 )
 from endo_process.output import DEFAULT_FLUSH_EVERY, OutputBag
 from endo_process.parallel import DEFAULT_CHUNK_FRAMES, ShadingPool, StageConfig
-from endo_process.progress import Progress
 from endo_process.settings import ProcessSettings, load_settings
 from endo_process.shading import RawFrame, ShadedFrame, ShadingStage
 from endo_tracker_bridge.chain import CameraPose, CameraPoseChain
@@ -354,7 +354,7 @@ def process_bag(options: ProcessOptions, stop: threading.Event | None = None) ->
     first_stamp: int | None = None
     last_stamp: int | None = None
     pool = ShadingPool(config, options.jobs, options.chunk_frames, stage)
-    progress = Progress(total, enabled=options.progress)
+    progress = Progress(total, enabled=options.progress, description="endo-process")
     report.setup_seconds = time.perf_counter() - setup_start
     start = time.perf_counter()
     try:

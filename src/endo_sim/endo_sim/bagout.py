@@ -32,7 +32,7 @@ from __future__ import annotations
 
 import heapq
 import math
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -56,7 +56,7 @@ from endo_io.topics import (
     WORLD_FRAME,
 )
 from endo_sim.errors import SimulationParameterError
-from endo_sim.sequences import Sequence
+from endo_sim.sequences import Sequence, SimulationConfig
 from endo_sim.tracker import simulate_tracker
 from endo_sim.trajectory import NS_PER_S
 
@@ -164,8 +164,44 @@ class BagSummary:
     bag_bytes: int
 
 
-def write_bag(sequence: Sequence, path: str | Path, compression: str = "zstd") -> BagSummary:
-    """Render and write the recording to ``path`` (a new ``*.mcap``) and its ground truth."""
+#: Compressed bytes per raw byte with zstd chunks, measured on the sample and
+#: evaluation bags (640×480, default photometry): images about 0.54, 32FC1
+#: ground-truth depth about 0.34 (NaN outside the field of view compresses).
+_IMAGE_RATIO, _DEPTH_RATIO = 0.55, 0.35
+
+
+@dataclass(frozen=True)
+class SizeEstimate:
+    """Expected size of a recording, bytes: all of it and the ground-truth depth's share."""
+
+    total_bytes: int
+    depth_bytes: int
+    depth_frames: int
+
+
+def estimated_size(config: SimulationConfig, frames: int) -> SizeEstimate:
+    """The approximate size of a bag of ``frames`` images before rendering it.
+
+    For zstd chunks (lz4 and none write more); small images compress less well.
+    """
+    depth_frames = -(-frames // config.depth_every)
+    pixels = config.width * config.height
+    sample_bytes = 2 if config.photometry.bit_depth > 8 else 1
+    images = frames * pixels * config.channels * sample_bytes * _IMAGE_RATIO
+    depth = depth_frames * pixels * 4 * _DEPTH_RATIO
+    return SizeEstimate(int(images + depth), int(depth), depth_frames)
+
+
+def write_bag(
+    sequence: Sequence,
+    path: str | Path,
+    compression: str = "zstd",
+    progress: Callable[[int], None] | None = None,
+) -> BagSummary:
+    """Render and write the recording to ``path`` (a new ``*.mcap``) and its ground truth.
+
+    ``progress`` is called with the number of frames written so far after each image.
+    """
     path = Path(path)
     if path.suffix != ".mcap":
         raise SimulationParameterError(f"{path}: the bag must be a single .mcap file")
@@ -181,6 +217,8 @@ def write_bag(sequence: Sequence, path: str | Path, compression: str = "zstd") -
             data = serialize(message.message)
             bag.write(message.topic, data, message.log_time_ns)
             counts[message.topic] += 1
+            if progress is not None and message.topic == IMAGE_RAW:
+                progress(counts[IMAGE_RAW])
     truth = write_ground_truth(sequence, path, counts)
     return BagSummary(path, truth, counts, path.stat().st_size)
 

@@ -17,14 +17,19 @@ import math
 import sys
 from collections.abc import Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from endo_io.errors import Endo3dError
+from endo_io.progress import Progress
 from endo_sim.errors import SimulationParameterError
 from endo_sim.graycard import DEFAULT_CARD_DISTANCE_M
 from endo_sim.photometry import Photometry
 from endo_sim.response import CameraResponse
 from endo_sim.sequences import SCENES, SimulationConfig, build_sequence
 from endo_sim.tracker import TRACKER_UNITS, TrackerModel
+
+if TYPE_CHECKING:
+    from endo_sim.bagout import SizeEstimate
 
 GROUND_TRUTH_SUFFIXES = (
     ".ground_truth.yaml",
@@ -253,9 +258,30 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_true",
         help="replace an existing bag and its ground-truth files",
     )
+    render.add_argument("-q", "--quiet", action="store_true",
+                        help="no progress bar (it is shown only on a terminal anyway)")
     live = sub.add_parser("live", help="publish in real time (stand-in camera driver + tracker)")
     _add_common(live)
     return parser
+
+
+#: A bag larger than this is announced before rendering.
+LARGE_BAG_BYTES = 100_000_000
+
+
+def _warn_if_large(estimate: SizeEstimate, depth_every: int, fps: float) -> None:
+    """One line on stderr when the bag will be large, saying how to keep depth sparse."""
+    if estimate.total_bytes <= LARGE_BAG_BYTES:
+        return
+    line = f"endo-sim: the bag will be about {estimate.total_bytes / 1e6:.0f} MB"
+    if estimate.depth_bytes > estimate.total_bytes / 4:
+        sparse = max(depth_every, round(fps))
+        share = estimate.depth_bytes / 1e6
+        kept = estimate.total_bytes - estimate.depth_bytes * (1.0 - depth_every / sparse)
+        line += (f", {share:.0f} MB of it ground-truth depth ({estimate.depth_frames} frames "
+                 f"of 32FC1); --depth-every {sparse} keeps one per second (about "
+                 f"{kept / 1e6:.0f} MB)")  # fmt: skip
+    print(line, file=sys.stderr)
 
 
 def _render(args: argparse.Namespace) -> int:
@@ -269,9 +295,18 @@ def _render(args: argparse.Namespace) -> int:
         raise SimulationParameterError(f"{existing[0]} exists; pass --overwrite to replace it")
     for path in existing:
         path.unlink()
-    from endo_sim.bagout import write_bag  # rclpy message types; only needed here
+    from endo_sim.bagout import estimated_size, write_bag  # rclpy types; only needed here
 
-    summary = write_bag(build_sequence(config_from_args(args)), output, args.compression)
+    sequence = build_sequence(config_from_args(args))
+    frames = len(sequence.frame_times_ns)
+    _warn_if_large(estimated_size(sequence.config, frames), sequence.config.depth_every,
+                   sequence.config.fps)  # fmt: skip
+    progress = Progress(frames, enabled=not args.quiet,
+                        description="endo-sim")  # fmt: skip
+    try:
+        summary = write_bag(sequence, output, args.compression, progress.update)
+    finally:
+        progress.close()
     print(f"endo-sim: wrote {summary.bag_path} ({summary.bag_bytes / 1e6:.2f} MB)")
     for topic, count in summary.message_counts.items():
         print(f"  {topic}: {count} messages")

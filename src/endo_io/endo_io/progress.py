@@ -1,7 +1,8 @@
-"""The progress bar on stderr: frames, frames/s, ETA (tqdm).
+"""The progress bar of the command-line tools on stderr: count, rate, ETA (tqdm).
 
-Shown only when stderr is a terminal and the user did not ask for quiet, so
-logs, pipes and CI stay clean.
+``endo-process`` and ``endo-sim render`` show one. It is drawn only when
+stderr is a terminal and the user did not ask for quiet, so logs, pipes and
+CI stay clean.
 """
 
 from __future__ import annotations
@@ -15,15 +16,18 @@ class Progress:
     """A frame counter bar; ``update`` takes the total done so far.
 
     Args:
-        total: frames expected (the image topic's message count).
+        total: frames expected.
         enabled: False (``--quiet``) hides it; it is hidden anyway when
             stderr is not a TTY.
+        description: the bar's label (the program's name).
     """
 
-    def __init__(self, total: int, *, enabled: bool = True) -> None:
+    def __init__(
+        self, total: int, *, enabled: bool = True, description: str = "", unit: str = "frame"
+    ) -> None:
         shown = enabled and sys.stderr.isatty()
         self._bar = tqdm(
-            total=total, unit="frame", desc="endo-process", file=sys.stderr,
+            total=total, unit=unit, desc=description or None, file=sys.stderr,
             disable=not shown, dynamic_ncols=True, smoothing=0.1,
         )  # fmt: skip
         self._done = 0
