@@ -169,7 +169,7 @@ def cloud_rms(points: np.ndarray, truth: np.ndarray, pose: np.ndarray,
 
 
 def evaluate(seq: Sequence, options: FlowOptions, depth_range: tuple[float, float],
-             label: str, trace: bool = False) -> dict[str, object]:
+             label: str, trace: bool = False, settle_s: float = 1.5) -> dict[str, object]:
     """Run the pipeline over the sequence and score it."""
     pipe = FlowPipeline(options)
     s_oracle = oracle_scale(seq)
@@ -223,15 +223,23 @@ def evaluate(seq: Sequence, options: FlowOptions, depth_range: tuple[float, floa
         if np.all(np.abs(rest - 1.0) < 0.02):
             converged = scales[i][0]
             break
-    after = table[table[:, 0] >= (converged if np.isfinite(converged) else first)] if len(
-        table) else table
+    centres = np.array([seq.true_pose[s][:3, 3] for s in seq.stamps if s in seq.true_pose])
+    moved = np.linalg.norm(centres - centres[0], axis=1) >= 2e-3
+    t_2mm = (seq.stamps[int(np.argmax(moved))] - t_start) / 1e9 if moved.any() else np.nan
+    # every figure over the same frames for every configuration: after settle_s
+    after = table[table[:, 0] >= settle_s] if len(table) else table
+    per_frame = [float(np.nanmedian(seq.true_depth[s] / seq.relative[s]))
+                 for s in sorted(seq.true_depth)]
     result = {
         "label": label,
         "frames": len(seq.stamps),
         "gt_frames": len(rows),
         "oracle_scale": s_oracle,
+        "sfs_per_frame_scale_cov": float(np.std(per_frame) / np.mean(per_frame)),
+        "moved_2mm_at_s": t_2mm,
         "first_usable_s": first,
         "within_2pct_from_s": converged,
+        "settle_s": settle_s,
         "scale_err_mean_pct": 100 * float(np.mean(np.abs(after[:, 1]))) if len(after) else np.nan,
         "scale_err_max_pct": 100 * float(np.max(np.abs(after[:, 1]))) if len(after) else np.nan,
         "final_scale_ratio": scales[-1][1],

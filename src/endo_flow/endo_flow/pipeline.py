@@ -323,17 +323,21 @@ def surface_normals(points: np.ndarray) -> np.ndarray:
     """Unit normals of an organised (h, w, 3) point grid, facing the camera at the origin.
 
     Central differences along both axes, crossed; NaN on the border and
-    wherever a neighbour is missing. Returns (h, w, 3) float64.
+    wherever a neighbour is missing. Returns (h, w, 3) float32.
     """
-    normals = np.full(points.shape, np.nan)
-    du = points[1:-1, 2:] - points[1:-1, :-2]
-    dv = points[2:, 1:-1] - points[:-2, 1:-1]
-    n = np.cross(du, dv)
+    p = np.asarray(points, np.float32)
+    normals = np.full(p.shape, np.nan, np.float32)
+    du = p[1:-1, 2:] - p[1:-1, :-2]
+    dv = p[2:, 1:-1] - p[:-2, 1:-1]
+    n = normals[1:-1, 1:-1]
+    n[..., 0] = du[..., 1] * dv[..., 2] - du[..., 2] * dv[..., 1]
+    n[..., 1] = du[..., 2] * dv[..., 0] - du[..., 0] * dv[..., 2]
+    n[..., 2] = du[..., 0] * dv[..., 1] - du[..., 1] * dv[..., 0]
+    centre = p[1:-1, 1:-1]
     with np.errstate(invalid="ignore", divide="ignore"):
-        n /= np.linalg.norm(n, axis=-1, keepdims=True)
-        facing = np.einsum("hwi,hwi->hw", n, points[1:-1, 1:-1]) > 0.0
-    n[facing] *= -1.0
-    normals[1:-1, 1:-1] = n
+        facing = (n * centre).sum(axis=-1)
+        # one division: unit length and the sign that faces the camera
+        n /= (np.sqrt((n * n).sum(axis=-1)) * np.where(facing > 0.0, -1.0, 1.0))[..., None]
     return normals
 
 
@@ -492,8 +496,9 @@ class FlowPipeline:
                 cap = np.radians(opts.max_parallax_weight_deg)
                 weights = np.minimum(result.parallax_rad[accepted], cap) ** 2
                 baseline = float(np.median(result.baseline_m[accepted]))
-                shared = opts.pose_noise_m / max(baseline, 1e-6) / np.sqrt(
-                    float(np.median(result.views[accepted])))
+                # the pose errors every track of the window shares: not divided
+                # by the view count, since consecutive windows share their views
+                shared = opts.pose_noise_m / max(baseline, 1e-6)
                 observation = observe_log_ratios(
                     log_ratio[accepted, -1], weights, min_points=opts.min_observation_points,
                     floor_std=float(np.hypot(opts.observation_floor, shared)),

@@ -22,7 +22,8 @@ from __future__ import annotations
 from collections import deque
 
 import numpy as np
-from scipy.spatial.transform import Rotation
+
+from endo_io.pose import rigid_transform
 
 
 class PoseSmoother:
@@ -88,16 +89,20 @@ class PoseSmoother:
             t = (stamps[lo:hi] - stamp_ns) / self.half_window_ns  # in [-1, 1]
             weight = (1.0 - np.abs(t) ** 3) ** 3
             poses = np.stack([self._poses[i] for i in range(lo, hi)])
-            rotvec = Rotation.from_matrix(reference[:3, :3].T @ poses[:, :3, :3]).as_rotvec()
+            relative = reference[:3, :3].T @ poses[:, :3, :3]
+            # the rotations within a window differ by a few degrees: the
+            # small-angle logarithm vee(R − Rᵀ)/2 is exact to O(θ³)
+            rotvec = 0.5 * np.stack([relative[:, 2, 1] - relative[:, 1, 2],
+                                      relative[:, 0, 2] - relative[:, 2, 0],
+                                      relative[:, 1, 0] - relative[:, 0, 1]], axis=1)
             values = np.concatenate([poses[:, :3, 3], rotvec], axis=1)  # (n, 6)
             # weighted linear fit, evaluated at t = 0: the intercept
             design = np.stack([np.ones_like(t), t], axis=1)
             normal = design.T @ (design * weight[:, None])
             coef = np.linalg.solve(normal, design.T @ (values * weight[:, None]))
             centre, rotation = coef[0, :3], coef[0, 3:]
-            result = np.eye(4)
-            result[:3, :3] = reference[:3, :3] @ Rotation.from_rotvec(rotation).as_matrix()
-            result[:3, 3] = centre
+            result = rigid_transform(rotation, centre)
+            result[:3, :3] = reference[:3, :3] @ result[:3, :3]
         if stamps[-1] - stamp_ns >= self.half_window_ns:
             self._final[stamp_ns] = result
         return result
