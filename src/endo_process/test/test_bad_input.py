@@ -2,10 +2,15 @@
 
 from __future__ import annotations
 
+import contextlib
+import fcntl
 import os
+import pty
 import signal
+import struct
 import subprocess
 import sys
+import termios
 import time
 from pathlib import Path
 
@@ -142,3 +147,30 @@ def test_a_signal_finalises_the_output(
         frames = reader.topics[topics.DEPTH_RELATIVE].message_count
         assert sum(1 for _ in reader.messages([topics.DEPTH_RELATIVE])) == frames
     assert 1 <= frames < 90
+
+
+def test_the_progress_bar_shows_on_a_terminal_only(
+    calibrations: tuple[Path, Path], tmp_path: Path
+) -> None:
+    bag = _subset(tmp_path / "short.mcap", ALL, images=3)
+    argv = [sys.executable, "-m", "endo_process.cli",
+            *_argv(bag, tmp_path / "tty.mcap", calibrations)[:-1]]  # without --quiet
+    main_fd, terminal = pty.openpty()
+    # A real terminal's size (a fresh pty is 0 columns wide: tqdm would draw nothing).
+    fcntl.ioctl(terminal, termios.TIOCSWINSZ, struct.pack("HHHH", 24, 120, 0, 0))
+    with os.fdopen(main_fd, "rb", buffering=0) as reader:
+        process = subprocess.Popen(argv, stdout=subprocess.DEVNULL, stderr=terminal)
+        os.close(terminal)
+        chunks = []
+        with contextlib.suppress(OSError):  # EIO once the child closed the terminal
+            while chunk := reader.read(4096):
+                chunks.append(chunk)
+        assert process.wait(timeout=120) == EXIT_OK
+    shown = b"".join(chunks).decode(errors="replace")
+    assert "endo-process" in shown and "3/3" in shown and "frame/s" in shown, shown
+    # Not a terminal (a pipe): no bar at all.
+    piped_argv = [sys.executable, "-m", "endo_process.cli",
+                  *_argv(bag, tmp_path / "pipe.mcap", calibrations)[:-1]]  # fmt: skip
+    piped = subprocess.run(piped_argv, capture_output=True, text=True, timeout=120)
+    assert piped.returncode == EXIT_OK, piped.stderr
+    assert "frame/s" not in piped.stderr
