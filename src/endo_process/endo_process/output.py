@@ -96,7 +96,12 @@ class OutputBag:
         """Close the current chunk so that it survives a crash."""
         self.writer.flush()
 
-    def close(self) -> None:
-        """Write what is held, then finalise the file (summary, footer); idempotent."""
-        self.release()
+    def close(self, until_ns: int | None = None) -> None:
+        """Write what is held (up to ``until_ns``; the rest is dropped), then finalise the file.
+
+        Idempotent. ``until_ns`` ends a partial run (``--max-frames``, a stop)
+        at its last frame, so the file covers only the time processed.
+        """
+        self.release(until_ns)
+        self._held.clear()
         self.writer.close()

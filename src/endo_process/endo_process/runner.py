@@ -338,7 +338,6 @@ def process_bag(options: ProcessOptions, stop: threading.Event | None = None) ->
                     matrix_to_pose(pose.sample.T_tracker_marker, pose.sample.stamp_ns,
                                    tracker_frame),
                     pose.sample.stamp_ns)  # fmt: skip
-    report.poses_written = len(poses)
     config = StageConfig(options.calibration, settings.channel, settings.sfs)
     stage = ShadingStage(photometric, settings.channel, settings.sfs) if options.jobs == 1 else None
     feed = _PoseFeed(
@@ -385,13 +384,18 @@ def process_bag(options: ProcessOptions, stop: threading.Event | None = None) ->
         report.seconds = time.perf_counter() - start
         pool.close()
         progress.close()
-        if not report.interrupted:
-            output.copy_until(truth, truth_pending, np.iinfo(np.int64).max)
+        # A partial run (stopped, or --max-frames short of the end) ends at its last frame.
+        partial = stop.is_set() or report.interrupted or (
+            options.max_frames is not None and report.frames_in < inputs.frame_count
+        )
+        end = last_stamp if partial and last_stamp is not None else np.iinfo(np.int64).max
+        output.copy_until(truth, truth_pending, end)
         if last_stamp is not None:
             _write_map(output, flow, options, last_stamp, world_frame, report)
-        output.close()
+        output.close(end if partial else None)
     report.interrupted = report.interrupted or stop.is_set()
     report.written = Counter(output.counts)
+    report.poses_written = report.written[topics.CAMERA_POSE]
     report.damage = inputs.damage
     if first_stamp is not None and last_stamp is not None:
         frame_period = 0 if report.frames_in < 2 else (last_stamp - first_stamp) / max(

@@ -172,10 +172,15 @@ def test_offline_run_matches_the_live_nodes_frame_by_frame(
         assert np.isfinite(depth).mean() > 0.4  # the FOV circle is 59 % of the image
         np.testing.assert_array_equal(offline["depth"][stamp], depth)
     # Every tracker sample of the bag, through the same chain.
+    # Every tracker sample of the bag went through the same chain; the offline
+    # output of these first frames ends at the last frame's stamp.
     assert len(live["poses"]) == 180
-    assert sorted(offline["poses"]) == sorted(live["poses"])
-    for stamp, pose in live["poses"].items():
-        np.testing.assert_allclose(offline["poses"][stamp], pose, rtol=0, atol=1e-12)
+    last = max(live["depth"])
+    covered = sorted(stamp for stamp in live["poses"] if stamp <= last)
+    assert sorted(offline["poses"]) == covered and len(covered) > 2 * FRAMES - 4
+    for stamp in covered:
+        np.testing.assert_allclose(offline["poses"][stamp], live["poses"][stamp], rtol=0,
+                                   atol=1e-12)  # fmt: skip
     # The flow step: the flow node's own metric depth and scale, frame by frame.
     assert len(live["scale"]) == FRAMES
     assert sorted(offline["scale"]) == sorted(live["scale"])
