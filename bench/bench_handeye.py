@@ -36,7 +36,7 @@ from endo_tracker_bridge.handeye import (
     marker_poses_at,
     solve_hand_eye,
 )
-from endo_tracker_bridge.handeye_cli import read_observations
+from endo_tracker_bridge.handeye_cli import calibrate_observations, read_observations
 from endo_tracker_bridge.synthetic import (
     BOARD,
     CAMERA,
@@ -104,13 +104,7 @@ def bench_bag(bag: Path):
     observations = read_observations(bag, board, pose_unit=unit)
     detect_s = time.perf_counter() - start
     start = time.perf_counter()
-    result = calibrate_hand_eye(
-        observations.views,
-        observations.tracker_stamps_ns,
-        observations.tracker_poses,
-        board,
-        observations.camera,
-    )
+    result = calibrate_observations(observations, board)
     solve_s = time.perf_counter() - start
     X_true = np.asarray(truth["tracker"]["T_marker_camera"], dtype=np.float64).reshape(4, 4)
     t_err, r_err = transform_error(X_true, result.T_marker_camera)

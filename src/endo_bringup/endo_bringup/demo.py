@@ -24,7 +24,8 @@ them (or with ``--round-trip-only``) only part 1 runs. Outputs go to a new
 temporary directory (or ``--output-dir``), never into the repository.
 
 Exit status 0 when every played message came back with the same bytes and
-every stage of the graph produced output; 1 otherwise.
+every stage of the graph produced output; 1 otherwise; 2 on bad input (a
+missing ``--bag``), with one line on stderr.
 """
 
 from __future__ import annotations
@@ -32,7 +33,6 @@ from __future__ import annotations
 import argparse
 import os
 import signal
-import subprocess
 import sys
 import tempfile
 import time
@@ -48,20 +48,30 @@ from std_msgs.msg import Float32
 
 from endo_bringup.dds_profile import with_large_frame_profile
 from endo_bringup.graph import (
+    PLAYER,
+    RECORDER,
     GraphError,
     GraphRun,
     GraphSettings,
     OfflineStep,
+    bag_seconds,
     ground_truth_of,
+    node_outputs,
+    play_and_record,
+    recorder_process,
+    replay_process,
     run_live_graph,
     run_offline_calibrations,
+    stage_counts,
 )
-from endo_bringup.process_group import console_script
+from endo_bringup.process_group import ProcessGroup
 from endo_io import topics as topic_names
 from endo_io.bag import BagReader, BagWriter, message_class, msgtype_of, serialize
 from endo_io.bag.serde import dds_aligned
+from endo_io.bag.streams import count_messages, read_depth_frames, read_pose_stream
 from endo_io.camera import CameraModel
-from endo_io.errors import BagError, Endo3dError
+from endo_io.cli import exit_on_error
+from endo_io.errors import Endo3dError
 from endo_io.image import array_to_image
 from endo_io.pose import matrix_to_pose
 
@@ -207,20 +217,6 @@ def compare_bags(sent_path: Path, received_path: Path, topics: list[str]) -> Rou
 # Running the two processes
 
 
-def _count_readable(path: Path) -> int:
-    try:
-        with BagReader(path) as reader:
-            count = 0
-            try:
-                for _ in reader.messages():
-                    count += 1
-            except BagError:
-                pass
-            return count
-    except BagError:
-        return 0
-
-
 def playable_topics(bag: Path) -> tuple[list[str], list[str]]:
     """(topics whose type is installed, topics that cannot be published here)."""
     playable, skipped = [], []
@@ -237,59 +233,32 @@ def playable_topics(bag: Path) -> tuple[list[str], list[str]]:
 
 def run_round_trip(
     bag: Path, output: Path, rate: float, env: dict[str, str]
-) -> tuple[int, int, str]:
-    """Record ``bag`` played over DDS into ``output``; returns (replay rc, record rc, logs)."""
+) -> tuple[int | None, int | None, str]:
+    """Record ``bag`` played over DDS into ``output``.
+
+    The recorder and the player are :func:`~endo_bringup.graph.recorder_process`
+    and :func:`~endo_bringup.graph.replay_process`, run in a
+    :class:`~endo_bringup.process_group.ProcessGroup` like the live graph; their
+    logs go to ``<output dir>/logs/round_trip``. Returns (endo-replay exit
+    status, endo-record exit status, both logs); a status is None for a
+    process that had to be killed.
+    """
     topics, _ = playable_topics(bag)
     with BagReader(bag) as reader:
-        expected = sum(reader.topics[t].message_count for t in topics)
-    record_log = output.with_suffix(".record.log")
-    with record_log.open("wb") as log:
-        recorder = subprocess.Popen(
-            [
-                console_script("endo-record"),
-                "--topics",
-                *topics,
-                "-o",
-                str(output),
-                "--flush-period",
-                "0.2",
-            ],
-            env=env,
-            stdout=log,
-            stderr=subprocess.STDOUT,
+        expected = {t: reader.topics[t].message_count for t in topics}
+    with ProcessGroup(env, output.parent / "logs" / "round_trip") as group:
+        recorder = recorder_process(topics, output)
+        group.start(recorder.name, recorder.command())
+        play_and_record(
+            group,
+            replay_process(bag, topics, rate),
+            output,
+            expected,
+            play_timeout_s=60.0 + bag_seconds(bag) / rate,
+            drain_timeout_s=15.0,
         )
-        try:
-            replay = subprocess.run(
-                [
-                    console_script("endo-replay"),
-                    str(bag),
-                    "--topics",
-                    *topics,
-                    "--rate",
-                    str(rate),
-                    "--wait-for-subscribers",
-                    "1",
-                ],
-                env=env,
-                capture_output=True,
-                text=True,
-                check=False,
-            )
-            # Delivered is not yet written: wait until the (flushed, still open)
-            # recording holds everything, then let SIGINT finalise it.
-            deadline = time.monotonic() + 15.0
-            while _count_readable(output) < expected and time.monotonic() < deadline:
-                if recorder.poll() is not None:
-                    break
-                time.sleep(0.2)
-            recorder.send_signal(signal.SIGINT)
-            record_rc = recorder.wait(30)
-        finally:
-            if recorder.poll() is None:
-                recorder.kill()
-                recorder.wait()
-    logs = replay.stdout + replay.stderr + record_log.read_text()
-    return replay.returncode, record_rc, logs
+    codes = group.return_codes
+    return codes[PLAYER], codes[RECORDER], group.log(PLAYER) + group.log(RECORDER)
 
 
 # --------------------------------------------------------------------------
@@ -363,11 +332,7 @@ class GraphReport:
             ]
             problems += [
                 f"no message on {topic}"
-                for topic in (
-                    topic_names.IMAGE_CORRECTED,
-                    topic_names.DEPTH_RELATIVE,
-                    topic_names.CAMERA_POSE,
-                )
+                for topic in node_outputs(self.run.processes)
                 if self.counts.get(topic, 0) == 0
             ]
             if not self.depth_errors:
@@ -461,14 +426,14 @@ def run_graph_stage(
         report.error = str(error)
         return report
     recording = report.run.recording
-    report.counts = dict(evaluation.topic_counts(recording))
-    truths = evaluation.read_depth_frames(recording, topic_names.TRUE_DEPTH)
+    report.counts = dict(count_messages(recording))
+    truths = read_depth_frames(recording, topic_names.TRUE_DEPTH)
     report.depth_errors = evaluation.depth_errors_at_truth(
-        evaluation.read_depth_frames(recording, topic_names.DEPTH_RELATIVE, set(truths)), truths
+        read_depth_frames(recording, topic_names.DEPTH_RELATIVE, set(truths)), truths
     )
     report.poses = evaluation.compare_poses(
-        *evaluation.read_pose_stream(recording, topic_names.CAMERA_POSE),
-        *evaluation.read_pose_stream(recording, topic_names.TRUE_CAMERA_POSE),
+        *read_pose_stream(recording, topic_names.CAMERA_POSE),
+        *read_pose_stream(recording, topic_names.TRUE_CAMERA_POSE),
     )
     return report
 
@@ -487,43 +452,16 @@ def print_graph_report(report: GraphReport, rate: float) -> None:
     if run is None and report.error:
         print(f"  live graph: FAILED: {report.error}")
     if run is not None:
-        played = run.played
         print(
             f"  live graph: {PHANTOM_BAG} at {rate:g}x, {run.seconds:.1f} s; one log per process "
             f"(command line first) in {run.log_dir}"
         )
         print(f"    {'stage':<28} {'output topic':<30} {'in':>5} {'out':>5}  exit")
-        stages = [
-            (
-                "endo-replay (ground truth)",
-                topic_names.TRUE_CAMERA_POSE,
-                played.get(topic_names.TRUE_CAMERA_POSE, 0),
-            ),
-            (
-                "endo-replay (ground truth)",
-                topic_names.TRUE_DEPTH,
-                played.get(topic_names.TRUE_DEPTH, 0),
-            ),
-            (
-                "endo-photometric-correction",
-                topic_names.IMAGE_CORRECTED,
-                played.get(topic_names.IMAGE_RAW, 0),
-            ),
-            (
-                "endo-sfs",
-                topic_names.DEPTH_RELATIVE,
-                report.counts.get(topic_names.IMAGE_CORRECTED, 0),
-            ),
-            (
-                "endo-tracker-bridge",
-                topic_names.CAMERA_POSE,
-                played.get(topic_names.TRACKER_POSE, 0),
-            ),
-        ]
-        for stage, topic, count_in in stages:
-            code = run.return_codes.get(stage.split(" ")[0], "?")
-            out = report.counts.get(topic, 0)
-            print(f"    {stage:<28} {topic:<30} {count_in:>5} {out:>5}  {code}")
+        for row in stage_counts(run, report.counts):
+            code = "?" if row.return_code is None else row.return_code
+            print(
+                f"    {row.stage:<28} {row.topic:<30} {row.count_in:>5} {row.count_out:>5}  {code}"
+            )
     rows: list[tuple[str, str]] = []
     scores = report.scores
     if scores is not None:
@@ -690,8 +628,9 @@ def run_round_trip_stage(bag: Path | None, out_dir: Path, rate: float, env: dict
     return True
 
 
+@exit_on_error("endo-demo")
 def main(argv: list[str] | None = None) -> int:
-    """Run the demo; returns the exit status."""
+    """Run the demo; returns the exit status (1: a check failed, 2: bad input)."""
     options = build_parser().parse_args(argv)
     # SIGTERM ends the demo like Ctrl-C: unwinding stops every child process.
     signal.signal(signal.SIGTERM, lambda *_: sys.exit(128 + signal.SIGTERM))

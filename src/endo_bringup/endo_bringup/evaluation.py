@@ -1,7 +1,7 @@
 """Scores of a graph run against the simulator's ground truth.
 
-ROS-free apart from reading bags: every function takes arrays or bag paths
-and returns plain numbers. Depth is scored with
+ROS-free: every function takes arrays and returns plain numbers (the
+recording is read with :mod:`endo_io.bag.streams`). Depth is scored with
 :func:`endo_sfs.evaluation.depth_error` (the SFS package's own measure),
 poses with :func:`endo_io.pose.interpolate_transforms`; this module only
 pairs the streams by stamp and reduces them.
@@ -9,71 +9,16 @@ pairs the streams by stamp and reduces them.
 
 from __future__ import annotations
 
-from collections import Counter
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 
-from endo_io.bag import BagReader, deserialize
-from endo_io.image import image_to_array
-from endo_io.pose import interpolate_transforms, pose_to_matrix, rotation_angle
-from endo_io.stamp import stamp_to_ns
+from endo_io.pose import interpolate_transforms, rotation_angle
 from endo_sfs.evaluation import DepthError, depth_error
 
 #: Longest gap in the estimated pose stream bridged when interpolating at a
 #: ground-truth stamp, ns (the tracker runs at 60 Hz: up to two lost samples).
 DEFAULT_POSE_MAX_GAP_NS = 60_000_000
-
-
-def topic_counts(bag: Path) -> Counter[str]:
-    """Messages per topic in a bag (every topic, including those with none)."""
-    counts: Counter[str] = Counter()
-    with BagReader(bag) as reader:
-        for name in reader.topics:
-            counts[name] = 0
-        for message in reader.messages():
-            counts[message.topic] += 1
-    return counts
-
-
-def read_depth_frames(
-    bag: Path, topic: str, stamps: set[int] | None = None
-) -> dict[int, np.ndarray]:
-    """Header stamp (ns) -> (H, W) float32 depth image of the messages on ``topic``.
-
-    stamps: keep only frames with these header stamps (all when None), so a
-    long recording is not held in memory to score a few frames.
-    """
-    frames: dict[int, np.ndarray] = {}
-    with BagReader(bag) as reader:
-        if topic not in reader.topics:
-            return frames
-        for message in reader.messages(topics=[topic]):
-            msg = deserialize(message)
-            stamp = stamp_to_ns(msg.header.stamp)
-            if stamps is None or stamp in stamps:
-                frames[stamp] = image_to_array(msg)
-    return frames
-
-
-def read_pose_stream(bag: Path, topic: str) -> tuple[np.ndarray, np.ndarray]:
-    """All PoseStamped of ``topic``, sorted by header stamp.
-
-    Returns ((N,) int64 stamps in ns, (N, 4, 4) float64 transforms in metres).
-    """
-    stamps: list[int] = []
-    poses: list[np.ndarray] = []
-    with BagReader(bag) as reader:
-        if topic in reader.topics:
-            for message in reader.messages(topics=[topic]):
-                matrix, stamp_ns = pose_to_matrix(deserialize(message))
-                stamps.append(stamp_ns)
-                poses.append(matrix)
-    order = np.argsort(np.asarray(stamps, dtype=np.int64), kind="stable")
-    stamp_array = np.asarray(stamps, dtype=np.int64)[order]
-    pose_array = np.asarray(poses, dtype=np.float64).reshape(-1, 4, 4)[order]
-    return stamp_array, pose_array
 
 
 def depth_errors_at_truth(

@@ -4,27 +4,20 @@ Two parts, both driving the same command-line tools a user runs:
 
 * :func:`run_offline_calibrations`: ``endo-calibrate`` on the gray-card bag
   (photometric.yaml) and ``endo-handeye`` on the hand–eye bag (handeye.yaml).
-* :func:`run_live_graph`: ``endo-photometric-correction``, ``endo-sfs`` and
-  ``endo-tracker-bridge`` (source ros) as nodes, ``endo-record`` recording
-  their outputs and the ground truth, then ``endo-replay`` of a phantom bag
-  into them. Every process talks to the others over DDS only:
+* :func:`run_live_graph`: the processes of :func:`graph_processes`, the one
+  description of the live graph: a table with, for each process, its
+  executable, arguments, ROS parameters and remappings, and the topics it
+  subscribes to and publishes. ``endo-record`` records the nodes' outputs and
+  the ground truth, ``endo-photometric-correction``, ``endo-sfs`` and
+  ``endo-tracker-bridge`` (source ros) run as nodes, and ``endo-replay``
+  plays a phantom bag into them. Every process talks to the others over DDS
+  only; :func:`describe_graph` prints the table.
 
-  ============================  =======================================  ==========================
-  process                       subscribes                               publishes
-  ============================  =======================================  ==========================
-  endo-replay (the bag)                                                  /endoscope/image_raw,
-                                                                         /endoscope/camera_info,
-                                                                         /tracker/driver_pose (the
-                                                                         bag's /tracker/pose),
-                                                                         /ground_truth/depth,
-                                                                         /ground_truth/camera_pose
-  endo-photometric-correction   /endoscope/image_raw                     /endoscope/image_corrected
-  endo-sfs                      /endoscope/image_corrected, camera_info  /endoscope/depth_relative
-  endo-tracker-bridge           /tracker/driver_pose                     /endoscope/pose
-  endo-record (graph.mcap)      the three outputs + the ground truth
-  ============================  =======================================  ==========================
-
-Scoring the recording is :mod:`endo_bringup.evaluation`'s job.
+The demo's replay → record round trip is a smaller table of the same rows
+(:func:`recorder_process`, :func:`replay_process`), started the same way
+(:class:`~endo_bringup.process_group.ProcessGroup`) and waited for with the
+same :func:`wait_for_recording`. Scoring the recording is
+:mod:`endo_bringup.evaluation`'s job.
 """
 
 from __future__ import annotations
@@ -34,6 +27,7 @@ import re
 import subprocess
 import time
 from collections import Counter
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -42,7 +36,7 @@ import yaml
 
 from endo_bringup.process_group import ProcessGroup, console_script
 from endo_io.bag import BagReader
-from endo_io.errors import BagError
+from endo_io.bag.streams import count_messages
 from endo_io.topics import (
     CAMERA_INFO,
     CAMERA_POSE,
@@ -54,15 +48,13 @@ from endo_io.topics import (
     TRUE_DEPTH,
 )
 
-#: What the recorder keeps: the graph's outputs and the bag's ground truth.
-RECORDED_TOPICS = [IMAGE_CORRECTED, DEPTH_RELATIVE, CAMERA_POSE, TRUE_DEPTH, TRUE_CAMERA_POSE]
-#: Topics the nodes publish; the recorder must have subscribed to them before playing.
-NODE_OUTPUT_TOPICS = [IMAGE_CORRECTED, DEPTH_RELATIVE, CAMERA_POSE]
-#: The bag's topics that are played, and where the tracker poses go: the
-#: bridge publishes /tracker/pose itself, so the bag's driver poses are
-#: played on the bridge's input topic (its ``ros_topic`` default).
-DRIVER_TOPIC = "/tracker/driver_pose"
+#: The bag's topics that are played into the graph.
 PLAYED_TOPICS = [IMAGE_RAW, CAMERA_INFO, TRACKER_POSE, TRUE_DEPTH, TRUE_CAMERA_POSE]
+#: Where the bag's tracker poses are played: the bridge publishes
+#: /tracker/pose itself, so the driver poses go to its ``ros_topic`` default.
+DRIVER_TOPIC = "/tracker/driver_pose"
+#: Names of the recorder and player processes (their logs, their exit codes).
+RECORDER, PLAYER = "endo-record", "endo-replay"
 
 
 class GraphError(RuntimeError):
@@ -144,7 +136,69 @@ def run_offline_calibrations(
 
 
 # --------------------------------------------------------------------------
-# The live graph
+# The table of processes
+
+
+@dataclass(frozen=True)
+class GraphProcess:
+    """One process of the graph: a row of its table.
+
+    name: the process's name in the run (its log file, its exit code);
+    executable: the console script; arguments: its own command-line
+    arguments; parameters: ROS parameters (``-p NAME:=VALUE``, values as
+    typed); remaps: ROS remappings (``-r FROM:=TO``); subscribes / publishes:
+    the topics it reads and writes, after remapping (the first subscribed
+    topic is the one whose every message gives one output message).
+    """
+
+    name: str
+    executable: str
+    arguments: tuple[str, ...] = ()
+    parameters: Mapping[str, str] = field(default_factory=dict)
+    remaps: Mapping[str, str] = field(default_factory=dict)
+    subscribes: tuple[str, ...] = ()
+    publishes: tuple[str, ...] = ()
+
+    def command(self) -> list[str]:
+        """The command line: executable, arguments, then the ``--ros-args`` block."""
+        argv = [console_script(self.executable), *self.arguments]
+        if self.parameters or self.remaps:
+            argv.append("--ros-args")
+            for name, value in self.parameters.items():
+                argv += ["-p", f"{name}:={value}"]
+            for source, target in self.remaps.items():
+                argv += ["-r", f"{source}:={target}"]
+        return argv
+
+
+def recorder_process(topics: Sequence[str], output: Path) -> GraphProcess:
+    """``endo-record`` of ``topics`` into ``output``, flushed every 0.2 s (readable meanwhile)."""
+    return GraphProcess(
+        RECORDER,
+        "endo-record",
+        arguments=("--topics", *topics, "-o", str(output), "--flush-period", "0.2"),
+        subscribes=tuple(topics),
+    )
+
+
+def replay_process(
+    bag: Path, topics: Sequence[str], rate: float, remaps: Mapping[str, str] | None = None
+) -> GraphProcess:
+    """``endo-replay`` of ``topics`` of ``bag`` at ``rate``, once a subscriber is there.
+
+    remaps: bag topic -> topic it is published on.
+    """
+    remaps = dict(remaps or {})
+    arguments = [str(bag), "--topics", *topics]
+    for source, target in remaps.items():
+        arguments += ["--remap", f"{source}:={target}"]
+    arguments += ["--rate", repr(float(rate)), "--wait-for-subscribers", "1"]
+    return GraphProcess(
+        PLAYER,
+        "endo-replay",
+        arguments=tuple(arguments),
+        publishes=tuple(remaps.get(t, t) for t in topics),
+    )
 
 
 @dataclass
@@ -169,13 +223,121 @@ class GraphSettings:
     drain_timeout_s: float = 20.0
 
 
+def _float_list(values: np.ndarray) -> str:
+    return "[" + ", ".join(repr(float(v)) for v in np.ravel(values)) + "]"
+
+
+def graph_processes(
+    bag: Path,
+    played: Sequence[str],
+    photometric: Path,
+    handeye: Path,
+    recording: Path,
+    settings: GraphSettings,
+) -> list[GraphProcess]:
+    """The live graph, in start order: recorder, the three nodes, the player.
+
+    Args:
+        bag: the bag played into the graph.
+        played: its topics that are played (those of PLAYED_TOPICS it has).
+        photometric, handeye: the calibration files the nodes load.
+        recording: where the recorder writes the nodes' outputs and the truth.
+        settings: the nodes' parameters and the playback rate.
+    """
+    nodes = [
+        GraphProcess(
+            "endo-photometric-correction",
+            "endo-photometric-correction",
+            parameters={"calibration_file": str(photometric)},
+            remaps={"image_raw": IMAGE_RAW, "image_corrected": IMAGE_CORRECTED},
+            subscribes=(IMAGE_RAW,),
+            publishes=(IMAGE_CORRECTED,),
+        ),
+        GraphProcess(
+            "endo-sfs",
+            "endo-sfs",
+            parameters={
+                "model": settings.model,
+                "roughness": repr(float(settings.roughness)),
+                "solve_scale": repr(float(settings.solve_scale)),
+            },
+            remaps={
+                "image_corrected": IMAGE_CORRECTED,
+                "camera_info": CAMERA_INFO,
+                "depth_relative": DEPTH_RELATIVE,
+            },
+            subscribes=(IMAGE_CORRECTED, CAMERA_INFO),
+            publishes=(DEPTH_RELATIVE,),
+        ),
+        GraphProcess(
+            "endo-tracker-bridge",
+            "endo-tracker-bridge",
+            parameters={
+                "source": "ros",
+                "ros_topic": DRIVER_TOPIC,
+                "handeye_file": str(handeye),
+                "T_world_tracker": _float_list(settings.T_world_tracker),
+            },
+            subscribes=(DRIVER_TOPIC,),
+            publishes=(CAMERA_POSE,),
+        ),
+    ]
+    return [
+        recorder_process([*node_outputs(nodes), TRUE_DEPTH, TRUE_CAMERA_POSE], recording),
+        *nodes,
+        replay_process(bag, played, settings.rate, {TRACKER_POSE: DRIVER_TOPIC}),
+    ]
+
+
+def describe_graph(processes: Sequence[GraphProcess]) -> str:
+    """The table as text: process, subscribes, publishes, one row each."""
+    rows = [("process", "subscribes", "publishes")]
+    rows += [(p.name, ", ".join(p.subscribes), ", ".join(p.publishes)) for p in processes]
+    widths = [max(len(row[i]) for row in rows) for i in range(2)]
+    return "\n".join(f"{a:<{widths[0]}}  {b:<{widths[1]}}  {c}".rstrip() for a, b, c in rows)
+
+
+def _process(processes: Sequence[GraphProcess], name: str) -> GraphProcess:
+    return next(p for p in processes if p.name == name)
+
+
+def _nodes(processes: Sequence[GraphProcess]) -> list[GraphProcess]:
+    return [p for p in processes if p.name not in (RECORDER, PLAYER)]
+
+
+def node_outputs(processes: Sequence[GraphProcess]) -> list[str]:
+    """The topics the graph's nodes publish (neither the player's nor the recorder's)."""
+    return [topic for node in _nodes(processes) for topic in node.publishes]
+
+
+def expected_counts(processes: Sequence[GraphProcess], played: Mapping[str, int]) -> Counter[str]:
+    """Messages each topic carries when no node drops one.
+
+    played: bag topic -> messages played, in the order the player was given
+    them. The player's topics carry what it plays; each node's outputs carry
+    as many messages as its first input (nodes are in upstream-first order).
+    """
+    counts: Counter[str] = Counter()
+    for topic, count in zip(_process(processes, PLAYER).publishes, played.values(), strict=True):
+        counts[topic] = count
+    for node in _nodes(processes):
+        for topic in node.publishes:
+            counts[topic] = counts[node.subscribes[0]]
+    return counts
+
+
+# --------------------------------------------------------------------------
+# Running it
+
+
 @dataclass
 class GraphRun:
     """What a live-graph run left behind.
 
-    recording: the MCAP of RECORDED_TOPICS; played: messages in the bag per
-    played topic; return_codes: exit status of each process (None: killed);
-    log_dir: one log per process; seconds: wall time of the run.
+    recording: the MCAP of the recorder's topics; played: messages in the
+    bag per played (bag) topic; return_codes: exit status of each process
+    (None: killed); log_dir: one log per process; seconds: wall time of the
+    run; processes: the table that was run.
     """
 
     recording: Path
@@ -183,59 +345,45 @@ class GraphRun:
     return_codes: dict[str, int | None]
     log_dir: Path
     seconds: float
-    commands: dict[str, list[str]]
+    processes: list[GraphProcess]
 
 
-def _float_list(values: np.ndarray) -> str:
-    return "[" + ", ".join(repr(float(v)) for v in np.ravel(values)) + "]"
+@dataclass(frozen=True)
+class StageCount:
+    """One output topic of a stage: messages in (its input) and out (recorded)."""
+
+    stage: str
+    topic: str
+    count_in: int
+    count_out: int
+    return_code: int | None
 
 
-def node_commands(
-    photometric: Path, handeye: Path, settings: GraphSettings
-) -> dict[str, list[str]]:
-    """Command lines of the three nodes, with their parameters and remappings."""
-    return {
-        "endo-photometric-correction": [
-            console_script("endo-photometric-correction"),
-            "--ros-args",
-            "-p", f"calibration_file:={photometric}",
-            "-r", f"image_raw:={IMAGE_RAW}",
-            "-r", f"image_corrected:={IMAGE_CORRECTED}",
-        ],
-        "endo-sfs": [
-            console_script("endo-sfs"),
-            "--ros-args",
-            "-p", f"model:={settings.model}",
-            "-p", f"roughness:={float(settings.roughness)!r}",
-            "-p", f"solve_scale:={float(settings.solve_scale)!r}",
-            "-r", f"image_corrected:={IMAGE_CORRECTED}",
-            "-r", f"camera_info:={CAMERA_INFO}",
-            "-r", f"depth_relative:={DEPTH_RELATIVE}",
-        ],
-        "endo-tracker-bridge": [
-            console_script("endo-tracker-bridge"),
-            "--ros-args",
-            "-p", "source:=ros",
-            "-p", f"ros_topic:={DRIVER_TOPIC}",
-            "-p", f"handeye_file:={handeye}",
-            "-p", f"T_world_tracker:={_float_list(settings.T_world_tracker)}",
-        ],
-    }  # fmt: skip
+def stage_counts(run: GraphRun, recorded: Mapping[str, int]) -> list[StageCount]:
+    """Per recorded output topic of each process, what went in and what came out.
 
-
-def count_messages(path: Path) -> Counter[str]:
-    """Messages per topic readable so far in a (possibly still written) bag."""
-    counts: Counter[str] = Counter()
-    try:
-        with BagReader(path) as reader:
-            try:
-                for message in reader.messages():
-                    counts[message.topic] += 1
-            except BagError:
-                pass  # the unfinished tail of a file being written
-    except BagError:
-        pass
-    return counts
+    recorded: messages per topic in the recording. The player's "in" is what
+    the bag holds; a node's "in" is what reached its first input (recorded
+    when the recorder keeps that topic, else what the player sent on it).
+    """
+    player = _process(run.processes, PLAYER)
+    sent = dict(zip(player.publishes, run.played.values(), strict=True))
+    kept = set(_process(run.processes, RECORDER).subscribes)
+    rows = []
+    for process in run.processes:
+        if process.name == RECORDER:
+            continue
+        code = run.return_codes.get(process.name)
+        for topic in process.publishes:
+            if topic not in kept:
+                continue
+            if process is player:
+                count_in = sent[topic]
+            else:
+                first = process.subscribes[0]
+                count_in = recorded.get(first, 0) if first in kept else sent.get(first, 0)
+            rows.append(StageCount(process.name, topic, count_in, recorded.get(topic, 0), code))
+    return rows
 
 
 _SUBSCRIBED = re.compile(r"subscribed to (\S+) \[")
@@ -250,7 +398,7 @@ def _wait_for_recorder(group: ProcessGroup, topics: list[str], timeout_s: float)
     """
     deadline = time.monotonic() + timeout_s
     while True:
-        subscribed = set(_SUBSCRIBED.findall(group.log("endo-record")))
+        subscribed = set(_SUBSCRIBED.findall(group.log(RECORDER)))
         missing = [t for t in topics if t not in subscribed]
         if not missing:
             return
@@ -262,23 +410,60 @@ def _wait_for_recorder(group: ProcessGroup, topics: list[str], timeout_s: float)
         time.sleep(0.1)
 
 
-def _wait_for_drain(
-    recording: Path, expected: dict[str, int], timeout_s: float, quiet_s: float = 1.5
+def wait_for_recording(
+    recording: Path, expected: Mapping[str, int], timeout_s: float, quiet_s: float = 1.5
 ) -> Counter[str]:
-    """Wait until the recording holds ``expected`` or stops growing for ``quiet_s``."""
+    """Wait until a recording being written holds ``expected`` messages per topic.
+
+    Gives up after ``timeout_s``, or once the recording has not grown for
+    ``quiet_s`` (a node dropped messages; they will not come). Returns the
+    messages per topic readable at that point.
+    """
     deadline = time.monotonic() + timeout_s
-    counts = count_messages(recording)
+    counts = count_messages(recording, partial=True)
     last_change = time.monotonic()
     while time.monotonic() < deadline:
         if all(counts[t] >= n for t, n in expected.items()):
             break
         time.sleep(0.5)
-        now = count_messages(recording)
+        now = count_messages(recording, partial=True)
         if now != counts:
             counts, last_change = now, time.monotonic()
         elif time.monotonic() - last_change >= quiet_s:
             break
     return counts
+
+
+def bag_seconds(bag: Path) -> float:
+    """Bag time covered by ``bag``, seconds."""
+    with BagReader(bag) as reader:
+        span = reader.time_range_ns
+    return 0.0 if span is None else (span[1] - span[0]) / 1e9
+
+
+def play_and_record(
+    group: ProcessGroup,
+    player: GraphProcess,
+    recording: Path,
+    expected: Mapping[str, int],
+    *,
+    play_timeout_s: float,
+    drain_timeout_s: float,
+) -> None:
+    """Start the player, wait for it to end and for the recording to hold ``expected``.
+
+    The recorder (:data:`RECORDER`, already started in ``group``) is then
+    stopped with SIGINT, which finalises the recording. A player still running
+    after ``play_timeout_s`` is stopped and reported by its exit status.
+    """
+    replay = group.start(player.name, player.command())
+    with contextlib.suppress(subprocess.TimeoutExpired):
+        replay.wait(play_timeout_s)
+    group.stop([player.name])
+    # Delivered is not yet written: wait until the flushed, still open
+    # recording holds everything, then let SIGINT finalise it.
+    wait_for_recording(recording, expected, drain_timeout_s)
+    group.stop([RECORDER], timeout_s=30.0)
 
 
 def run_live_graph(
@@ -302,44 +487,22 @@ def run_live_graph(
     log_dir = out_dir / "logs"
     with BagReader(bag) as reader:
         played = {t: reader.topics[t].message_count for t in PLAYED_TOPICS if t in reader.topics}
-    commands = node_commands(photometric, handeye, settings)
-    commands["endo-record"] = [
-        console_script("endo-record"),
-        "--topics", *RECORDED_TOPICS,
-        "-o", str(recording),
-        "--flush-period", "0.2",
-    ]  # fmt: skip
-    commands["endo-replay"] = [
-        console_script("endo-replay"),
-        str(bag),
-        "--topics", *played,
-        "--remap", f"{TRACKER_POSE}:={DRIVER_TOPIC}",
-        "--rate", repr(float(settings.rate)),
-        "--wait-for-subscribers", "1",
-    ]  # fmt: skip
+    processes = graph_processes(bag, list(played), photometric, handeye, recording, settings)
+    nodes = _nodes(processes)
     child_env = dict(env, RCUTILS_LOGGING_BUFFERED_STREAM="0", PYTHONUNBUFFERED="1")
     start = time.monotonic()
     with ProcessGroup(child_env, log_dir) as group:
-        group.start("endo-record", commands["endo-record"])
-        for name in ("endo-photometric-correction", "endo-sfs", "endo-tracker-bridge"):
-            group.start(name, commands[name])
-        _wait_for_recorder(group, NODE_OUTPUT_TOPICS, settings.startup_timeout_s)
-        replay = group.start("endo-replay", commands["endo-replay"])
-        playing_s = _bag_seconds(bag) / settings.rate
-        # A hung player is stopped just below and reported by its exit status.
-        with contextlib.suppress(subprocess.TimeoutExpired):
-            replay.wait(settings.startup_timeout_s + playing_s + 15.0)
-        group.stop(["endo-replay"])
-        expected = {
-            IMAGE_CORRECTED: played.get(IMAGE_RAW, 0),
-            DEPTH_RELATIVE: played.get(IMAGE_RAW, 0),
-            TRUE_DEPTH: played.get(TRUE_DEPTH, 0),
-            TRUE_CAMERA_POSE: played.get(TRUE_CAMERA_POSE, 0),
-            # the bridge drops nothing from a clean driver; dropouts are absent samples
-            CAMERA_POSE: played.get(TRACKER_POSE, 0),
-        }
-        _wait_for_drain(recording, expected, settings.drain_timeout_s)
-        group.stop(["endo-record"])
+        for process in (_process(processes, RECORDER), *nodes):
+            group.start(process.name, process.command())
+        _wait_for_recorder(group, node_outputs(processes), settings.startup_timeout_s)
+        play_and_record(
+            group,
+            _process(processes, PLAYER),
+            recording,
+            expected_counts(processes, played),
+            play_timeout_s=settings.startup_timeout_s + bag_seconds(bag) / settings.rate + 15.0,
+            drain_timeout_s=settings.drain_timeout_s,
+        )
         group.stop()
     return GraphRun(
         recording=recording,
@@ -347,12 +510,5 @@ def run_live_graph(
         return_codes=dict(group.return_codes),
         log_dir=log_dir,
         seconds=time.monotonic() - start,
-        commands=commands,
+        processes=processes,
     )
-
-
-def _bag_seconds(bag: Path) -> float:
-    """Bag time covered by ``bag``, seconds."""
-    with BagReader(bag) as reader:
-        span = reader.time_range_ns
-    return 0.0 if span is None else (span[1] - span[0]) / 1e9

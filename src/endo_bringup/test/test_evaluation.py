@@ -13,12 +13,10 @@ from endo_bringup.evaluation import (
     depth_errors_at_truth,
     handeye_error,
     inverse_response_error,
-    read_depth_frames,
-    read_pose_stream,
-    topic_counts,
     transform_errors,
 )
 from endo_io.bag import BagWriter
+from endo_io.bag.streams import count_messages, read_depth_frames, read_pose_stream
 from endo_io.image import array_to_image
 from endo_io.pose import matrix_to_pose, rigid_transform
 
@@ -100,7 +98,7 @@ def test_bag_readers_and_median_scaled_depth(tmp_path: Path):
         writer.write_message(
             "/ground_truth/depth", array_to_image(truth, "32FC1", stamp, "cam"), stamp + 5 * MS
         )
-    counts = topic_counts(path)
+    counts = count_messages(path)
     assert counts == {
         "/endoscope/depth_relative": 3,
         "/endoscope/pose": 3,

@@ -41,7 +41,7 @@ from endo_calib.gray_levels import GrayCardAccumulator
 from endo_calib.raw_image import to_raw_frame
 from endo_io import topics
 from endo_io.camera import CameraModel
-from endo_io.errors import Endo3dError
+from endo_io.cli import exit_on_error
 
 #: A level message logged this long after an image still applies to it (ns).
 LEVEL_TOLERANCE_NS = 5_000_000
@@ -301,14 +301,10 @@ def run(args: argparse.Namespace) -> PhotometricCalibration:
     return calibration
 
 
+@exit_on_error("endo-calibrate")
 def main(argv: Sequence[str] | None = None) -> int:
     """Console entry point; exit code 0 on success, 2 on bad input."""
-    args = build_parser().parse_args(argv)
-    try:
-        run(args)
-    except Endo3dError as error:
-        print(f"endo-calibrate: {type(error).__name__}: {error}", file=sys.stderr)
-        return 2
+    run(build_parser().parse_args(argv))
     return 0
 
 

@@ -39,6 +39,7 @@ from endo_io.bag import BagWriter, message_class
 from endo_io.bag.qos_yaml import qos_profiles_to_yaml
 from endo_io.bag.serde import cdr_check
 from endo_io.bag.writer import COMPRESSIONS
+from endo_io.cli import exit_on_error
 from endo_io.errors import BagError, Endo3dError
 from endo_io.process import run_node, split_ros_args
 from endo_io.record import (
@@ -245,23 +246,20 @@ def _check_options(options: argparse.Namespace) -> None:
         raise RecordOptionError(f"{options.output} exists; not overwriting it")
 
 
+@exit_on_error("endo-record", errors=(Endo3dError, OSError))
 def main(argv: Sequence[str] | None = None) -> int:
-    """Run ``endo-record``; returns the process exit status."""
+    """Run ``endo-record``; returns the process exit status (2: bad options or output)."""
     ours, ros_args = split_ros_args(list(sys.argv if argv is None else argv))
     options = build_parser().parse_args(ours)
     if options.output is None:
         options.output = default_output()
-    try:
-        _check_options(options)
-        max_duration_ns = seconds_to_ns(options.max_duration)
-        recording = Recording(
-            BagWriter(options.output, compression=options.compression),
-            max_messages=options.max_messages,
-            max_duration_ns=max_duration_ns,
-        )
-    except (Endo3dError, OSError) as error:
-        print(f"endo-record: error: {error}", file=sys.stderr)
-        return 2
+    _check_options(options)
+    max_duration_ns = seconds_to_ns(options.max_duration)  # checked before a file exists
+    recording = Recording(
+        BagWriter(options.output, compression=options.compression),
+        max_messages=options.max_messages,
+        max_duration_ns=max_duration_ns,
+    )
     nodes: list[RecordNode] = []
 
     def factory() -> RecordNode:

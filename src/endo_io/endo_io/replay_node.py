@@ -37,6 +37,7 @@ from rosgraph_msgs.msg import Clock
 
 from endo_io.bag import BagMessage, BagReader, MessageDeserializationError, message_class
 from endo_io.bag.serde import cdr_check
+from endo_io.cli import exit_on_error
 from endo_io.errors import Endo3dError
 from endo_io.process import run_node, split_ros_args
 from endo_io.qos import create_reliable_publisher
@@ -413,22 +414,14 @@ def _check_options(options: argparse.Namespace) -> None:
         raise ValueError("--wait-timeout, --delay and --ack-timeout must be >= 0")
 
 
+@exit_on_error("endo-replay", errors=(Endo3dError, ValueError, OSError))
 def main(argv: Sequence[str] | None = None) -> int:
-    """Run ``endo-replay``; returns the process exit status."""
+    """Run ``endo-replay``; returns the process exit status (2: bad options or bag)."""
     ours, ros_args = split_ros_args(list(sys.argv if argv is None else argv))
     options = build_parser().parse_args(ours)
-    try:
-        _check_options(options)
-        reader = BagReader(options.bag)
-    except (Endo3dError, ValueError, OSError) as error:
-        print(f"endo-replay: error: {error}", file=sys.stderr)
-        return 2
-    with reader:
-        try:
-            plan = make_plan(reader, options)
-        except (Endo3dError, ValueError, OSError) as error:
-            print(f"endo-replay: error: {error}", file=sys.stderr)
-            return 2
+    _check_options(options)
+    with BagReader(options.bag) as reader:
+        plan = make_plan(reader, options)
         nodes: list[ReplayNode] = []
 
         def factory() -> ReplayNode:

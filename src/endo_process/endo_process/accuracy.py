@@ -28,15 +28,10 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial import cKDTree
 
-from endo_bringup.evaluation import (
-    PoseComparison,
-    compare_poses,
-    depth_errors_at_truth,
-    read_depth_frames,
-    read_pose_stream,
-)
+from endo_bringup.evaluation import PoseComparison, compare_poses, depth_errors_at_truth
 from endo_io import topics
 from endo_io.bag import BagReader, deserialize
+from endo_io.bag.streams import read_depth_frames, read_pose_stream
 from endo_io.camera import CameraModel
 from endo_io.pointcloud import pointcloud2_to_xyz
 from endo_io.pose import transform_points

@@ -24,6 +24,7 @@ from pathlib import Path
 from types import FrameType
 
 from endo_io.bag import BagError
+from endo_io.cli import EXIT_BAD_INPUT, report_error
 from endo_io.errors import Endo3dError
 from endo_process.accuracy import Accuracy, score_recording
 from endo_process.inputs import InputTopics
@@ -32,7 +33,7 @@ from endo_process.runner import ProcessOptions, ProcessReport, process_bag
 from endo_process.summary import format_report, summary_document
 
 PROGRAM = "endo-process"
-EXIT_OK, EXIT_DAMAGED, EXIT_INPUT, EXIT_INTERRUPTED = 0, 1, 2, 130
+EXIT_OK, EXIT_DAMAGED, EXIT_INPUT, EXIT_INTERRUPTED = 0, 1, EXIT_BAD_INPUT, 130
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -138,8 +139,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         with _StopOnSignal() as stop:
             report = process_bag(options, stop)
     except (Endo3dError, BagError) as error:
-        print(f"{PROGRAM}: {error}", file=sys.stderr)
-        return EXIT_INPUT
+        return report_error(PROGRAM, error)
     accuracy = None
     if report.frames_shaded and not report.interrupted:
         accuracy = score_recording(options.output)

@@ -20,9 +20,9 @@ import matplotlib.pyplot as plt
 import numpy as np
 import pytest
 
-from endo_bringup.evaluation import read_depth_frames
 from endo_io import topics
 from endo_io.bag import BagReader
+from endo_io.bag.streams import read_depth_frames
 from endo_process.accuracy import read_scale_stream, score_recording
 from endo_process.report import write_report_figure
 from endo_process.runner import ProcessOptions, ProcessReport, process_bag

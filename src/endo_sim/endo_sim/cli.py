@@ -19,7 +19,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from endo_io.errors import Endo3dError
+from endo_io.cli import exit_on_error
 from endo_io.progress import Progress
 from endo_sim.errors import SimulationParameterError
 from endo_sim.graycard import DEFAULT_CARD_DISTANCE_M
@@ -326,19 +326,16 @@ def _live(args: argparse.Namespace, argv: Sequence[str]) -> int:
     return run_node(lambda: SimulatorNode(sequence), args=argv)
 
 
+@exit_on_error("endo-sim")
 def main(argv: Sequence[str] | None = None) -> int:
-    """Console entry point."""
+    """Console entry point; exit code 0 on success, 2 on bad input."""
     full = list(sys.argv if argv is None else [sys.argv[0], *argv])
     from rclpy.utilities import remove_ros_args
 
     args = build_parser().parse_args(remove_ros_args(full)[1:])
-    try:
-        if args.command == "render":
-            return _render(args)
-        return _live(args, full)
-    except Endo3dError as error:
-        print(f"endo-sim: {type(error).__name__}: {error}", file=sys.stderr)
-        return 2
+    if args.command == "render":
+        return _render(args)
+    return _live(args, full)
 
 
 if __name__ == "__main__":

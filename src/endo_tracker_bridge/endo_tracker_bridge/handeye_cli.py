@@ -23,10 +23,10 @@ from pathlib import Path
 import numpy as np
 
 from endo_io.bag import BagReader, deserialize
+from endo_io.bag.streams import PoseStreamCollector
 from endo_io.camera import CameraModel
-from endo_io.errors import Endo3dError
+from endo_io.cli import exit_on_error
 from endo_io.image import image_to_array
-from endo_io.pose import pose_to_matrix
 from endo_io.stamp import stamp_to_ns
 from endo_io.topics import CAMERA_INFO, IMAGE_RAW, TRACKER_POSE
 from endo_tracker_bridge.conventions import LengthUnit
@@ -88,16 +88,12 @@ def read_observations(
         image_count = bag.topics[topics.image].message_count
         stride = max(1, -(-image_count // max_views)) if max_views > 0 else 1
 
-        stamps: list[int] = []
-        poses: list[np.ndarray] = []
+        poses = PoseStreamCollector(metres_per_unit=pose_unit.metres_per_unit)
         images: list[tuple[int, np.ndarray]] = []
         image_index = 0
         for message in bag.messages(topics=[topics.image, topics.pose]):
             if message.topic == topics.pose:
-                T, stamp_ns = pose_to_matrix(deserialize(message))
-                T[:3, 3] *= pose_unit.metres_per_unit
-                poses.append(T)
-                stamps.append(stamp_ns)
+                poses.add(message)
                 continue
             if image_index % stride == 0:
                 msg = deserialize(message)
@@ -117,12 +113,42 @@ def read_observations(
     with ThreadPoolExecutor(max_workers=max(1, workers)) as pool:
         detected = list(pool.map(detect, images))
     views = [v for v in detected if v is not None]
+    tracker = poses.stream()
     return BagObservations(
         views=views,
         images=len(images),
-        tracker_stamps_ns=np.asarray(stamps, dtype=np.int64),
-        tracker_poses=np.stack(poses) if poses else np.zeros((0, 4, 4)),
+        tracker_stamps_ns=tracker.stamps_ns,
+        tracker_poses=tracker.poses,
         camera=camera,
+    )
+
+
+def calibrate_observations(
+    observations: BagObservations,
+    board: Checkerboard,
+    search: OffsetSearch | None = None,
+    *,
+    max_gap_ns: int = 60 * MS,
+) -> HandEyeResult:
+    """:func:`~endo_tracker_bridge.handeye.calibrate_hand_eye` on what a bag gave.
+
+    Args:
+        observations: from :func:`read_observations`.
+        board: the checkerboard seen in the images.
+        search: the clock offset search (default :class:`OffsetSearch`'s).
+        max_gap_ns: longest tracker dropout bridged by interpolation, ns.
+
+    Raises:
+        HandEyeError: too few views, too little rotation, or no solution.
+    """
+    return calibrate_hand_eye(
+        observations.views,
+        observations.tracker_stamps_ns,
+        observations.tracker_poses,
+        board,
+        observations.camera,
+        search,
+        max_gap_ns=max_gap_ns,
     )
 
 
@@ -228,32 +254,26 @@ def parse_board(text: str, square_mm: float) -> Checkerboard:
     return Checkerboard(columns, rows, square_mm * 1e-3)
 
 
+@exit_on_error("endo-handeye")
 def main(argv: Sequence[str] | None = None) -> int:
-    """Console script ``endo-handeye``."""
+    """Console script ``endo-handeye``; exit code 0 on success, 2 on bad input."""
     options = build_parser().parse_args(argv)
-    try:
-        board = parse_board(options.board, options.square_mm)
-        observations = read_observations(
-            options.bag,
-            board,
-            BagTopics(options.image_topic, options.camera_info_topic, options.pose_topic),
-            LengthUnit.parse(options.pose_unit),
-            options.max_views,
-        )
-        low, high = (round(v * MS) for v in options.offset_range_ms)
-        result = calibrate_hand_eye(
-            observations.views,
-            observations.tracker_stamps_ns,
-            observations.tracker_poses,
-            board,
-            observations.camera,
-            OffsetSearch(low, high, round(options.offset_step_ms * MS)),
-            max_gap_ns=round(options.max_gap_ms * MS),
-        )
-        result_to_calibration(result, observations).save(options.output)
-    except Endo3dError as error:
-        print(f"endo-handeye: {type(error).__name__}: {error}", file=sys.stderr)
-        return 1
+    board = parse_board(options.board, options.square_mm)
+    observations = read_observations(
+        options.bag,
+        board,
+        BagTopics(options.image_topic, options.camera_info_topic, options.pose_topic),
+        LengthUnit.parse(options.pose_unit),
+        options.max_views,
+    )
+    low, high = (round(v * MS) for v in options.offset_range_ms)
+    result = calibrate_observations(
+        observations,
+        board,
+        OffsetSearch(low, high, round(options.offset_step_ms * MS)),
+        max_gap_ns=round(options.max_gap_ms * MS),
+    )
+    result_to_calibration(result, observations).save(options.output)
     for line in _summary_lines(result, observations):
         print(line)
     print(f"wrote {options.output}")

@@ -1,0 +1,140 @@
+"""The graph's table of processes: command lines, expected counts, stage report, round trip."""
+
+from __future__ import annotations
+
+import os
+import re
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from endo_bringup.demo import compare_bags, playable_topics, run_round_trip, write_synthetic_bag
+from endo_bringup.graph import (
+    DRIVER_TOPIC,
+    PLAYER,
+    RECORDER,
+    GraphRun,
+    GraphSettings,
+    describe_graph,
+    expected_counts,
+    graph_processes,
+    node_outputs,
+    stage_counts,
+)
+from endo_io import topics
+
+PLAYED = [topics.IMAGE_RAW, topics.CAMERA_INFO, topics.TRACKER_POSE, topics.TRUE_DEPTH]
+
+
+def _table(tmp_path: Path):
+    settings = GraphSettings(rate=0.5, roughness=0.3, solve_scale=1.0)
+    settings.T_world_tracker[:3, 3] = [1.0, 2.0, 3.0]
+    return graph_processes(
+        tmp_path / "phantom.mcap",
+        PLAYED,
+        tmp_path / "photometric.yaml",
+        tmp_path / "handeye.yaml",
+        tmp_path / "graph.mcap",
+        settings,
+    )
+
+
+def test_command_lines_come_from_the_table(tmp_path: Path) -> None:
+    processes = _table(tmp_path)
+    names = [p.name for p in processes]
+    nodes = ["endo-photometric-correction", "endo-sfs", "endo-tracker-bridge"]
+    assert names == [RECORDER, *nodes, PLAYER]
+    commands = {p.name: p.command() for p in processes}
+    assert Path(commands["endo-sfs"][0]).name == "endo-sfs"
+    sfs = commands["endo-sfs"][1:]
+    assert sfs[0] == "--ros-args"
+    assert sfs[1:7] == ["-p", "model:=near_light", "-p", "roughness:=0.3", "-p", "solve_scale:=1.0"]
+    assert sfs[7:] == [
+        "-r", f"image_corrected:={topics.IMAGE_CORRECTED}",
+        "-r", f"camera_info:={topics.CAMERA_INFO}",
+        "-r", f"depth_relative:={topics.DEPTH_RELATIVE}",
+    ]  # fmt: skip
+    bridge = commands["endo-tracker-bridge"]
+    assert f"ros_topic:={DRIVER_TOPIC}" in bridge
+    assert "T_world_tracker:=[1.0, 0.0, 0.0, 1.0, 0.0, 1.0, 0.0, 2.0, 0.0, 0.0, 1.0, 3.0, " in (
+        " ".join(bridge)
+    )
+    # the player plays the bag's tracker poses on the bridge's input
+    player = commands[PLAYER][1:]
+    assert player[:6] == [str(tmp_path / "phantom.mcap"), "--topics", *PLAYED]
+    assert player[6:] == [
+        "--remap", f"{topics.TRACKER_POSE}:={DRIVER_TOPIC}",
+        "--rate", "0.5",
+        "--wait-for-subscribers", "1",
+    ]  # fmt: skip
+    # the recorder keeps what the nodes publish and the ground truth; no --ros-args
+    outputs = [topics.IMAGE_CORRECTED, topics.DEPTH_RELATIVE, topics.CAMERA_POSE]
+    assert node_outputs(processes) == outputs
+    recorder = commands[RECORDER][1:]
+    assert recorder == [
+        "--topics", *outputs, topics.TRUE_DEPTH, topics.TRUE_CAMERA_POSE,
+        "-o", str(tmp_path / "graph.mcap"),
+        "--flush-period", "0.2",
+    ]  # fmt: skip
+    text = describe_graph(processes)
+    assert len(text.splitlines()) == 1 + len(processes)
+    assert re.search(rf"^endo-tracker-bridge +{DRIVER_TOPIC} +{topics.CAMERA_POSE}$", text, re.M)
+
+
+def test_expected_counts_and_stage_report(tmp_path: Path) -> None:
+    processes = _table(tmp_path)
+    played = {topics.IMAGE_RAW: 90, topics.CAMERA_INFO: 90, topics.TRACKER_POSE: 170}
+    played[topics.TRUE_DEPTH] = 3
+    expected = expected_counts(processes, played)
+    assert expected[topics.IMAGE_CORRECTED] == expected[topics.DEPTH_RELATIVE] == 90
+    assert expected[topics.CAMERA_POSE] == 170
+    assert expected[DRIVER_TOPIC] == 170 and expected[topics.TRUE_DEPTH] == 3
+
+    run = GraphRun(
+        recording=tmp_path / "graph.mcap",
+        played=played,
+        return_codes={p.name: 0 for p in processes} | {"endo-sfs": None},
+        log_dir=tmp_path,
+        seconds=1.0,
+        processes=processes,
+    )
+    recorded = {topics.IMAGE_CORRECTED: 88, topics.DEPTH_RELATIVE: 40, topics.CAMERA_POSE: 169}
+    recorded[topics.TRUE_DEPTH] = 3
+    rows = {(r.stage, r.topic): r for r in stage_counts(run, recorded)}
+    assert list(rows) == [
+        ("endo-photometric-correction", topics.IMAGE_CORRECTED),
+        ("endo-sfs", topics.DEPTH_RELATIVE),
+        ("endo-tracker-bridge", topics.CAMERA_POSE),
+        (PLAYER, topics.TRUE_DEPTH),
+    ]
+    correction = rows["endo-photometric-correction", topics.IMAGE_CORRECTED]
+    assert (correction.count_in, correction.count_out) == (90, 88)
+    sfs = rows["endo-sfs", topics.DEPTH_RELATIVE]
+    # the SFS node's input is recorded: what reached the recorder, not what was played
+    assert (sfs.count_in, sfs.count_out, sfs.return_code) == (88, 40, None)
+    bridge = rows["endo-tracker-bridge", topics.CAMERA_POSE]
+    assert (bridge.count_in, bridge.count_out) == (170, 169)
+    truth = rows[PLAYER, topics.TRUE_DEPTH]
+    assert (truth.count_in, truth.count_out) == (3, 3)
+
+
+@pytest.mark.ros
+def test_round_trip_through_the_process_group(tmp_path: Path) -> None:
+    env = dict(os.environ)
+    assert "ROS_DOMAIN_ID" in env, "run with the test's own ROS_DOMAIN_ID"
+    bag = tmp_path / "in.mcap"
+    write_synthetic_bag(bag, seconds=1.0)
+    output = tmp_path / "out.mcap"
+    replay_rc, record_rc, logs = run_round_trip(bag, output, 4.0, env)
+    assert (replay_rc, record_rc) == (0, 0), logs
+    result = compare_bags(bag, output, playable_topics(bag)[0])
+    assert result.equal
+    assert {name: t.received for name, t in result.topics.items()} == {
+        topics.CAMERA_INFO: 30,
+        topics.IMAGE_RAW: 30,
+        "/light/level": 10,
+        "/tool/pose": 60,
+    }
+    assert "subscribed to /tool/pose" in (tmp_path / "logs/round_trip/endo-record.log").read_text()
+    assert np.all([t.sent_bytes > 0 for t in result.topics.values()])

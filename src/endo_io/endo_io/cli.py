@@ -1,0 +1,63 @@
+"""The command-line tools' one way to fail on bad input: one line, exit code 2.
+
+Every endo3d console script wraps its ``main`` in :func:`exit_on_error`. An
+:class:`~endo_io.errors.Endo3dError` (or another exception class the tool
+names, e.g. ``OSError`` for a file it cannot write) then ends the program
+with one line on stderr, ``<program>: <ErrorClass>: <message>``, and exit code
+:data:`EXIT_BAD_INPUT`, never a traceback. argparse's own usage errors exit
+with 2 as well, so a script has one failure code for "the input was wrong".
+
+>>> @exit_on_error("endo-calibrate")
+... def main(argv: Sequence[str] | None = None) -> int:
+...     run(build_parser().parse_args(argv))
+...     return 0
+"""
+
+from __future__ import annotations
+
+import functools
+import sys
+from collections.abc import Callable
+from typing import ParamSpec
+
+from endo_io.errors import Endo3dError
+
+#: Exit code of a command-line tool given bad input (argparse uses it too).
+EXIT_BAD_INPUT = 2
+
+_P = ParamSpec("_P")
+
+
+def report_error(program: str, error: BaseException) -> int:
+    """Print ``<program>: <ErrorClass>: <message>`` on stderr; return :data:`EXIT_BAD_INPUT`."""
+    print(f"{program}: {type(error).__name__}: {error}", file=sys.stderr, flush=True)
+    return EXIT_BAD_INPUT
+
+
+def exit_on_error(
+    program: str, *, errors: tuple[type[BaseException], ...] = (Endo3dError,)
+) -> Callable[[Callable[_P, int]], Callable[_P, int]]:
+    """Decorate a console script's ``main``: ``errors`` become one line and exit code 2.
+
+    Args:
+        program: the executable's name, the first word of the line.
+        errors: the exception classes that mean bad input (default
+            :class:`~endo_io.errors.Endo3dError`, the base of every endo3d
+            error); anything else is a bug and keeps its traceback.
+
+    Returns:
+        A decorator; the decorated ``main`` returns its own exit code, or
+        :data:`EXIT_BAD_INPUT` after printing the line.
+    """
+
+    def decorate(main: Callable[_P, int]) -> Callable[_P, int]:
+        @functools.wraps(main)
+        def guarded(*args: _P.args, **kwargs: _P.kwargs) -> int:
+            try:
+                return main(*args, **kwargs)
+            except errors as error:
+                return report_error(program, error)
+
+        return guarded
+
+    return decorate

@@ -1,0 +1,48 @@
+"""endo_io.cli.exit_on_error: bad input is one line on stderr and exit code 2."""
+
+from __future__ import annotations
+
+import pytest
+
+from endo_io.cli import EXIT_BAD_INPUT, exit_on_error
+from endo_io.errors import BagError, PoseError
+
+
+@exit_on_error("endo-example")
+def _main(argv: list[str]) -> int:
+    if argv == ["pose"]:
+        raise PoseError("quaternion contains NaN or infinity")
+    if argv == ["bug"]:
+        raise KeyError("not bad input: a bug")
+    return len(argv)
+
+
+@exit_on_error("endo-files", errors=(BagError, OSError))
+def _files(path: str) -> int:
+    with open(path, "rb"):  # noqa: PTH123
+        return 0
+
+
+def test_bad_input_is_one_line_and_exit_2(capsys: pytest.CaptureFixture[str]) -> None:
+    assert EXIT_BAD_INPUT == 2
+    assert _main(["pose"]) == 2
+    captured = capsys.readouterr()
+    assert captured.out == ""
+    assert captured.err == "endo-example: PoseError: quaternion contains NaN or infinity\n"
+
+
+def test_the_wrapped_exit_code_and_anything_else_pass_through(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    assert _main(["a", "b", "c"]) == 3
+    with pytest.raises(KeyError):
+        _main(["bug"])
+    assert capsys.readouterr().err == ""
+    assert _main.__name__ == "_main"
+
+
+def test_named_classes_are_bad_input_too(tmp_path, capsys: pytest.CaptureFixture[str]) -> None:
+    assert _files(str(tmp_path / "missing.bin")) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("endo-files: FileNotFoundError: ") and "missing.bin" in err
+    assert len(err.splitlines()) == 1
