@@ -43,16 +43,15 @@ from endo_io.topics import (
     DEPTH_RELATIVE,
     IMAGE_CORRECTED,
     IMAGE_RAW,
+    MARKER_POSE,
     TRACKER_POSE,
     TRUE_CAMERA_POSE,
     TRUE_DEPTH,
 )
 
-#: The bag's topics that are played into the graph.
+#: The bag's topics that are played into the graph, unchanged: the bridge
+#: listens on the tracker driver's /tracker/pose, as a real driver publishes it.
 PLAYED_TOPICS = [IMAGE_RAW, CAMERA_INFO, TRACKER_POSE, TRUE_DEPTH, TRUE_CAMERA_POSE]
-#: Where the bag's tracker poses are played: the bridge publishes
-#: /tracker/pose itself, so the driver poses go to its ``ros_topic`` default.
-DRIVER_TOPIC = "/tracker/driver_pose"
 #: Names of the recorder and player processes (their logs, their exit codes).
 RECORDER, PLAYER = "endo-record", "endo-replay"
 
@@ -181,23 +180,14 @@ def recorder_process(topics: Sequence[str], output: Path) -> GraphProcess:
     )
 
 
-def replay_process(
-    bag: Path, topics: Sequence[str], rate: float, remaps: Mapping[str, str] | None = None
-) -> GraphProcess:
-    """``endo-replay`` of ``topics`` of ``bag`` at ``rate``, once a subscriber is there.
-
-    remaps: bag topic -> topic it is published on.
-    """
-    remaps = dict(remaps or {})
-    arguments = [str(bag), "--topics", *topics]
-    for source, target in remaps.items():
-        arguments += ["--remap", f"{source}:={target}"]
-    arguments += ["--rate", repr(float(rate)), "--wait-for-subscribers", "1"]
+def replay_process(bag: Path, topics: Sequence[str], rate: float) -> GraphProcess:
+    """``endo-replay`` of ``topics`` of ``bag`` at ``rate``, once a subscriber is there."""
+    arguments = (str(bag), "--topics", *topics, "--rate", repr(float(rate)))
     return GraphProcess(
         PLAYER,
         "endo-replay",
-        arguments=tuple(arguments),
-        publishes=tuple(remaps.get(t, t) for t in topics),
+        arguments=(*arguments, "--wait-for-subscribers", "1"),
+        publishes=tuple(topics),
     )
 
 
@@ -274,18 +264,17 @@ def graph_processes(
             "endo-tracker-bridge",
             parameters={
                 "source": "ros",
-                "ros_topic": DRIVER_TOPIC,
                 "handeye_file": str(handeye),
                 "T_world_tracker": _float_list(settings.T_world_tracker),
             },
-            subscribes=(DRIVER_TOPIC,),
-            publishes=(CAMERA_POSE,),
+            subscribes=(TRACKER_POSE,),
+            publishes=(CAMERA_POSE, MARKER_POSE),
         ),
     ]
     return [
         recorder_process([*node_outputs(nodes), TRUE_DEPTH, TRUE_CAMERA_POSE], recording),
         *nodes,
-        replay_process(bag, played, settings.rate, {TRACKER_POSE: DRIVER_TOPIC}),
+        replay_process(bag, played, settings.rate),
     ]
 
 

@@ -11,7 +11,6 @@ import pytest
 
 from endo_bringup.demo import compare_bags, playable_topics, run_round_trip, write_synthetic_bag
 from endo_bringup.graph import (
-    DRIVER_TOPIC,
     PLAYER,
     RECORDER,
     GraphRun,
@@ -56,20 +55,18 @@ def test_command_lines_come_from_the_table(tmp_path: Path) -> None:
         "-r", f"depth_relative:={topics.DEPTH_RELATIVE}",
     ]  # fmt: skip
     bridge = commands["endo-tracker-bridge"]
-    assert f"ros_topic:={DRIVER_TOPIC}" in bridge
+    # the bridge listens on the driver's /tracker/pose by default: no ros_topic, no remap
+    assert not any(a.startswith(("ros_topic:=", "/tracker")) for a in bridge)
     assert "T_world_tracker:=[1.0, 0.0, 0.0, 1.0, 0.0, 1.0, 0.0, 2.0, 0.0, 0.0, 1.0, 3.0, " in (
         " ".join(bridge)
     )
-    # the player plays the bag's tracker poses on the bridge's input
+    # the player plays the bag's topics as they are
     player = commands[PLAYER][1:]
     assert player[:6] == [str(tmp_path / "phantom.mcap"), "--topics", *PLAYED]
-    assert player[6:] == [
-        "--remap", f"{topics.TRACKER_POSE}:={DRIVER_TOPIC}",
-        "--rate", "0.5",
-        "--wait-for-subscribers", "1",
-    ]  # fmt: skip
+    assert player[6:] == ["--rate", "0.5", "--wait-for-subscribers", "1"]
     # the recorder keeps what the nodes publish and the ground truth; no --ros-args
     outputs = [topics.IMAGE_CORRECTED, topics.DEPTH_RELATIVE, topics.CAMERA_POSE]
+    outputs.append(topics.MARKER_POSE)
     assert node_outputs(processes) == outputs
     recorder = commands[RECORDER][1:]
     assert recorder == [
@@ -79,7 +76,8 @@ def test_command_lines_come_from_the_table(tmp_path: Path) -> None:
     ]  # fmt: skip
     text = describe_graph(processes)
     assert len(text.splitlines()) == 1 + len(processes)
-    assert re.search(rf"^endo-tracker-bridge +{DRIVER_TOPIC} +{topics.CAMERA_POSE}$", text, re.M)
+    bridge_row = rf"^endo-tracker-bridge +{topics.TRACKER_POSE} +{topics.CAMERA_POSE}, "
+    assert re.search(bridge_row + topics.MARKER_POSE + "$", text, re.M)
 
 
 def test_expected_counts_and_stage_report(tmp_path: Path) -> None:
@@ -88,8 +86,8 @@ def test_expected_counts_and_stage_report(tmp_path: Path) -> None:
     played[topics.TRUE_DEPTH] = 3
     expected = expected_counts(processes, played)
     assert expected[topics.IMAGE_CORRECTED] == expected[topics.DEPTH_RELATIVE] == 90
-    assert expected[topics.CAMERA_POSE] == 170
-    assert expected[DRIVER_TOPIC] == 170 and expected[topics.TRUE_DEPTH] == 3
+    assert expected[topics.CAMERA_POSE] == expected[topics.MARKER_POSE] == 170
+    assert expected[topics.TRACKER_POSE] == 170 and expected[topics.TRUE_DEPTH] == 3
 
     run = GraphRun(
         recording=tmp_path / "graph.mcap",
@@ -100,12 +98,13 @@ def test_expected_counts_and_stage_report(tmp_path: Path) -> None:
         processes=processes,
     )
     recorded = {topics.IMAGE_CORRECTED: 88, topics.DEPTH_RELATIVE: 40, topics.CAMERA_POSE: 169}
-    recorded[topics.TRUE_DEPTH] = 3
+    recorded |= {topics.TRUE_DEPTH: 3, topics.MARKER_POSE: 170}
     rows = {(r.stage, r.topic): r for r in stage_counts(run, recorded)}
     assert list(rows) == [
         ("endo-photometric-correction", topics.IMAGE_CORRECTED),
         ("endo-sfs", topics.DEPTH_RELATIVE),
         ("endo-tracker-bridge", topics.CAMERA_POSE),
+        ("endo-tracker-bridge", topics.MARKER_POSE),
         (PLAYER, topics.TRUE_DEPTH),
     ]
     correction = rows["endo-photometric-correction", topics.IMAGE_CORRECTED]

@@ -21,6 +21,7 @@ from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.utilities import get_rmw_implementation_identifier
 
+from endo_io.cli import report_error
 from endo_io.errors import Endo3dError, ParameterValidationError
 
 
@@ -159,8 +160,7 @@ def run_node(factory: Callable[[], Node], args: Sequence[str] | None = None) -> 
             print(f"{program}: {error}", file=sys.stderr)
             return 2
         except Endo3dError as error:
-            print(f"{program}: {type(error).__name__}: {error}", file=sys.stderr)
-            return 2
+            return report_error(program, error)
         executor = SingleThreadedExecutor()
         executor.add_node(node)
         # Logged once the executor exists: a SIGINT sent on seeing this line
