@@ -6,6 +6,8 @@ names, e.g. ``OSError`` for a file it cannot write) then ends the program
 with one line on stderr, ``<program>: <ErrorClass>: <message>``, and exit code
 :data:`EXIT_BAD_INPUT`, never a traceback. argparse's own usage errors exit
 with 2 as well, so a script has one failure code for "the input was wrong".
+A tool whose lines follow argparse's ``<program>: error: <message>`` form
+(``endo-replay``, ``endo-record``) passes ``label="error"``.
 
 >>> @exit_on_error("endo-calibrate")
 ... def main(argv: Sequence[str] | None = None) -> int:
@@ -28,14 +30,24 @@ EXIT_BAD_INPUT = 2
 _P = ParamSpec("_P")
 
 
-def report_error(program: str, error: BaseException) -> int:
-    """Print ``<program>: <ErrorClass>: <message>`` on stderr; return :data:`EXIT_BAD_INPUT`."""
-    print(f"{program}: {type(error).__name__}: {error}", file=sys.stderr, flush=True)
+def report_error(program: str, error: BaseException, *, label: str | None = None) -> int:
+    """Print ``<program>: <label>: <message>`` on stderr; return :data:`EXIT_BAD_INPUT`.
+
+    Args:
+        program: the executable's name.
+        error: what went wrong; its message is the end of the line.
+        label: the word before the message; default the exception's class
+            name (``BagNotFoundError``), which names the cause.
+    """
+    print(f"{program}: {label or type(error).__name__}: {error}", file=sys.stderr, flush=True)
     return EXIT_BAD_INPUT
 
 
 def exit_on_error(
-    program: str, *, errors: tuple[type[BaseException], ...] = (Endo3dError,)
+    program: str,
+    *,
+    errors: tuple[type[BaseException], ...] = (Endo3dError,),
+    label: str | None = None,
 ) -> Callable[[Callable[_P, int]], Callable[_P, int]]:
     """Decorate a console script's ``main``: ``errors`` become one line and exit code 2.
 
@@ -44,6 +56,7 @@ def exit_on_error(
         errors: the exception classes that mean bad input (default
             :class:`~endo_io.errors.Endo3dError`, the base of every endo3d
             error); anything else is a bug and keeps its traceback.
+        label: as for :func:`report_error`.
 
     Returns:
         A decorator; the decorated ``main`` returns its own exit code, or
@@ -56,7 +69,7 @@ def exit_on_error(
             try:
                 return main(*args, **kwargs)
             except errors as error:
-                return report_error(program, error)
+                return report_error(program, error, label=label)
 
         return guarded
 

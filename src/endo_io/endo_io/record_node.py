@@ -246,7 +246,7 @@ def _check_options(options: argparse.Namespace) -> None:
         raise RecordOptionError(f"{options.output} exists; not overwriting it")
 
 
-@exit_on_error("endo-record", errors=(Endo3dError, OSError))
+@exit_on_error("endo-record", errors=(Endo3dError, OSError), label="error")
 def main(argv: Sequence[str] | None = None) -> int:
     """Run ``endo-record``; returns the process exit status (2: bad options or output)."""
     ours, ros_args = split_ros_args(list(sys.argv if argv is None else argv))

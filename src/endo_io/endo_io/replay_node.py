@@ -414,7 +414,7 @@ def _check_options(options: argparse.Namespace) -> None:
         raise ValueError("--wait-timeout, --delay and --ack-timeout must be >= 0")
 
 
-@exit_on_error("endo-replay", errors=(Endo3dError, ValueError, OSError))
+@exit_on_error("endo-replay", errors=(Endo3dError, ValueError, OSError), label="error")
 def main(argv: Sequence[str] | None = None) -> int:
     """Run ``endo-replay``; returns the process exit status (2: bad options or bag)."""
     ours, ros_args = split_ros_args(list(sys.argv if argv is None else argv))

@@ -17,7 +17,7 @@ def _main(argv: list[str]) -> int:
     return len(argv)
 
 
-@exit_on_error("endo-files", errors=(BagError, OSError))
+@exit_on_error("endo-files", errors=(BagError, OSError), label="error")
 def _files(path: str) -> int:
     with open(path, "rb"):  # noqa: PTH123
         return 0
@@ -41,8 +41,10 @@ def test_the_wrapped_exit_code_and_anything_else_pass_through(
     assert _main.__name__ == "_main"
 
 
-def test_named_classes_are_bad_input_too(tmp_path, capsys: pytest.CaptureFixture[str]) -> None:
+def test_named_classes_are_bad_input_too_and_the_label_can_be_argparses(
+    tmp_path, capsys: pytest.CaptureFixture[str]
+) -> None:
     assert _files(str(tmp_path / "missing.bin")) == 2
     err = capsys.readouterr().err
-    assert err.startswith("endo-files: FileNotFoundError: ") and "missing.bin" in err
+    assert err.startswith("endo-files: error: ") and "missing.bin" in err
     assert len(err.splitlines()) == 1
