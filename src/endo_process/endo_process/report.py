@@ -26,9 +26,9 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
 
-from endo_bringup.evaluation import read_depth_frames, read_pose_stream
 from endo_calib.calibration import PhotometricCalibration
 from endo_io import topics
+from endo_io.bag.streams import read_depth_frames, read_pose_stream
 from endo_io.camera import CameraModel
 from endo_io.pointcloud import pointcloud2_to_xyz
 from endo_process.accuracy import Accuracy, cloud_distances, messages_at, read_scale_stream
