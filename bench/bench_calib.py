@@ -13,22 +13,20 @@ import time
 import numpy as np
 from machine import cpu_model
 
-from endo_calib.calibration import ChannelCalibration, PhotometricCalibration
-from endo_calib.light_map import fit_light_model, normalised_grid
-from endo_calib.response import InverseResponse
+from endo_calib.calibration import PhotometricCalibration
+from endo_calib.synthetic import synthetic_calibration
 
 
 def calibration(width: int, height: int, bits: int, colour: bool) -> PhotometricCalibration:
-    x, y = normalised_grid(width, height)
-    xx, yy = np.meshgrid(x, y)
-    fov = xx**2 + yy**2 < 1.2
-    channels = []
-    for c, name in enumerate(("red", "green", "blue") if colour else ("mono",)):
-        light = np.where(fov, np.exp(-(xx**2 + yy**2) * (1 + 0.2 * c)), 0.0)
-        lut = (np.arange(1 << bits) / ((1 << bits) - 1)) ** 2.2
-        model = fit_light_model(light, fov.astype(float), 8)
-        channels.append(ChannelCalibration(name, InverseResponse(lut, bits), light, model))
-    return PhotometricCalibration(channels, fov)
+    return synthetic_calibration(
+        width,
+        height,
+        bits=bits,
+        colour=colour,
+        fov_radius2=1.2,
+        light_model_degree=8,
+        light_source="model",
+    )
 
 
 def time_ms(fn, repeats: int = 200) -> tuple[float, float]:

@@ -14,12 +14,9 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
 import pytest
 
-from endo_calib.calibration import ChannelCalibration, PhotometricCalibration
-from endo_calib.light_map import normalised_grid
-from endo_calib.response import InverseResponse
+from endo_calib.synthetic import synthetic_calibration
 
 pytestmark = pytest.mark.ros
 
@@ -45,12 +42,7 @@ def _one_line(result: subprocess.CompletedProcess[str]) -> str:
 @pytest.fixture(scope="module")
 def mono_calibration(tmp_path_factory: pytest.TempPathFactory) -> Path:
     path = tmp_path_factory.mktemp("calibration") / "mono.yaml"
-    xx, yy = np.meshgrid(*normalised_grid(32, 24))
-    fov = xx**2 + yy**2 < 0.9
-    light = np.where(fov, np.exp(-(xx**2 + yy**2)), 0.0)
-    lut = (np.arange(256) / 255.0) ** 2.2
-    channel = ChannelCalibration("mono", InverseResponse(lut, 8), light, None)
-    PhotometricCalibration([channel], fov, None, "pixels").save(path)
+    synthetic_calibration(32, 24).save(path)
     return path
 
 

@@ -2,24 +2,22 @@ import numpy as np
 import pytest
 import yaml
 
-from endo_calib.calibration import ChannelCalibration, PhotometricCalibration
+from endo_calib.calibration import PhotometricCalibration
 from endo_calib.errors import CalibrationFileError, CalibrationMismatchError
-from endo_calib.light_map import fit_light_model, normalised_grid
-from endo_calib.response import InverseResponse
+from endo_calib.synthetic import synthetic_calibration
 
 
 def _calibration(width=64, height=48, bits=8, colour=False, source="pixels"):
-    x, y = normalised_grid(width, height)
-    xx, yy = np.meshgrid(x, y)
-    fov = xx**2 + yy**2 < 0.9
-    names = ("red", "green", "blue") if colour else ("mono",)
-    channels = []
-    for c, name in enumerate(names):
-        light = np.where(fov, np.exp(-(xx**2 + yy**2) * (1 + 0.2 * c)), 0.0)
-        lut = (np.arange(1 << bits) / ((1 << bits) - 1)) ** (2.0 + 0.2 * c)
-        model = fit_light_model(light, fov.astype(float), 6)
-        channels.append(ChannelCalibration(name, InverseResponse(lut, bits), light, model))
-    return PhotometricCalibration(channels, fov, None, source)
+    return synthetic_calibration(
+        width,
+        height,
+        bits=bits,
+        colour=colour,
+        gamma=2.0,
+        gamma_step=0.2,
+        light_model_degree=6,
+        light_source=source,
+    )
 
 
 def test_correct_is_lut_over_light_map_with_nan_for_saturation_and_outside():

@@ -15,10 +15,9 @@ from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
 from sensor_msgs.msg import Image
 
-from endo_calib.calibration import ChannelCalibration, PhotometricCalibration
-from endo_calib.light_map import normalised_grid
+from endo_calib.calibration import PhotometricCalibration
 from endo_calib.node import PhotometricCorrectionNode
-from endo_calib.response import InverseResponse
+from endo_calib.synthetic import synthetic_calibration
 from endo_io import topics
 from endo_io.errors import ParameterValidationError
 from endo_io.image import array_to_image, image_to_array
@@ -30,16 +29,10 @@ W, H = 64, 48
 
 
 def _write_calibration(path, exponent, colour=False):
-    x, y = normalised_grid(W, H)
-    xx, yy = np.meshgrid(x, y)
-    fov = xx**2 + yy**2 < 0.9
-    names = ("red", "green", "blue") if colour else ("mono",)
-    channels = []
-    for c, name in enumerate(names):
-        light = np.where(fov, np.exp(-(xx**2 + yy**2) * (1 + 0.3 * c)), 0.0)
-        lut = (np.arange(256) / 255.0) ** (exponent + 0.1 * c)
-        channels.append(ChannelCalibration(name, InverseResponse(lut, 8), light, None))
-    return PhotometricCalibration(channels, fov, None, "pixels").save(path)
+    calibration = synthetic_calibration(
+        W, H, colour=colour, gamma=exponent, gamma_step=0.1, falloff_step=0.3
+    )
+    return calibration.save(path)
 
 
 @pytest.fixture
