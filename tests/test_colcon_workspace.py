@@ -22,7 +22,7 @@ ROOT = Path(__file__).resolve().parents[1]
 PACKAGES = sorted(p.parent.name for p in (ROOT / "src").glob("*/package.xml"))
 EXPECTED = {
     "endo_io", "endo_calib", "endo_sfs", "endo_flow", "endo_tracker_bridge", "endo_sim",
-    "endo_bringup", "endo_process",
+    "endo_bringup", "endo_process", "endo_foxglove",
 }
 
 
