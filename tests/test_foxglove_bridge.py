@@ -43,10 +43,11 @@ import rclpy
 import websockets
 from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.executors import SingleThreadedExecutor
+from rclpy.serialization import deserialize_message
 from sensor_msgs.msg import Image
 
 from endo_bringup.dds_profile import with_large_frame_profile
-from endo_io.bag import BagWriter
+from endo_io.bag import BagWriter, message_class
 from endo_io.camera import CameraModel
 from endo_io.image import array_to_image
 from endo_io.pointcloud import xyz_to_pointcloud2
@@ -56,6 +57,7 @@ from endo_io.topics import (
     CAMERA_INFO,
     CAMERA_POSE,
     DEPTH,
+    DIAGNOSTICS,
     IMAGE_RAW,
     OPTICAL_FRAME,
     POINTS,
@@ -285,7 +287,9 @@ async def receive(port: int, wanted: dict[str, int], timeout_s: float) -> dict[s
                 sub_id, _log_time = struct.unpack_from("<IQ", frame, 1)
                 channel = by_subscription[sub_id]
                 payload = frame[13:]
-                if channel["decoder"] is None:
+                if channel["encoding"] == "cdr":
+                    decoded = deserialize_message(payload, message_class(channel["schemaName"]))
+                elif channel["decoder"] is None:
                     decoded = json.loads(payload)
                 else:
                     decoded = channel["decoder"].decode(channel["schemaName"], payload)
@@ -313,7 +317,7 @@ def test_client_decodes_cloud_transform_and_image_from_a_replay(tmp_path, dds_en
         env=dds_env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
     )
     try:
-        wanted = {POINTS: 3, TF: 3, IMAGE_RAW: 3, DEPTH: 1}
+        wanted = {POINTS: 3, TF: 3, IMAGE_RAW: 3, DEPTH: 1, DIAGNOSTICS: 3}
         result = asyncio.run(receive(port, wanted, timeout_s=30.0))
     finally:
         stop(replay)
@@ -352,6 +356,11 @@ def test_client_decodes_cloud_transform_and_image_from_a_replay(tmp_path, dds_en
         assert (image["width"], image["height"], image["encoding"]) == (W, H, "mono8")
         pixels = np.frombuffer(image["data"], dtype=np.uint8).reshape(H, W)
         np.testing.assert_array_equal(pixels, image_pixels(index[stamp_ns(image)]))
+    # /diagnostics passes through as CDR with its ROS schema, the bridge's own status included
+    assert channels[DIAGNOSTICS]["encoding"] == "cdr"
+    assert channels[DIAGNOSTICS]["schemaName"] == "diagnostic_msgs/msg/DiagnosticArray"
+    names = {status.name for msg in messages[DIAGNOSTICS] for status in msg.status}
+    assert any(name.startswith("endo_foxglove") for name in names), names
     depth = messages[DEPTH][0]
     assert depth["encoding"] == "32FC1" and depth["step"] == 4 * W
     values = np.frombuffer(depth["data"], dtype="<f4")

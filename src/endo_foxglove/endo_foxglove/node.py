@@ -8,7 +8,9 @@ foxglove-sdk's WebSocket server (ws://127.0.0.1:8765 by default; wss:// with
 CameraCalibration, PointCloud, PoseInFrame, FrameTransforms on ``/tf``
 (world → endoscope_optical_frame per pose) and ``/tf_static`` (world →
 tracker, optical frame → marker from ``T_world_tracker`` and
-``handeye_file``), and the scale as JSON with a top-level ``scale`` number.
+``handeye_file``), the scale as JSON with a top-level ``scale`` number, and
+``/diagnostics`` as it is (CDR with its ROS schema, which Foxglove's
+diagnostics panels read).
 
 A slow viewer never slows the graph: DDS callbacks only leave each message
 in a newest-wins slot (a message still waiting there when the next arrives
@@ -35,7 +37,8 @@ from typing import Any
 
 import foxglove
 import numpy as np
-from foxglove import Channel, Context
+from diagnostic_msgs.msg import DiagnosticArray
+from foxglove import Channel, Context, Schema
 from foxglove.channels import (
     CameraCalibrationChannel,
     FrameTransformsChannel,
@@ -54,7 +57,8 @@ from endo_foxglove import convert
 from endo_foxglove.mailbox import NewestWins
 from endo_foxglove.plot_message import json_schema, plot_message
 from endo_io import topics
-from endo_io.bag.serde import message_class
+from endo_io.bag.msgdef import message_definition
+from endo_io.bag.serde import message_class, msgtype_of
 from endo_io.diagnostics import InputHealth
 from endo_io.errors import Endo3dError
 from endo_io.pose import pose_to_matrix
@@ -87,6 +91,8 @@ class Stream:
         msg_type: ROS message class; None for the scale (found at run time).
         max_rate_hz: default throttle, 0 = every message.
         latched: transient-local subscription, last message re-sent to new clients.
+        raw: passed through as CDR with its ROS schema (no Foxglove schema exists,
+            e.g. ``/diagnostics`` for Foxglove's diagnostics panels).
     """
 
     key: str
@@ -94,6 +100,7 @@ class Stream:
     msg_type: type | None
     max_rate_hz: float
     latched: bool = False
+    raw: bool = False
 
 
 STREAMS: tuple[Stream, ...] = (
@@ -106,6 +113,7 @@ STREAMS: tuple[Stream, ...] = (
     Stream("map", topics.MAP, PointCloud2, 1.0, latched=True),
     Stream("camera_pose", topics.CAMERA_POSE, PoseStamped, 0.0),
     Stream("scale", topics.SCALE, None, 0.0),
+    Stream("diagnostics", topics.DIAGNOSTICS, DiagnosticArray, 0.0, raw=True),
 )
 
 
@@ -292,6 +300,17 @@ class FoxgloveBridgeNode(Node):
         channels["camera_pose"] = PoseInFrameChannel(
             self._topic_of["camera_pose"], context=context
         )
+        for stream in STREAMS:
+            if stream.raw and stream.msg_type is not None:
+                msgtype = msgtype_of(stream.msg_type)
+                definition = message_definition(msgtype)
+                schema = Schema(
+                    name=msgtype, encoding=definition.encoding, data=definition.text.encode()
+                )
+                channels[stream.key] = Channel(
+                    self._topic_of[stream.key], schema=schema, message_encoding="cdr",
+                    context=context,
+                )
         channels["tf"] = FrameTransformsChannel(TF_CHANNEL, context=context)
         channels["tf_static"] = FrameTransformsChannel(TF_STATIC_CHANNEL, context=context)
         return channels
@@ -348,6 +367,7 @@ class FoxgloveBridgeNode(Node):
             self._topic_of[stream.key],
             functools.partial(self._on_message, stream.key),
             qos,
+            raw=stream.raw,
         )
 
     def _on_message(self, key: str, msg: Any) -> None:
@@ -425,7 +445,9 @@ class FoxgloveBridgeNode(Node):
             return
         if not channel.has_sinks():
             return
-        if key in ("points", "map"):
+        if self._streams[key].raw:
+            channel.log(bytes(msg))
+        elif key in ("points", "map"):
             cloud = convert.point_cloud(msg, max_points=int(self._p[f"{key}_max_points"]))
             channel.log(cloud.message)
             self._points_shown[key] = (cloud.published, cloud.total)

@@ -36,13 +36,13 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from endo_io.bag.msgdef import DEFINITION_SEPARATOR, MessageDefinition, message_definition
 from endo_io.errors import Endo3dError
 from endo_io.pose import invert_transform, matrix_to_quaternion, quaternion_to_matrix
 from endo_io.stamp import NS_PER_S
 from endo_io.topics import MARKER_FRAME, OPTICAL_FRAME, TF_STATIC, TRACKER_FRAME, WORLD_FRAME
 
 if TYPE_CHECKING:
+    from endo_io.bag.msgdef import MessageDefinition
     from endo_io.bag.writer import BagWriter
 
 #: Type name of a tf message.
@@ -179,6 +179,9 @@ def tf_message_definition() -> MessageDefinition:
     Raises:
         TransformError: geometry_msgs' interface files are not installed.
     """
+    # endo_io.bag loads rclpy (its serialiser); the definitions are only files.
+    from endo_io.bag.msgdef import DEFINITION_SEPARATOR, MessageDefinition, message_definition
+
     dependency = message_definition("geometry_msgs/msg/TransformStamped")
     if dependency.encoding != "ros2msg":
         raise TransformError("geometry_msgs/msg/TransformStamped.msg is not installed")

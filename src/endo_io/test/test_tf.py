@@ -7,6 +7,9 @@ definition), so the values they return check our schema and our bytes.
 
 from __future__ import annotations
 
+import subprocess
+import sys
+
 import numpy as np
 import pytest
 from mcap.reader import make_reader
@@ -205,3 +208,11 @@ def test_static_transforms_skip_what_is_unknown(calibration):
 def test_write_tf_refuses_an_empty_message(tmp_path):
     with BagWriter(tmp_path / "x.mcap") as bag, pytest.raises(TransformError, match="at least"):
         write_tf(bag, TF, [], T0)
+
+
+def test_importing_the_module_loads_no_rclpy():
+    code = "import sys\nimport endo_io.tf\nprint('rclpy' in sys.modules)\n"
+    result = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, timeout=60, check=True
+    )
+    assert result.stdout.strip() == "False"
