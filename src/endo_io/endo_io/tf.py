@@ -239,13 +239,26 @@ def tf_qos_yaml(*, static: bool) -> str:
     return qos_profiles_to_yaml([profile])
 
 
+def add_tf_topic(writer: BagWriter, topic: str) -> None:
+    """Declare ``topic`` (``/tf`` or ``/tf_static``) as ``tf2_msgs/msg/TFMessage`` in a bag.
+
+    The schema is :func:`tf_message_definition`, the offered QoS the tf
+    broadcasters' (``/tf_static`` latched). Declaring it again does nothing.
+    """
+    writer.add_topic(
+        topic,
+        TF_MESSAGE_TYPE,
+        tf_qos_yaml(static=topic == TF_STATIC),
+        message_definition_override=tf_message_definition(),
+    )
+
+
 def write_tf(
     writer: BagWriter, topic: str, transforms: Sequence[StampedTransform], log_time_ns: int
 ) -> None:
     """Record one ``TFMessage`` on ``topic`` (``/tf`` or ``/tf_static``) of a bag being written.
 
-    The topic is declared on first use with :func:`tf_message_definition` and
-    the tf broadcasters' QoS (``/tf_static`` latched).
+    The topic is declared on first use (:func:`add_tf_topic`).
 
     Args:
         writer: an open :class:`endo_io.bag.BagWriter`.
@@ -259,12 +272,7 @@ def write_tf(
     if not transforms:
         raise TransformError(f"{topic}: a tf message needs at least one transform")
     data = serialize_tf_message(transforms)
-    writer.add_topic(
-        topic,
-        TF_MESSAGE_TYPE,
-        tf_qos_yaml(static=topic == TF_STATIC),
-        message_definition_override=tf_message_definition(),
-    )
+    add_tf_topic(writer, topic)
     writer.write(topic, data, log_time_ns)
 
 
@@ -273,6 +281,7 @@ __all__ = [
     "TF_MESSAGE_TYPE",
     "StampedTransform",
     "TransformError",
+    "add_tf_topic",
     "camera_transform",
     "serialize_tf_message",
     "static_transforms",

@@ -22,6 +22,7 @@ from typing import Any
 
 from endo_io.bag import BagMessage, BagWriter, TopicInfo
 from endo_io.bag.serde import msgtype_of, serialize
+from endo_io.tf import StampedTransform, TransformError, add_tf_topic, serialize_tf_message
 
 #: Flush the writer (close the current chunk) every this many frames.
 DEFAULT_FLUSH_EVERY = 30
@@ -55,6 +56,18 @@ class OutputBag:
             self.writer.add_topic(topic, msgtype_of(message))
             self.counts[topic] = 0
         heapq.heappush(self._held, (int(log_time_ns), self._order, topic, serialize(message)))
+        self._order += 1
+
+    def hold_tf(self, topic: str, transforms: list[StampedTransform], log_time_ns: int) -> None:
+        """Queue a ``tf2_msgs/msg/TFMessage`` on ``/tf`` or ``/tf_static`` (built by endo_io.tf)."""
+        if not transforms:
+            raise TransformError(f"{topic}: a tf message needs at least one transform")
+        if topic not in self.counts:
+            add_tf_topic(self.writer, topic)
+            self.counts[topic] = 0
+        heapq.heappush(
+            self._held, (int(log_time_ns), self._order, topic, serialize_tf_message(transforms))
+        )
         self._order += 1
 
     def copy_until(

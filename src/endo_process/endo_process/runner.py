@@ -48,6 +48,7 @@ from endo_io.pose import matrix_to_pose, pose_to_matrix
 from endo_io.pose_buffer import PoseBuffer
 from endo_io.progress import Progress
 from endo_io.stamp import NS_PER_S, stamp_to_ns
+from endo_io.tf import StampedTransform, static_transforms
 from endo_process.errors import ProcessInputError
 from endo_process.flow_stage import FlowStage, flow_options, grey_cloud, scale_message
 from endo_process.inputs import (
@@ -338,6 +339,16 @@ def process_bag(options: ProcessOptions, stop: threading.Event | None = None) ->
                     matrix_to_pose(pose.sample.T_tracker_marker, pose.sample.stamp_ns,
                                    tracker_frame),
                     pose.sample.stamp_ns)  # fmt: skip
+    static_ns = min([inputs.time_range_ns[0], *(pose.stamp_ns for pose in poses)])
+    output.hold_tf(
+        topics.TF_STATIC,
+        static_transforms(
+            T_world_tracker=settings.T_world_tracker,
+            T_marker_camera=handeye.T_marker_camera,
+            stamp_ns=static_ns,
+        ),
+        static_ns,
+    )
     config = StageConfig(options.calibration, settings.channel, settings.sfs)
     stage = ShadingStage(photometric, settings.channel, settings.sfs) if options.jobs == 1 else None
     feed = _PoseFeed(
@@ -367,6 +378,11 @@ def process_bag(options: ProcessOptions, stop: threading.Event | None = None) ->
             try:
                 T_world_camera = feed.at(shaded.stamp_ns)
                 report.frames_with_pose += 1
+                edge = StampedTransform.from_matrix(
+                    T_world_camera, shaded.stamp_ns, world_frame,
+                    shaded.frame_id or topics.OPTICAL_FRAME,
+                )  # fmt: skip
+                output.hold_tf(topics.TF, [edge], shaded.stamp_ns)
             except PoseLookupError as error:
                 report.without_pose[type(error).__name__] += 1
             _flow_frame(output, flow, shaded, T_world_camera, world_frame, report)
