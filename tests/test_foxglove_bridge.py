@@ -27,7 +27,9 @@ import json
 import os
 import queue
 import re
+import shutil
 import signal
+import ssl
 import struct
 import subprocess
 import sys
@@ -231,7 +233,7 @@ def start_bridge(
             assert proc.poll() is None, "endo-foxglove exited:\n" + "".join(seen)
             continue
         seen.append(line)
-        match = re.search(r"open connection ws://127\.0\.0\.1:(\d+)", line)
+        match = re.search(r"open connection wss?://127\.0\.0\.1:(\d+)", line)
         if match:
             return proc, int(match.group(1)), lines
     proc.kill()
@@ -470,6 +472,40 @@ def test_a_client_that_never_reads_does_not_stall_the_graph(tmp_path, dds_env):
     # The stalled client's drops are counted and it is named.
     assert int(values["dropped.SlowClient"]) >= 1, values
     assert "127.0.0.1:" in values["slow_clients"], values
+
+
+@pytest.mark.skipif(shutil.which("openssl") is None, reason="needs the openssl command")
+def test_tls_serves_wss_only_and_bad_tls_settings_stop_with_one_line(tmp_path, dds_env):
+    cert, key = tmp_path / "cert.pem", tmp_path / "key.pem"
+    subprocess.run(
+        ["openssl", "req", "-x509", "-newkey", "rsa:2048", "-nodes", "-days", "2",
+         "-subj", "/CN=127.0.0.1", "-addext", "subjectAltName=IP:127.0.0.1",
+         "-keyout", str(key), "-out", str(cert)],
+        check=True, capture_output=True,
+    )
+    bridge, port, _ = start_bridge(dds_env, f"tls_cert:={cert}", f"tls_key:={key}")
+
+    async def handshake(url: str, context: ssl.SSLContext | None) -> str | None:
+        async with websockets.connect(url, subprotocols=SUBPROTOCOLS, ssl=context) as ws:
+            return json.loads(await ws.recv())["op"]
+
+    try:
+        trusted = ssl.create_default_context(cafile=str(cert))
+        assert asyncio.run(handshake(f"wss://127.0.0.1:{port}", trusted)) == "serverInfo"
+        with pytest.raises((websockets.exceptions.WebSocketException, OSError)):
+            asyncio.run(handshake(f"ws://127.0.0.1:{port}", None))
+    finally:
+        stop(bridge)
+
+    result = subprocess.run(
+        [str(BIN / "endo-foxglove"), "--ros-args", "-p", "port:=0", "-p", f"tls_cert:={cert}"],
+        env=dds_env, capture_output=True, text=True, timeout=60,
+    )
+    assert result.returncode == 2
+    assert result.stderr.strip().splitlines()[-1] == (
+        "endo-foxglove: TLS needs both tls_cert and tls_key"
+    )
+    assert "Traceback" not in result.stderr
 
 
 def publish(rate_hz: float, seconds: float, report: Path) -> int:

@@ -54,14 +54,6 @@ from endo_io.pose import matrix_to_quaternion, pose_to_matrix
 from endo_io.stamp import NS_PER_S, stamp_to_ns
 from endo_io.tf import StampedTransform
 
-_XYZ_DTYPE = np.dtype({"names": ["x", "y", "z"], "formats": ["<f4"] * 3, "offsets": [0, 4, 8]})
-_XYZRGBA_DTYPE = np.dtype(
-    {
-        "names": ["x", "y", "z", "red", "green", "blue", "alpha"],
-        "formats": ["<f4", "<f4", "<f4", "u1", "u1", "u1", "u1"],
-        "offsets": [0, 4, 8, 12, 13, 14, 15],
-    }
-)
 _F32 = PackedElementFieldNumericType.Float32
 _U8 = PackedElementFieldNumericType.Uint8
 
@@ -166,17 +158,29 @@ def pack_points(
     if max_points <= 0:
         raise ValueError(f"max_points must be positive, got {max_points}")
     points = np.asarray(xyz, dtype=np.float32).reshape(-1, 3)
-    keep = np.flatnonzero(np.isfinite(points).all(axis=1))
+    # A NaN or an inf in any coordinate makes x + y + z non-finite. Two
+    # column adds take ~0.2 ms for 300 000 points; numpy's row reductions
+    # (sum or all over axis 1 of an (N, 3) array) take ~20 ms.
+    with np.errstate(invalid="ignore", over="ignore"):
+        total = points[:, 0] + points[:, 1]
+        total += points[:, 2]
+    keep = np.flatnonzero(np.isfinite(total))
     finite = int(keep.size)
     step = -(-finite // max_points) if finite else 1
     keep = keep[::step]
-    packed = np.empty(keep.size, dtype=_XYZ_DTYPE if rgb is None else _XYZRGBA_DTYPE)
-    chosen = points[keep]
-    packed["x"], packed["y"], packed["z"] = chosen[:, 0], chosen[:, 1], chosen[:, 2]
-    if rgb is not None:
-        colours = np.asarray(rgb, dtype=np.uint8).reshape(-1, 3)[keep]
-        packed["red"], packed["green"], packed["blue"] = colours.T
-        packed["alpha"] = 255
+    chosen = np.take(points, keep, axis=0).astype("<f4", copy=False)  # faster than [keep]
+    if rgb is None:
+        return chosen.tobytes(), int(keep.size), finite
+    # Column by column (long 1-D loops); writing (N, 3) blocks into a strided
+    # view is an order of magnitude slower in numpy.
+    packed = np.empty((keep.size, 4), dtype="<u4")
+    bits = chosen.view("<u4")
+    for axis in range(3):
+        packed[:, axis] = bits[:, axis]
+    colours = np.take(np.asarray(rgb, dtype=np.uint8).reshape(-1, 3), keep, axis=0)
+    packed[:, 3] = 0xFF000000  # bytes 12..15 little-endian: red, green, blue, alpha 255
+    for axis, shift in ((0, 0), (1, 8), (2, 16)):
+        packed[:, 3] |= colours[:, axis].astype("<u4") << np.uint32(shift)
     return packed.tobytes(), int(keep.size), finite
 
 
