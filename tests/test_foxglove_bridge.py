@@ -44,6 +44,7 @@ import pytest
 import rclpy
 import websockets
 from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import Vector3Stamped
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.serialization import deserialize_message
 from sensor_msgs.msg import Image
@@ -55,6 +56,7 @@ from endo_io.image import array_to_image
 from endo_io.pointcloud import xyz_to_pointcloud2
 from endo_io.pose import matrix_to_pose, quaternion_to_matrix, rigid_transform
 from endo_io.qos import create_reliable_publisher
+from endo_io.stamp import ns_to_stamp
 from endo_io.topics import (
     CAMERA_INFO,
     CAMERA_POSE,
@@ -63,6 +65,7 @@ from endo_io.topics import (
     IMAGE_RAW,
     OPTICAL_FRAME,
     POINTS,
+    SCALE,
     TF,
     WORLD_FRAME,
 )
@@ -197,6 +200,10 @@ def write_bag(path: Path) -> None:
             bag.write_message(DEPTH, array_to_image(depth, "32FC1", t, OPTICAL_FRAME), t)
             bag.write_message(CAMERA_POSE, matrix_to_pose(camera_pose(i), t, WORLD_FRAME), t)
             bag.write_message(POINTS, xyz_to_pointcloud2(world_cloud(i), t, WORLD_FRAME), t)
+            scale = Vector3Stamped()
+            scale.header.stamp, scale.header.frame_id = ns_to_stamp(t), OPTICAL_FRAME
+            scale.vector.x, scale.vector.y = 0.02 + 0.001 * i, 0.1
+            bag.write_message(SCALE, scale, t)
 
 
 # -- processes ------------------------------------------------------------------------------------
@@ -319,7 +326,7 @@ def test_client_decodes_cloud_transform_and_image_from_a_replay(tmp_path, dds_en
         env=dds_env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
     )
     try:
-        wanted = {POINTS: 3, TF: 3, IMAGE_RAW: 3, DEPTH: 1, DIAGNOSTICS: 3}
+        wanted = {POINTS: 3, TF: 3, IMAGE_RAW: 3, DEPTH: 1, DIAGNOSTICS: 3, SCALE: 2}
         result = asyncio.run(receive(port, wanted, timeout_s=30.0))
     finally:
         stop(replay)
@@ -363,6 +370,13 @@ def test_client_decodes_cloud_transform_and_image_from_a_replay(tmp_path, dds_en
     assert channels[DIAGNOSTICS]["schemaName"] == "diagnostic_msgs/msg/DiagnosticArray"
     names = {status.name for msg in messages[DIAGNOSTICS] for status in msg.status}
     assert any(name.startswith("endo_foxglove") for name in names), names
+    # The scale's type was found in the graph; its fields as JSON plus `scale`
+    assert channels[SCALE]["encoding"] == "json"
+    assert channels[SCALE]["schemaName"] == "geometry_msgs/msg/Vector3Stamped"
+    for scale in messages[SCALE]:
+        stamp = scale["header"]["stamp"]
+        i = index[stamp["sec"] * 1_000_000_000 + stamp["nsec"]]
+        assert scale["vector"]["x"] == scale["scale"] == pytest.approx(0.02 + 0.001 * i)
     depth = messages[DEPTH][0]
     assert depth["encoding"] == "32FC1" and depth["step"] == 4 * W
     values = np.frombuffer(depth["data"], dtype="<f4")
@@ -503,7 +517,7 @@ def test_tls_serves_wss_only_and_bad_tls_settings_stop_with_one_line(tmp_path, d
     )
     assert result.returncode == 2
     assert result.stderr.strip().splitlines()[-1] == (
-        "endo-foxglove: TLS needs both tls_cert and tls_key"
+        "endo-foxglove: ViewerError: TLS needs both tls_cert and tls_key"
     )
     assert "Traceback" not in result.stderr
 

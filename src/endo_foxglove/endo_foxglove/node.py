@@ -48,7 +48,6 @@ from foxglove.channels import (
 )
 from foxglove.websocket import ChannelView, Client, ServerListener, WebSocketServer
 from geometry_msgs.msg import PoseStamped
-from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2
@@ -61,6 +60,7 @@ from endo_io.bag.msgdef import message_definition
 from endo_io.bag.serde import message_class, msgtype_of
 from endo_io.diagnostics import InputHealth
 from endo_io.errors import Endo3dError
+from endo_io.parameters import NodeParameters, ParameterSpec
 from endo_io.pose import pose_to_matrix
 from endo_io.process import run_node
 from endo_io.qos import SENSOR_DATA_QOS
@@ -176,6 +176,50 @@ class _Listener(ServerListener):
                 del self._subscriptions[client.id]
 
 
+def parameter_table() -> list[ParameterSpec]:
+    """The bridge's parameters; read-only ones are fixed when the server starts."""
+    specs = [
+        ParameterSpec("host", "127.0.0.1", "Address the WebSocket server binds; 0.0.0.0 "
+                      "exposes it to the network (then use TLS).", read_only=True),
+        ParameterSpec("port", 8765, "WebSocket port; 0 picks a free one.", range=(0, 65535),
+                      read_only=True),
+        ParameterSpec("tls_cert", "", "PEM certificate file; with tls_key the server speaks "
+                      "wss:// only.", read_only=True),
+        ParameterSpec("tls_key", "", "PEM PKCS#8 private key file matching tls_cert.",
+                      read_only=True),
+        ParameterSpec("server_name", "endo3d", "Name the server gives Foxglove.",
+                      read_only=True),
+        ParameterSpec("message_backlog_size", 32, "Messages buffered per client; when full "
+                      "the SDK drops that client's oldest data.", range=(1, 1024),
+                      read_only=True),
+        ParameterSpec("camera_frame", topics.OPTICAL_FRAME,
+                      "Child frame of the camera pose's transform."),
+        ParameterSpec("handeye_file", "", "handeye.yaml (endo-handeye): /tf_static optical "
+                      "frame → marker; empty: not sent.", read_only=True),
+        ParameterSpec("T_world_tracker", _IDENTITY_ROWS, "16 row-major numbers, tracker → "
+                      "world, metres (as endo-tracker-bridge's): /tf_static world → tracker.",
+                      read_only=True),
+        ParameterSpec("send_world_tracker", True, "Send world → tracker on /tf_static.",
+                      read_only=True),
+        ParameterSpec("scale_type", "", "Message type of the scale topic (pkg/msg/Name); "
+                      "empty: found when the topic appears.", read_only=True),
+        ParameterSpec("scale_field", "", "Field path of the plotted scale (e.g. vector.x); "
+                      "empty: a field named scale, else data, else x, else the first number."),
+        ParameterSpec("points_max_points", 100_000, "Viewer-only decimation of each points "
+                      "cloud (points).", range=(1, 10_000_000)),
+        ParameterSpec("map_max_points", 300_000, "Viewer-only decimation of the map (points).",
+                      range=(1, 10_000_000)),
+    ]
+    for stream in STREAMS:
+        specs.append(ParameterSpec(f"{stream.key}_topic", stream.topic, f"Subscribed "
+                                   f"{stream.key} topic (also the Foxglove channel name).",
+                                   read_only=True))
+        specs.append(ParameterSpec(f"{stream.key}_max_rate_hz", stream.max_rate_hz,
+                                   f"Most {stream.key} messages per second sent to viewers; "
+                                   "0: all.", range=(0.0, 1000.0)))
+    return specs
+
+
 class FoxgloveBridgeNode(Node):
     """Serves the graph's topics to Foxglove over a WebSocket (see the module docstring)."""
 
@@ -222,50 +266,8 @@ class FoxgloveBridgeNode(Node):
 
     # -- parameters -------------------------------------------------------------
 
-    def _declare_parameters(self) -> dict[str, Any]:
-        def floats(low: float, high: float) -> dict[str, Any]:
-            return {"floating_point_range": [FloatingPointRange(from_value=low, to_value=high)]}
-
-        def ints(low: int, high: int) -> dict[str, Any]:
-            return {"integer_range": [IntegerRange(from_value=low, to_value=high, step=1)]}
-
-        spec: list[tuple[str, Any, str, dict[str, Any]]] = [
-            ("host", "127.0.0.1", "Address the WebSocket server binds; 0.0.0.0 exposes it "
-             "to the network (then use TLS).", {}),
-            ("port", 8765, "WebSocket port; 0 picks a free one.", ints(0, 65535)),
-            ("tls_cert", "", "PEM certificate file; with tls_key the server speaks wss:// only.",
-             {}),
-            ("tls_key", "", "PEM PKCS#8 private key file matching tls_cert.", {}),
-            ("server_name", "endo3d", "Name the server gives Foxglove.", {}),
-            ("message_backlog_size", 32, "Messages buffered per client; when full the SDK drops "
-             "that client's oldest data.", ints(1, 1024)),
-            ("camera_frame", topics.OPTICAL_FRAME, "Child frame of the camera pose's transform.",
-             {}),
-            ("handeye_file", "", "handeye.yaml (endo-handeye): /tf_static optical frame → marker; "
-             "empty: not sent.", {}),
-            ("T_world_tracker", _IDENTITY_ROWS, "16 row-major numbers, tracker → world, metres "
-             "(as endo-tracker-bridge's): /tf_static world → tracker.", {}),
-            ("send_world_tracker", True, "Send world → tracker on /tf_static.", {}),
-            ("scale_type", "", "Message type of the scale topic (pkg/msg/Name); empty: found "
-             "when the topic appears.", {}),
-            ("scale_field", "", "Field path of the plotted scale (e.g. vector.x); empty: a field "
-             "named scale, else data, else x, else the first number.", {}),
-            ("points_max_points", 100_000, "Viewer-only decimation of each points cloud.",
-             ints(1, 10_000_000)),
-            ("map_max_points", 300_000, "Viewer-only decimation of the map.",
-             ints(1, 10_000_000)),
-        ]
-        for stream in STREAMS:
-            spec.append((f"{stream.key}_topic", stream.topic, f"Subscribed {stream.key} topic "
-                         "(also the Foxglove channel name).", {}))
-            spec.append((f"{stream.key}_max_rate_hz", stream.max_rate_hz,
-                         f"Most {stream.key} messages per second sent to viewers; 0: all.",
-                         floats(0.0, 1000.0)))
-        values: dict[str, Any] = {}
-        for name, default, description, extra in spec:
-            descriptor = ParameterDescriptor(description=description, **extra)
-            values[name] = self.declare_parameter(name, default, descriptor).value
-        return values
+    def _declare_parameters(self) -> NodeParameters:
+        return NodeParameters(self, parameter_table())
 
     def _load_static_transforms(self) -> list[StampedTransform]:
         T_world_tracker = None
@@ -497,12 +499,8 @@ class FoxgloveBridgeNode(Node):
 
 
 def main(args: list[str] | None = None) -> int:
-    """Console entry point of ``endo-foxglove``."""
-    try:
-        return run_node(FoxgloveBridgeNode, args)
-    except ViewerError as error:
-        print(f"endo-foxglove: {error}", file=sys.stderr)
-        return 2
+    """Console entry point of ``endo-foxglove`` (a bad setting: one line, exit code 2)."""
+    return run_node(FoxgloveBridgeNode, args)
 
 
 if __name__ == "__main__":
