@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import asyncio
 import base64
+import contextlib
 import json
 import os
 import queue
@@ -48,6 +49,7 @@ from geometry_msgs.msg import Vector3Stamped
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.serialization import deserialize_message
 from sensor_msgs.msg import Image
+from std_msgs.msg import Float64MultiArray
 
 from endo_bringup.dds_profile import with_large_frame_profile
 from endo_io.bag import BagWriter, message_class
@@ -247,6 +249,14 @@ def start_bridge(
     raise AssertionError("endo-foxglove did not report its port:\n" + "".join(seen))
 
 
+def iter_lines(lines: queue.Queue[str]) -> list[str]:
+    """What a process printed so far (its reader thread's queue, emptied)."""
+    got = []
+    while not lines.empty():
+        got.append(lines.get_nowait())
+    return got
+
+
 def stop(proc: subprocess.Popen[Any]) -> None:
     if proc.poll() is None:
         proc.send_signal(signal.SIGINT)
@@ -320,17 +330,20 @@ def stamp_ns(decoded: dict[str, Any]) -> int:
 def test_client_decodes_cloud_transform_and_image_from_a_replay(tmp_path, dds_env):
     bag = tmp_path / "graph.mcap"
     write_bag(bag)
-    bridge, port, _ = start_bridge(dds_env, "points_max_rate_hz:=0.0")
+    bridge, port, output = start_bridge(dds_env, "points_max_rate_hz:=0.0")
     replay = subprocess.Popen(
         [str(BIN / "endo-replay"), str(bag), "--loop"],
         env=dds_env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
     )
     try:
-        wanted = {POINTS: 3, TF: 3, IMAGE_RAW: 3, DEPTH: 1, DIAGNOSTICS: 3, SCALE: 2}
-        result = asyncio.run(receive(port, wanted, timeout_s=30.0))
+        wanted = {
+            POINTS: 3, TF: 3, IMAGE_RAW: 3, DEPTH: 1, DIAGNOSTICS: 3, SCALE: 2, CAMERA_INFO: 1
+        }
+        result = asyncio.run(receive(port, wanted, timeout_s=45.0))
     finally:
         stop(replay)
         stop(bridge)
+    log = "".join(iter_lines(output))
 
     assert result["subprotocol"] in SUBPROTOCOLS
     assert result["ops"][0] == "serverInfo"
@@ -340,7 +353,10 @@ def test_client_decodes_cloud_transform_and_image_from_a_replay(tmp_path, dds_en
     assert channels[IMAGE_RAW]["schemaName"] == "foxglove.RawImage"
     messages = result["messages"]
     for topic, count in wanted.items():
-        assert len(messages[topic]) >= count, f"{topic}: {len(messages[topic])} messages"
+        assert len(messages[topic]) >= count, (
+            f"{topic}: {len(messages[topic])} messages; advertised {sorted(channels)}; "
+            f"bridge output:\n{log}"
+        )
 
     index = {T0 + i * PERIOD_NS: i for i in range(FRAMES)}
     for cloud in messages[POINTS]:
@@ -370,7 +386,13 @@ def test_client_decodes_cloud_transform_and_image_from_a_replay(tmp_path, dds_en
     assert channels[DIAGNOSTICS]["schemaName"] == "diagnostic_msgs/msg/DiagnosticArray"
     names = {status.name for msg in messages[DIAGNOSTICS] for status in msg.status}
     assert any(name.startswith("endo_foxglove") for name in names), names
-    # The scale's type was found in the graph; its fields as JSON plus `scale`
+    # camera_info (published volatile, as drivers do) as Foxglove's CameraCalibration
+    assert channels[CAMERA_INFO]["schemaName"] == "foxglove.CameraCalibration"
+    calibration = messages[CAMERA_INFO][0]
+    assert (calibration["width"], calibration["height"]) == (W, H)
+    np.testing.assert_allclose(calibration["K"], [30.0, 0, 15.5, 0, 30.0, 11.5, 0, 0, 1])
+    assert calibration["frame_id"] == OPTICAL_FRAME
+    # The scale (endo_flow's Vector3Stamped): its fields as JSON plus `scale`
     assert channels[SCALE]["encoding"] == "json"
     assert channels[SCALE]["schemaName"] == "geometry_msgs/msg/Vector3Stamped"
     for scale in messages[SCALE]:
@@ -381,6 +403,35 @@ def test_client_decodes_cloud_transform_and_image_from_a_replay(tmp_path, dds_en
     assert depth["encoding"] == "32FC1" and depth["step"] == 4 * W
     values = np.frombuffer(depth["data"], dtype="<f4")
     np.testing.assert_allclose(values, 0.05 + 0.001 * index[stamp_ns(depth)], rtol=1e-7)
+
+
+def test_a_scale_of_any_type_is_found_in_the_graph(tmp_path, dds_env):
+    """scale_type empty: the bridge subscribes with the type the graph reports."""
+    bag = tmp_path / "scale.mcap"
+    with BagWriter(bag) as writer:
+        for i in range(10):
+            t = T0 + i * PERIOD_NS
+            writer.write_message(SCALE, Float64MultiArray(data=[0.5 + i, 0.25]), t)
+    replay = subprocess.Popen(
+        [str(BIN / "endo-replay"), str(bag), "--loop"],
+        env=dds_env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+    )
+    bridge, port, output = start_bridge(dds_env, "scale_type:=''", "scale_field:=data[1]")
+    try:
+        end, seen = time.monotonic() + 30.0, []
+        while time.monotonic() < end and not any("scale: " in line for line in seen):
+            with contextlib.suppress(queue.Empty):
+                seen.append(output.get(timeout=0.5))
+        assert any("std_msgs/msg/Float64MultiArray" in line for line in seen), "".join(seen)
+        result = asyncio.run(receive(port, {SCALE: 2}, timeout_s=20.0))
+    finally:
+        stop(replay)
+        stop(bridge)
+    channel = result["channels"][SCALE]
+    assert channel["schemaName"] == "std_msgs/msg/Float64MultiArray"
+    assert json.loads(channel["schema"])["properties"]["scale"]["type"] == ["number", "null"]
+    for message in result["messages"][SCALE]:
+        assert message["scale"] == 0.25 and message["data"][0] in [0.5 + i for i in range(10)]
 
 
 # -- a client that never reads ------------------------------------------------------------------

@@ -70,6 +70,8 @@ from endo_tracker_bridge.handeye_file import HandEyeCalibration
 #: Foxglove channels of the transforms (same names as tf's topics).
 TF_CHANNEL = topics.TF
 TF_STATIC_CHANNEL = topics.TF_STATIC
+#: The scale topic's type as endo_flow publishes it (x = s, y = std of ln s, z = state).
+SCALE_TYPE = "geometry_msgs/msg/Vector3Stamped"
 #: Seconds between re-sends of the static transforms (late clients get them).
 STATIC_RESEND_S = 2.0
 _SDK_LOGGER = "foxglove.websocket"
@@ -90,7 +92,10 @@ class Stream:
         topic: default topic (:mod:`endo_io.topics`).
         msg_type: ROS message class; None for the scale (found at run time).
         max_rate_hz: default throttle, 0 = every message.
-        latched: transient-local subscription, last message re-sent to new clients.
+        resend: the last message is kept and sent again to each new subscriber.
+        transient_local: reliable transient-local subscription (receives what a
+            latched publisher sent before the bridge started); it matches only
+            transient-local publishers, so it is used for the map alone.
         raw: passed through as CDR with its ROS schema (no Foxglove schema exists,
             e.g. ``/diagnostics`` for Foxglove's diagnostics panels).
     """
@@ -99,7 +104,8 @@ class Stream:
     topic: str
     msg_type: type | None
     max_rate_hz: float
-    latched: bool = False
+    resend: bool = False
+    transient_local: bool = False
     raw: bool = False
 
 
@@ -108,9 +114,9 @@ STREAMS: tuple[Stream, ...] = (
     Stream("image_corrected", topics.IMAGE_CORRECTED, Image, 30.0),
     Stream("depth_relative", topics.DEPTH_RELATIVE, Image, 30.0),
     Stream("depth", topics.DEPTH, Image, 30.0),
-    Stream("camera_info", topics.CAMERA_INFO, CameraInfo, 5.0, latched=True),
+    Stream("camera_info", topics.CAMERA_INFO, CameraInfo, 5.0, resend=True),
     Stream("points", topics.POINTS, PointCloud2, 10.0),
-    Stream("map", topics.MAP, PointCloud2, 1.0, latched=True),
+    Stream("map", topics.MAP, PointCloud2, 1.0, resend=True, transient_local=True),
     Stream("camera_pose", topics.CAMERA_POSE, PoseStamped, 0.0),
     Stream("scale", topics.SCALE, None, 0.0),
     Stream("diagnostics", topics.DIAGNOSTICS, DiagnosticArray, 0.0, raw=True),
@@ -201,8 +207,9 @@ def parameter_table() -> list[ParameterSpec]:
                       read_only=True),
         ParameterSpec("send_world_tracker", True, "Send world → tracker on /tf_static.",
                       read_only=True),
-        ParameterSpec("scale_type", "", "Message type of the scale topic (pkg/msg/Name); "
-                      "empty: found when the topic appears.", read_only=True),
+        ParameterSpec("scale_type", SCALE_TYPE, "Message type of the scale topic "
+                      "(pkg/msg/Name; endo_flow's by default); empty: found when the topic "
+                      "appears in the graph.", read_only=True),
         ParameterSpec("scale_field", "", "Field path of the plotted scale (e.g. vector.x); "
                       "empty: a field named scale, else data, else x, else the first number."),
         ParameterSpec("points_max_points", 100_000, "Viewer-only decimation of each points "
@@ -246,9 +253,13 @@ class FoxgloveBridgeNode(Node):
         self._slow_clients = SlowClientLog()
         self._slow_seen: set[str] = set()
         self._listener = _Listener(self._request_resend)
+        # With scale_type given the channel exists before any client connects:
+        # a channel added while a client is connected can lose that client's
+        # first subscribe in foxglove-sdk 0.30 ("subscribe to unknown channel").
+        self._discover_scale()
         self._server = self._start_server()
 
-        self._subscriptions = [
+        self._ros_subscriptions = [
             self._subscribe(stream) for stream in STREAMS if stream.msg_type is not None
         ]
         self._forward_guarded = self.health.guard(self._forward)
@@ -262,7 +273,6 @@ class FoxgloveBridgeNode(Node):
         self.get_logger().info(
             f"Foxglove: open connection {scheme}://{self._p['host']}:{self._server.port}"
         )
-        self._discover_scale()
 
     # -- parameters -------------------------------------------------------------
 
@@ -363,7 +373,7 @@ class FoxgloveBridgeNode(Node):
     # -- ROS side ---------------------------------------------------------------
 
     def _subscribe(self, stream: Stream, msg_type: type | None = None) -> Any:
-        qos = latched_qos() if stream.latched else SENSOR_DATA_QOS
+        qos = latched_qos() if stream.transient_local else SENSOR_DATA_QOS
         return self.create_subscription(
             msg_type or stream.msg_type,
             self._topic_of[stream.key],
@@ -374,7 +384,7 @@ class FoxgloveBridgeNode(Node):
 
     def _on_message(self, key: str, msg: Any) -> None:
         """DDS callback: throttle, then leave the message for the sending thread. Never blocks."""
-        if self._streams[key].latched:
+        if self._streams[key].resend:
             self._latched[key] = msg
         rate = float(self._p[f"{key}_max_rate_hz"])
         now = time.monotonic()
@@ -431,6 +441,7 @@ class FoxgloveBridgeNode(Node):
         if key == "scale":
             if self._scale_channel is not None and self._scale_channel.has_sinks():
                 self._scale_channel.log(plot_message(msg, str(self._p["scale_field"])))
+                self._forwarded[key] += 1
             return
         channel = self._channels[key]
         if key == "camera_pose":
