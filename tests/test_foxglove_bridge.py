@@ -331,10 +331,14 @@ def test_client_decodes_cloud_transform_and_image_from_a_replay(tmp_path, dds_en
     bag = tmp_path / "graph.mcap"
     write_bag(bag)
     bridge, port, output = start_bridge(dds_env, "points_max_rate_hz:=0.0")
-    replay = subprocess.Popen(
-        [str(BIN / "endo-replay"), str(bag), "--loop"],
-        env=dds_env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-    )
+    try:
+        replay = subprocess.Popen(
+            [str(BIN / "endo-replay"), str(bag), "--loop"],
+            env=dds_env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+        )
+    except BaseException:
+        stop(bridge)
+        raise
     try:
         wanted = {
             POINTS: 3, TF: 3, IMAGE_RAW: 3, DEPTH: 1, DIAGNOSTICS: 3, SCALE: 2, CAMERA_INFO: 1
@@ -416,7 +420,11 @@ def test_a_scale_of_any_type_is_found_in_the_graph(tmp_path, dds_env):
         [str(BIN / "endo-replay"), str(bag), "--loop"],
         env=dds_env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
     )
-    bridge, port, output = start_bridge(dds_env, "scale_type:=''", "scale_field:=data[1]")
+    try:
+        bridge, port, output = start_bridge(dds_env, "scale_type:=''", "scale_field:=data[1]")
+    except BaseException:
+        stop(replay)
+        raise
     try:
         end, seen = time.monotonic() + 30.0, []
         while time.monotonic() < end and not any("scale: " in line for line in seen):
@@ -514,8 +522,13 @@ def test_a_client_that_never_reads_does_not_stall_the_graph(tmp_path, dds_env):
         [sys.executable, __file__, "publish", str(rate_hz), str(seconds), str(report)],
         env=dds_env,
     )
-    bridge, port, _ = start_bridge(dds_env, "message_backlog_size:=4",
-                                   "depth_max_rate_hz:=0.0", "image_raw_max_rate_hz:=0.0")
+    try:
+        bridge, port, _ = start_bridge(dds_env, "message_backlog_size:=4",
+                                       "depth_max_rate_hz:=0.0", "image_raw_max_rate_hz:=0.0")
+    except BaseException:
+        stop(publisher)
+        listener.close()
+        raise
     try:
         counts = asyncio.run(stalled_and_reading_clients(port, publisher, timeout_s=40.0))
         assert publisher.wait(timeout=10) == 0
