@@ -33,6 +33,7 @@ PACKAGES = sorted(p.parent.name for p in (ROOT / "src").glob("*/package.xml"))
 #: Keys of packages that are on PyPI only follow rosdep's ``-pip`` convention.
 ROSDEP_KEYS = {
     "cv2": "python3-opencv",
+    "foxglove": "python3-foxglove-sdk-pip",
     "hypothesis": "python3-hypothesis",
     "llvmlite": "python3-numba",  # numba's code generator, installed with it
     "lz4": "python3-lz4",
@@ -48,6 +49,7 @@ ROSDEP_KEYS = {
     "sksurgerycore": "python3-scikit-surgerycore-pip",
     "sksurgerynditracker": "python3-scikit-surgerynditracker-pip",
     "tqdm": "python3-tqdm",
+    "websockets": "python3-websockets",
     "yaml": "python3-yaml",
     "zstandard": "python3-zstandard",
 }
