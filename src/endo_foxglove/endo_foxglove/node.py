@@ -62,7 +62,7 @@ from endo_io.diagnostics import InputHealth
 from endo_io.errors import Endo3dError
 from endo_io.parameters import NodeParameters, ParameterSpec
 from endo_io.pose import pose_to_matrix
-from endo_io.process import run_node
+from endo_io.process import describing_only, run_node
 from endo_io.qos import SENSOR_DATA_QOS
 from endo_io.tf import StampedTransform, static_transforms
 from endo_tracker_bridge.handeye_file import HandEyeCalibration
@@ -257,7 +257,9 @@ class FoxgloveBridgeNode(Node):
         # a channel added while a client is connected can lose that client's
         # first subscribe in foxglove-sdk 0.30 ("subscribe to unknown channel").
         self._discover_scale()
-        self._server = self._start_server()
+        # --help creates the node only to list its parameters: no server then
+        # (a port in use must not stop the help text).
+        self._server: WebSocketServer | None = None if describing_only() else self._start_server()
 
         self._ros_subscriptions = [
             self._subscribe(stream) for stream in STREAMS if stream.msg_type is not None
@@ -269,10 +271,11 @@ class FoxgloveBridgeNode(Node):
         self._discover_timer = self.create_timer(1.0, self._discover_scale)
         self._static_timer = self.create_timer(STATIC_RESEND_S, self._send_static)
         self._report_timer = self.create_timer(1.0, self._report)
-        scheme = "wss" if self._p["tls_cert"] else "ws"
-        self.get_logger().info(
-            f"Foxglove: open connection {scheme}://{self._p['host']}:{self._server.port}"
-        )
+        if self._server is not None:
+            scheme = "wss" if self._p["tls_cert"] else "ws"
+            self.get_logger().info(
+                f"Foxglove: open connection {scheme}://{self._p['host']}:{self._server.port}"
+            )
 
     # -- parameters -------------------------------------------------------------
 
@@ -415,7 +418,10 @@ class FoxgloveBridgeNode(Node):
             topic, schema=json_schema(cls(), title=msgtype), context=self._fg_context
         )
         self._scale_subscription = self._subscribe(self._streams["scale"], cls)
-        self.get_logger().info(f"scale: {topic} is {msgtype}; plotted as {topic}.scale")
+        if not describing_only():
+            self.get_logger().info(
+                f"scale: {topic} is {msgtype}; sent as JSON, its value also as {topic}.scale"
+            )
 
     # -- sending thread ---------------------------------------------------------
 
@@ -495,8 +501,8 @@ class FoxgloveBridgeNode(Node):
 
     @property
     def port(self) -> int:
-        """The port the WebSocket server listens on."""
-        return int(self._server.port)
+        """The port the WebSocket server listens on (0 when describing only)."""
+        return 0 if self._server is None else int(self._server.port)
 
     def close(self) -> None:
         """Stop the sending thread and the server (run_node calls this on shutdown)."""
@@ -505,7 +511,8 @@ class FoxgloveBridgeNode(Node):
         self._running = False
         self._mailbox.close()
         self._worker.join(timeout=5.0)
-        self._server.stop()
+        if self._server is not None:
+            self._server.stop()
         logging.getLogger(_SDK_LOGGER).removeHandler(self._slow_clients)
 
 
