@@ -95,10 +95,14 @@ def test_tf_is_the_camera_pose_at_each_image_stamp(short_run, read):
     image_stamps = [m.header.stamp.sec * 10**9 + m.header.stamp.nanosec for m in images]
     # The first image is older than the first tracker sample: no pose, no /tf.
     assert [e[2] for e in got[topics.TF]] == image_stamps[1:]
+    interpolated = 0
     for parent, child, stamp, T in got[topics.TF]:
         assert (parent, child) == (topics.WORLD_FRAME, images[0].header.frame_id)
-        np.testing.assert_allclose(T, buffer.query(stamp), atol=1e-9)
         assert np.linalg.norm(T[:3, 3] - truth[stamp][:3, 3]) < 2e-3  # tracker noise, lever arm
+        if stamp < buffer.newest_ns:  # a partial run writes poses up to its last frame only
+            np.testing.assert_allclose(T, buffer.query(stamp), atol=1e-9)
+            interpolated += 1
+    assert interpolated >= FRAMES - 2
 
 
 @pytest.mark.parametrize("read", [_with_rosbags, _with_mcap])
