@@ -2,9 +2,10 @@
 
 ``endo_bringup.demo.run_graph_stage`` runs ``endo-calibrate`` and
 ``endo-handeye`` on the gray-card and hand–eye bags, then
-``endo-photometric-correction``, ``endo-sfs``, ``endo-tracker-bridge`` and
-``endo-record`` as separate processes while ``endo-replay`` plays the phantom
-bag into them, and scores the recording against the bag's ground truth.
+``endo-photometric-correction``, ``endo-sfs``, ``endo-tracker-bridge``,
+``endo-flow`` and ``endo-record`` as separate processes while ``endo-replay``
+plays the phantom bag into them, and scores the recording against the bag's
+ground truth (``endo_process.accuracy.score_recording``).
 
 The bounds here are smoke bounds (measured value plus a wide margin, so that
 a broken wire fails and ordinary variation does not); the accuracy targets
@@ -13,7 +14,12 @@ endo_tracker_bridge hand–eye bag test, endo_sfs and tests/test_phantom_sfs.py)
 Measured on 2026-11-22 (2-core AMD EPYC): inverse response 0.93 % of full
 scale, hand–eye 0.16 mm / 0.03°, median-scaled AbsRel 0.077–0.083 on the three
 depth frames with ground truth, camera position error median 0.35 mm and max
-0.92 mm, rotation max 0.16°.
+0.92 mm, rotation max 0.16°. The flow outputs (2026-12-01, same machine,
+loaded by other sessions; full resolution, SFS kept 33/90 frames): final
+scale −4.5 % from the oracle, metric depth MAE 8.4 mm and cloud RMS 4.6 mm on
+the one truth frame after convergence (endo-process on all frames: −4.1 %,
+cloud 3.1 mm). These are smoke bounds too; the demo itself judges issue 11's
+bars (endo_bringup.acceptance), which this run does not meet.
 """
 
 from __future__ import annotations
@@ -37,6 +43,11 @@ ABS_REL_BOUND = 0.2
 POSITION_BOUND_MM = 2.0
 #: Bound on the camera rotation error, degrees (measured max 0.16°).
 ROTATION_BOUND_DEG = 0.5
+#: Bound on |final scale / oracle − 1| (measured 4.5 %).
+FINAL_SCALE_BOUND = 0.15
+#: Bounds on metric depth MAE and cloud-to-truth RMS, metres (measured 8.4 mm, 4.6 mm).
+METRIC_MAE_BOUND_M = 0.015
+CLOUD_RMS_BOUND_M = 0.01
 
 
 @pytest.mark.skipif(
@@ -71,6 +82,14 @@ def test_graph_on_the_sample_bags(tmp_path: Path) -> None:
     # the SFS node may skip frames when the machine is busy, but not all
     assert counts[topics.DEPTH_RELATIVE] > 0
     assert counts[topics.CAMERA_POSE] > 0
+    # camera_info is recorded beside the images; flow gives one scale per frame it gets
+    assert counts[topics.CAMERA_INFO] == run.played[topics.CAMERA_INFO]
+    # measured 52 of 67 (a run of 15 consecutive frames lost in flow on a loaded
+    # machine: the demo prints it as a shortfall); a smoke bound here
+    assert 0.5 * counts[topics.DEPTH_RELATIVE] <= counts[topics.SCALE]
+    assert counts[topics.SCALE] <= counts[topics.DEPTH_RELATIVE]
+    assert 0 < counts[topics.DEPTH] <= counts[topics.SCALE]
+    assert counts[topics.POINTS] > 0 and counts[topics.MAP] > 0
 
     # relative depth, scale recovered per frame by the median ratio
     assert report.depth_errors, "no depth frame had a ground truth with its stamp"
@@ -84,3 +103,14 @@ def test_graph_on_the_sample_bags(tmp_path: Path) -> None:
     assert poses.compared >= 0.8 * run.played[topics.TRUE_CAMERA_POSE]
     assert float(np.max(poses.position_mm)) < POSITION_BOUND_MM
     assert float(np.max(poses.rotation_deg)) < ROTATION_BOUND_DEG
+
+    # flow: the scale against the oracle, metric depth and cloud against the truth
+    accuracy = report.accuracy
+    assert accuracy is not None
+    assert 0.005 < accuracy.oracle_scale < 0.05
+    assert accuracy.scale is not None
+    error = accuracy.scale.relative_error
+    assert abs(error[np.isfinite(error)][-1]) < FINAL_SCALE_BOUND
+    # the truth frames after the scale converged (none when SFS dropped them)
+    assert all(e.mae < METRIC_MAE_BOUND_M for e in accuracy.metric.values())
+    assert all(rms < CLOUD_RMS_BOUND_M for rms in accuracy.cloud_rms_m.values())

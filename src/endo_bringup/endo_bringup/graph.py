@@ -9,7 +9,8 @@ Two parts, both driving the same command-line tools a user runs:
   executable, arguments, ROS parameters and remappings, and the topics it
   subscribes to and publishes. ``endo-record`` records the nodes' outputs and
   the ground truth, ``endo-photometric-correction``, ``endo-sfs`` and
-  ``endo-tracker-bridge`` (source ros) run as nodes, and ``endo-replay``
+  ``endo-tracker-bridge`` (source ros) and ``endo-flow`` (metric depth,
+  world cloud, map and scale) run as nodes, and ``endo-replay``
   plays a phantom bag into them. Every process talks to the others over DDS
   only; :func:`describe_graph` prints the table.
 
@@ -40,10 +41,14 @@ from endo_io.bag.streams import count_messages
 from endo_io.topics import (
     CAMERA_INFO,
     CAMERA_POSE,
+    DEPTH,
     DEPTH_RELATIVE,
     IMAGE_CORRECTED,
     IMAGE_RAW,
+    MAP,
     MARKER_POSE,
+    POINTS,
+    SCALE,
     TRACKER_POSE,
     TRUE_CAMERA_POSE,
     TRUE_DEPTH,
@@ -148,6 +153,9 @@ class GraphProcess:
     typed); remaps: ROS remappings (``-r FROM:=TO``); subscribes / publishes:
     the topics it reads and writes, after remapping (the first subscribed
     topic is the one whose every message gives one output message).
+    per_frame: the published topics that carry one message per message of
+    the first input (None: all of them); the others (flow's depth and cloud
+    before the scale converged, its periodic map) carry fewer.
     """
 
     name: str
@@ -157,6 +165,12 @@ class GraphProcess:
     remaps: Mapping[str, str] = field(default_factory=dict)
     subscribes: tuple[str, ...] = ()
     publishes: tuple[str, ...] = ()
+    per_frame: tuple[str, ...] | None = None
+
+    @property
+    def per_frame_outputs(self) -> tuple[str, ...]:
+        """The published topics with one message per message of the first input."""
+        return self.publishes if self.per_frame is None else self.per_frame
 
     def command(self) -> list[str]:
         """The command line: executable, arguments, then the ``--ros-args`` block."""
@@ -225,7 +239,10 @@ def graph_processes(
     recording: Path,
     settings: GraphSettings,
 ) -> list[GraphProcess]:
-    """The live graph, in start order: recorder, the three nodes, the player.
+    """The live graph, in start order: recorder, the four nodes, the player.
+
+    The recorder keeps every node output, the camera_info played beside the
+    images (so that viewers can place them) and the ground truth.
 
     Args:
         bag: the bag played into the graph.
@@ -270,9 +287,17 @@ def graph_processes(
             subscribes=(TRACKER_POSE,),
             publishes=(CAMERA_POSE, MARKER_POSE),
         ),
+        GraphProcess(
+            "endo-flow",
+            "endo-flow",
+            subscribes=(DEPTH_RELATIVE, IMAGE_CORRECTED, CAMERA_INFO, CAMERA_POSE),
+            publishes=(SCALE, DEPTH, POINTS, MAP),
+            per_frame=(SCALE,),
+        ),
     ]
+    recorded = [*node_outputs(nodes), CAMERA_INFO, TRUE_DEPTH, TRUE_CAMERA_POSE]
     return [
-        recorder_process([*node_outputs(nodes), TRUE_DEPTH, TRUE_CAMERA_POSE], recording),
+        recorder_process(recorded, recording),
         *nodes,
         replay_process(bag, played, settings.rate),
     ]
@@ -303,14 +328,15 @@ def expected_counts(processes: Sequence[GraphProcess], played: Mapping[str, int]
     """Messages each topic carries when no node drops one.
 
     played: bag topic -> messages played, in the order the player was given
-    them. The player's topics carry what it plays; each node's outputs carry
-    as many messages as its first input (nodes are in upstream-first order).
+    them. The player's topics carry what it plays; each node's per-frame
+    outputs carry as many messages as its first input (nodes are in
+    upstream-first order); its other outputs are not counted here.
     """
     counts: Counter[str] = Counter()
     for topic, count in zip(_process(processes, PLAYER).publishes, played.values(), strict=True):
         counts[topic] = count
     for node in _nodes(processes):
-        for topic in node.publishes:
+        for topic in node.per_frame_outputs:
             counts[topic] = counts[node.subscribes[0]]
     return counts
 

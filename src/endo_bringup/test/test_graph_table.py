@@ -42,7 +42,7 @@ def _table(tmp_path: Path):
 def test_command_lines_come_from_the_table(tmp_path: Path) -> None:
     processes = _table(tmp_path)
     names = [p.name for p in processes]
-    nodes = ["endo-photometric-correction", "endo-sfs", "endo-tracker-bridge"]
+    nodes = ["endo-photometric-correction", "endo-sfs", "endo-tracker-bridge", "endo-flow"]
     assert names == [RECORDER, *nodes, PLAYER]
     commands = {p.name: p.command() for p in processes}
     assert Path(commands["endo-sfs"][0]).name == "endo-sfs"
@@ -66,11 +66,13 @@ def test_command_lines_come_from_the_table(tmp_path: Path) -> None:
     assert player[6:] == ["--rate", "0.5", "--wait-for-subscribers", "1"]
     # the recorder keeps what the nodes publish and the ground truth; no --ros-args
     outputs = [topics.IMAGE_CORRECTED, topics.DEPTH_RELATIVE, topics.CAMERA_POSE]
-    outputs.append(topics.MARKER_POSE)
+    outputs += [topics.MARKER_POSE, topics.SCALE, topics.DEPTH, topics.POINTS, topics.MAP]
     assert node_outputs(processes) == outputs
+    # the flow node takes every topic by its absolute name: no --ros-args at all
+    assert commands["endo-flow"][1:] == []
     recorder = commands[RECORDER][1:]
     assert recorder == [
-        "--topics", *outputs, topics.TRUE_DEPTH, topics.TRUE_CAMERA_POSE,
+        "--topics", *outputs, topics.CAMERA_INFO, topics.TRUE_DEPTH, topics.TRUE_CAMERA_POSE,
         "-o", str(tmp_path / "graph.mcap"),
         "--flush-period", "0.2",
     ]  # fmt: skip
@@ -88,6 +90,9 @@ def test_expected_counts_and_stage_report(tmp_path: Path) -> None:
     assert expected[topics.IMAGE_CORRECTED] == expected[topics.DEPTH_RELATIVE] == 90
     assert expected[topics.CAMERA_POSE] == expected[topics.MARKER_POSE] == 170
     assert expected[topics.TRACKER_POSE] == 170 and expected[topics.TRUE_DEPTH] == 3
+    # flow: one scale per relative depth; depth, cloud and map are not per frame
+    assert expected[topics.SCALE] == 90
+    assert all(t not in expected for t in (topics.DEPTH, topics.POINTS, topics.MAP))
 
     run = GraphRun(
         recording=tmp_path / "graph.mcap",
@@ -98,13 +103,19 @@ def test_expected_counts_and_stage_report(tmp_path: Path) -> None:
         processes=processes,
     )
     recorded = {topics.IMAGE_CORRECTED: 88, topics.DEPTH_RELATIVE: 40, topics.CAMERA_POSE: 169}
-    recorded |= {topics.TRUE_DEPTH: 3, topics.MARKER_POSE: 170}
+    recorded |= {topics.TRUE_DEPTH: 3, topics.MARKER_POSE: 170, topics.CAMERA_INFO: 90}
+    recorded |= {topics.SCALE: 39, topics.DEPTH: 30, topics.POINTS: 29, topics.MAP: 4}
     rows = {(r.stage, r.topic): r for r in stage_counts(run, recorded)}
     assert list(rows) == [
         ("endo-photometric-correction", topics.IMAGE_CORRECTED),
         ("endo-sfs", topics.DEPTH_RELATIVE),
         ("endo-tracker-bridge", topics.CAMERA_POSE),
         ("endo-tracker-bridge", topics.MARKER_POSE),
+        ("endo-flow", topics.SCALE),
+        ("endo-flow", topics.DEPTH),
+        ("endo-flow", topics.POINTS),
+        ("endo-flow", topics.MAP),
+        (PLAYER, topics.CAMERA_INFO),
         (PLAYER, topics.TRUE_DEPTH),
     ]
     correction = rows["endo-photometric-correction", topics.IMAGE_CORRECTED]
@@ -114,6 +125,10 @@ def test_expected_counts_and_stage_report(tmp_path: Path) -> None:
     assert (sfs.count_in, sfs.count_out, sfs.return_code) == (88, 40, None)
     bridge = rows["endo-tracker-bridge", topics.CAMERA_POSE]
     assert (bridge.count_in, bridge.count_out) == (170, 169)
+    # the flow node's input is the recorded relative depth
+    flow = rows["endo-flow", topics.SCALE]
+    assert (flow.count_in, flow.count_out) == (40, 39)
+    assert rows["endo-flow", topics.DEPTH].count_out == 30
     truth = rows[PLAYER, topics.TRUE_DEPTH]
     assert (truth.count_in, truth.count_out) == (3, 3)
 

@@ -1,0 +1,126 @@
+"""What the demo calls OK: every stage kept every frame, and the accuracy bars hold.
+
+ROS-free: works on the stage counts of a run (:class:`endo_bringup.graph.StageCount`)
+and on a scored recording (:class:`endo_process.accuracy.Accuracy`, the same
+scoring ``endo-process`` prints). Each check returns plain sentences naming
+what fell short, with the figure and the bar, so the demo can print them as
+they are; an empty list means the check passed.
+
+The accuracy bars are endo_flow's (issue 11) for the colon, the phantom's
+scene: after convergence the scale is within 2 % of the oracle scale, and
+the metric AbsRel (no per-frame scaling) is within 0.01 of the oracle-scaled
+AbsRel. Its cloud bar (1.5 mm) is for the abdomen; on the colon the cloud's
+RMS is reported, not judged. The camera pose bound is the demo's own smoke
+bound (tests/test_demo_graph.py), not an issue 11 bar.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Collection, Iterable
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from endo_bringup.graph import StageCount
+from endo_io.stamp import NS_PER_S
+
+if TYPE_CHECKING:
+    # endo_process depends on endo_bringup (its scoring pairs streams with
+    # endo_bringup.evaluation): only the type is needed here, not the package.
+    from endo_process.accuracy import Accuracy
+
+
+@dataclass(frozen=True)
+class AccuracyBars:
+    """The bars a scored recording must meet.
+
+    scale_relative_error: largest |s / s_oracle − 1| after convergence;
+    convergence_s: scale samples this long (bag time, seconds) after the
+    first usable one count as converged (issue 11: within 1 s of motion);
+    metric_oracle_gap: largest |metric AbsRel − oracle-scaled AbsRel| (means
+    over the truth frames with metric depth); position_mm, rotation_deg:
+    largest camera pose error (the demo's bound).
+    """
+
+    scale_relative_error: float = 0.02
+    convergence_s: float = 1.0
+    metric_oracle_gap: float = 0.01
+    position_mm: float = 2.0
+    rotation_deg: float = 0.5
+
+
+def frame_shortfalls(rows: Iterable[StageCount], per_frame: Collection[str]) -> list[str]:
+    """Stages that let out fewer messages than came in, on their per-frame outputs.
+
+    rows: the run's stage report; per_frame: the topics that carry one
+    message per input message (the others, e.g. the periodic map, are not
+    judged here).
+    """
+    return [
+        f"{row.stage} kept {row.count_out} of {row.count_in} frames on {row.topic}"
+        for row in rows
+        if row.topic in per_frame and row.count_out < row.count_in
+    ]
+
+
+def converged_scale_error(accuracy: Accuracy, convergence_s: float) -> np.ndarray:
+    """(K',) relative scale errors from ``convergence_s`` after the first usable sample on."""
+    track = accuracy.scale
+    if track is None:
+        return np.empty(0)
+    error = track.relative_error
+    usable = np.isfinite(error)
+    if not usable.any():
+        return np.empty(0)
+    start = track.stamps_ns[usable][0] + round(convergence_s * NS_PER_S)
+    return np.asarray(error[usable & (track.stamps_ns >= start)], np.float64)
+
+
+def metric_oracle_gap(accuracy: Accuracy) -> tuple[float, float, int]:
+    """(mean metric AbsRel, mean oracle-scaled AbsRel, frames) over the frames with both."""
+    stamps = sorted(set(accuracy.metric) & set(accuracy.oracle))
+    if not stamps:
+        return float("nan"), float("nan"), 0
+    metric = float(np.mean([accuracy.metric[s].abs_rel for s in stamps]))
+    oracle = float(np.mean([accuracy.oracle[s].abs_rel for s in stamps]))
+    return metric, oracle, len(stamps)
+
+
+def accuracy_shortfalls(accuracy: Accuracy, bars: AccuracyBars | None = None) -> list[str]:
+    """Every bar ``accuracy`` misses, as one sentence each with the figure and the bar."""
+    bars = bars or AccuracyBars()
+    problems: list[str] = []
+    if not accuracy.has_truth:
+        return ["the recording has no ground truth to score against"]
+    converged = converged_scale_error(accuracy, bars.convergence_s)
+    if len(converged) == 0:
+        problems.append(
+            f"the scale never converged ({bars.convergence_s:g} s after its first estimate)"
+        )
+    else:
+        worst = float(np.max(np.abs(converged)))
+        if worst > bars.scale_relative_error:
+            problems.append(
+                f"scale after convergence up to {worst:.1%} from the oracle "
+                f"(bar {bars.scale_relative_error:.0%}; {len(converged)} samples)"
+            )
+    metric, oracle, frames = metric_oracle_gap(accuracy)
+    if frames == 0:
+        problems.append("no metric depth at any ground-truth frame")
+    elif abs(metric - oracle) > bars.metric_oracle_gap:
+        problems.append(
+            f"metric AbsRel {metric:.4f} is {abs(metric - oracle):.4f} from the oracle-scaled "
+            f"{oracle:.4f} (bar {bars.metric_oracle_gap:g}; {frames} frames)"
+        )
+    poses = accuracy.poses
+    if poses is None or poses.compared == 0:
+        problems.append("no camera pose could be compared with the ground truth")
+    else:
+        position, rotation = float(np.max(poses.position_mm)), float(np.max(poses.rotation_deg))
+        if position > bars.position_mm or rotation > bars.rotation_deg:
+            problems.append(
+                f"camera pose error up to {position:.2f} mm / {rotation:.3f} deg "
+                f"(bound {bars.position_mm:g} mm / {bars.rotation_deg:g} deg)"
+            )
+    return problems
