@@ -34,7 +34,8 @@ Publications (reliable, QoS overridable):
 * ``/endoscope/scale``: ``geometry_msgs/Vector3Stamped`` with x = s (metres
   per unit of depth_relative), y = the standard deviation of ln s, z = the
   state (:class:`endo_flow.scale.ScaleState`: 0 initializing, 1 tracking,
-  2 holding, 3 recovering); header = the frame's;
+  2 holding, 3 recovering); header = the frame's (why this type:
+  :mod:`endo_flow.messages`);
 * ``/diagnostics``: processed and dropped frames per cause, and the scale,
   its state and the track counts.
 
@@ -64,6 +65,7 @@ from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 from std_srvs.srv import Trigger
 
 from endo_flow.errors import FlowError, FlowInputError
+from endo_flow.messages import grey_cloud, scale_message
 from endo_flow.pipeline import FlowFrame, FlowOptions, FlowOutput, FlowPipeline
 from endo_flow.scale import ScaleFilterOptions
 from endo_flow.shape_correction import SHAPE_CORRECTION_MODES, ShapeCorrectionOptions
@@ -74,7 +76,6 @@ from endo_io.diagnostics import InputHealth
 from endo_io.errors import ClockJumpError, Endo3dError, PoseLookupError, PoseNotYetError
 from endo_io.image import array_to_image, image_to_array
 from endo_io.parameters import NodeParameters, ParameterSpec
-from endo_io.pointcloud import xyz_to_pointcloud2
 from endo_io.pose import pose_to_matrix
 from endo_io.pose_buffer import PoseBuffer
 from endo_io.process import run_node
@@ -318,12 +319,7 @@ class FlowNode(Node):
 
     def _publish(self, pending: _Pending, out: FlowOutput) -> None:
         header = pending.image.header
-        scale = Vector3Stamped()
-        scale.header = header
-        scale.vector.x = out.scale.value if np.isfinite(out.scale.value) else float("nan")
-        scale.vector.y = out.scale.log_std if np.isfinite(out.scale.log_std) else float("inf")
-        scale.vector.z = float(int(out.scale.state))
-        self.scale_pub.publish(scale)
+        self.scale_pub.publish(scale_message(out.scale, pending.stamp_ns, header.frame_id))
         d = out.diagnostics
         for key, value in (("scale", f"{out.scale.value:.6g}"),
                            ("scale_log_std", f"{out.scale.log_std:.3g}"),
@@ -344,10 +340,8 @@ class FlowNode(Node):
         depth_msg.header = header
         self.depth_pub.publish(depth_msg)
         if len(out.points):
-            grey = np.repeat(out.intensity[:, None], 3, axis=1)
-            cloud = xyz_to_pointcloud2(out.points, pending.stamp_ns,
-                                       self.parameters["world_frame"], rgb=grey)
-            self.points_pub.publish(cloud)
+            self.points_pub.publish(grey_cloud(out.points, out.intensity, pending.stamp_ns,
+                                               self.parameters["world_frame"]))
             self._map_dirty = True
 
     # ------------------------------------------------------------------ map
@@ -357,10 +351,9 @@ class FlowNode(Node):
         if voxel_map is None or not self._map_dirty:
             return
         cloud = voxel_map.points(self.parameters["map_min_count"])
-        grey = np.repeat(np.clip(np.rint(cloud.grey), 0, 255).astype(np.uint8)[:, None], 3, 1)
         stamp = self.get_clock().now().nanoseconds
-        self.map_pub.publish(xyz_to_pointcloud2(cloud.points, stamp,
-                                                self.parameters["world_frame"], rgb=grey))
+        self.map_pub.publish(grey_cloud(cloud.points, cloud.grey, stamp,
+                                        self.parameters["world_frame"]))
         self._map_dirty = False
 
     def _reset_map(self, _request: Trigger.Request, response: Trigger.Response

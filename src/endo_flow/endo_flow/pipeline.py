@@ -83,6 +83,12 @@ class FlowOptions:
             a track that slides over the surface (an occluding fold edge,
             shading that moves with the light) triangulates to a point that
             the SFS surfaces of its views do not agree on.
+        exposure_jump: a frame whose tracked points all brighten or darken
+            by more than this (ln of the median ratio to the previous frame)
+            had its exposure, gain or light power changed: ρ changed by
+            that ratio g, so s is multiplied by √g at once (near-light SFS
+            depth goes as 1/√ρ); camera motion changes the ratio by a few
+            percent per frame at most.
         min_observation_points: fewer accepted tracks give no observation.
         max_parallax_weight_deg: parallax beyond this gets no more weight.
         min_features: a frame with fewer features raises NoFeaturesError.
@@ -108,6 +114,7 @@ class FlowOptions:
     pose_noise_m: float = 0.5e-3
     observation_floor: float = 0.03
     max_view_spread: float = 0.05
+    exposure_jump: float = 0.08
     min_observation_points: int = 8
     max_parallax_weight_deg: float = 20.0
     min_features: int = 8
@@ -127,8 +134,8 @@ class FlowOptions:
             raise ValueError("pose_smoothing_s must be >= 0")
         if self.pose_noise_m < 0.0 or self.observation_floor < 0.0:
             raise ValueError("pose_noise_m and observation_floor must be >= 0")
-        if not self.max_view_spread > 0.0:
-            raise ValueError("max_view_spread must be > 0")
+        if not (self.max_view_spread > 0.0 and self.exposure_jump > 0.0):
+            raise ValueError("max_view_spread and exposure_jump must be > 0")
         if self.min_observation_points < 1 or self.min_features < 0:
             raise ValueError("min_observation_points must be >= 1, min_features >= 0")
         if not self.max_parallax_weight_deg > 0.0:
@@ -181,6 +188,10 @@ class FlowDiagnostics:
         accepted: the observation entered the filter.
         gated: the observation was rejected as an outlier.
         step: the observation completed a detected scale step.
+        exposure_step: the image brightness jumped (exposure or gain
+            change); the scale was multiplied by the square root of the jump.
+        brightness_ratio: median brightness of the tracked points over the
+            previous frame's.
         shape_correction: the shape correction field was applied.
         cloud_points: world points produced.
         timings_ms: wall time per stage, milliseconds (tracking,
@@ -200,6 +211,8 @@ class FlowDiagnostics:
     accepted: bool
     gated: bool
     step: bool
+    exposure_step: bool
+    brightness_ratio: float
     shape_correction: bool
     cloud_points: int
     timings_ms: dict[str, float]
@@ -470,6 +483,10 @@ class FlowPipeline:
                 f" black or saturated frame ({100 * features.valid_fraction:.0f} % valid pixels)"
             )
 
+        exposure_step = bool(np.isfinite(features.brightness_ratio) and abs(
+            np.log(features.brightness_ratio)) > opts.exposure_jump)
+        if exposure_step:
+            self.scale_filter.rescale(0.5 * np.log(features.brightness_ratio))
         t0 = time.perf_counter()
         observation: ScaleObservation | None = None
         triangulated = np.empty((0, 3))
@@ -556,6 +573,8 @@ class FlowPipeline:
             accepted=bool(update and update.accepted),
             gated=bool(update and update.gated),
             step=bool(update and update.step),
+            exposure_step=exposure_step,
+            brightness_ratio=features.brightness_ratio,
             shape_correction=self._shape.active,
             cloud_points=len(points),
             timings_ms=timings,

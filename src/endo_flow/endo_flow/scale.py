@@ -22,6 +22,12 @@ its standard error.
   filter then jumps to the median of the observations since that side last
   was 0, with their spread as its variance (state RECOVERING), instead of
   creeping towards it at the steady-state gain;
+* **known steps**: the pipeline sees an exposure change directly (every
+  tracked point brightens by the same factor g from one frame to the next)
+  and calls :meth:`ScaleFilter.rescale` with ln √g, so the estimate is right
+  on the next frame; the CUSUM is the fallback for steps nothing announces,
+  and its threshold is high so that the slow drifts of SFS's own scale over
+  a sequence (a few percent) are averaged, not followed;
 * **hold**: without observations (a still camera, pure rotation, a tracker
   dropout) the estimate stays where it is; after ``hold_after_s`` the state
   says so (HOLDING).
@@ -205,7 +211,7 @@ class ScaleFilterOptions:
     process_noise: float = 0.003
     gate_sigma: float = 4.0
     step_allowance: float = 1.0
-    step_threshold: float = 5.0
+    step_threshold: float = 10.0
     step_clip: float = 2.5
     converged_std: float = 0.03
     hold_after_s: float = 0.3
@@ -324,6 +330,21 @@ class ScaleFilter:
         self._variance *= 1.0 - gain
         self._accept(stamp_ns)
         return ScaleUpdate(True, False, False, sigma)
+
+    def rescale(self, log_factor: float, std: float = 0.01) -> None:
+        """Multiply the estimate by e^log_factor (a known exposure change).
+
+        Args:
+            log_factor: ln of the factor.
+            std: its uncertainty (ln units), added to the variance.
+        """
+        if not np.isfinite(self._log_scale):
+            return
+        self._log_scale += float(log_factor)
+        self._variance += std**2
+        self._cusum = [0.0, 0.0]
+        self._since_zero = [[], []]
+        self.steps += 1
 
     def _accept(self, stamp_ns: int) -> None:
         self.accepted += 1

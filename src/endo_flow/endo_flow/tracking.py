@@ -117,6 +117,11 @@ class TrackedFeatures:
         seeded: (N,) bool, True for features created on this frame.
         lost: tracks of the previous frame that were not continued.
         valid_fraction: fraction of the frame's pixels that were usable.
+        brightness_ratio: median over the continued tracks of the irradiance
+            at the track now over the irradiance there in the previous frame
+            (NaN without continued tracks). Motion changes it by a few
+            percent per frame at most; an exposure or gain change makes it
+            jump by the gain factor.
     """
 
     ids: np.ndarray
@@ -124,6 +129,22 @@ class TrackedFeatures:
     seeded: np.ndarray
     lost: int
     valid_fraction: float
+    brightness_ratio: float = float("nan")
+
+
+def _brightness_ratio(before: np.ndarray, after: np.ndarray, old: np.ndarray,
+                      new: np.ndarray) -> float:
+    """Median of after(new) / before(old) over tracks, nearest pixels; NaN if none."""
+    h, w = before.shape
+    col0 = np.clip(np.rint(old[:, 0]).astype(np.int64), 0, w - 1)
+    row0 = np.clip(np.rint(old[:, 1]).astype(np.int64), 0, h - 1)
+    col1 = np.clip(np.rint(new[:, 0]).astype(np.int64), 0, w - 1)
+    row1 = np.clip(np.rint(new[:, 1]).astype(np.int64), 0, h - 1)
+    a, b = before[row0, col0], after[row1, col1]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        ratio = b / a
+    ratio = ratio[np.isfinite(ratio) & (ratio > 0.0)]
+    return float(np.median(ratio)) if ratio.size else float("nan")
 
 
 def flatten_shading(image: np.ndarray, valid: np.ndarray, sigma_px: float) -> np.ndarray:
@@ -162,6 +183,7 @@ class FeatureTracker:
     def __init__(self, options: TrackingOptions | None = None) -> None:
         self.options = options or TrackingOptions()
         self._previous: np.ndarray | None = None
+        self._previous_irradiance: np.ndarray | None = None
         self._points = np.empty((0, 2), np.float32)  # tracking-resolution pixels
         self._ids = np.empty(0, np.int64)
         self._next_id = 0
@@ -176,6 +198,7 @@ class FeatureTracker:
     def reset(self) -> None:
         """Forget every track and the white level (a clock jump, a new sequence)."""
         self._previous = None
+        self._previous_irradiance = None
         self._points = np.empty((0, 2), np.float32)
         self._ids = np.empty(0, np.int64)
         self._white = None
@@ -248,6 +271,7 @@ class FeatureTracker:
             return TrackedFeatures(
                 np.empty(0, np.int64), np.empty((0, 2)), np.empty(0, bool), lost, valid_fraction
             )
+        irradiance_small = image
         if opts.flatten_sigma_px > 0.0:
             image = flatten_shading(image, valid, opts.flatten_sigma_px)
         white = self._update_white(image, valid)
@@ -259,18 +283,23 @@ class FeatureTracker:
             usable = cv2.erode(valid.astype(np.uint8), kernel).astype(bool)
 
         lost = 0
+        ratio = float("nan")
         if self._previous is not None and len(self._ids) > 0:
             kept, points = self._flow(self._previous, mono, self._points, usable)
             lost = int((~kept).sum())
+            if self._previous_irradiance is not None and kept.any():
+                ratio = _brightness_ratio(self._previous_irradiance, irradiance_small,
+                                          self._points[kept], points[kept])
             self._ids = self._ids[kept]
             self._points = points[kept]
         self._previous = mono
+        self._previous_irradiance = irradiance_small
 
         seeded = np.zeros(len(self._ids), bool)
         self._frames_since_seed += 1
         due = opts.reseed_every > 0 and self._frames_since_seed >= opts.reseed_every
         if len(self._ids) < opts.reseed_fraction * opts.max_tracks or due:
-            new_points = self._seed(mono, image, usable)
+            new_points = self._seed(mono, irradiance_small, usable)
             if len(new_points):
                 new_ids = np.arange(self._next_id, self._next_id + len(new_points), dtype=np.int64)
                 self._next_id += len(new_points)
@@ -279,7 +308,8 @@ class FeatureTracker:
                 seeded = np.concatenate([seeded, np.ones(len(new_points), bool)])
             self._frames_since_seed = 0
         return TrackedFeatures(
-            self._ids.copy(), self.to_full_resolution(self._points), seeded, lost, valid_fraction
+            self._ids.copy(), self.to_full_resolution(self._points), seeded, lost, valid_fraction,
+            ratio,
         )
 
     def _flow(

@@ -1,0 +1,45 @@
+"""The flow node's output messages built from the pipeline's arrays (one builder each).
+
+The ``endo-flow`` node and the offline processor publish the same messages;
+both build them here.
+
+``/endoscope/scale`` is a ``geometry_msgs/Vector3Stamped``: the installed
+message packages have no type for "a value, its uncertainty and a state";
+this one is stamped (so the scale can be matched with its depth frame),
+carries three float64 fields and is plotted by every ROS tool. Layout:
+x = s, metres per unit of depth_relative (NaN before the first
+observation); y = the standard deviation of ln s (≈ relative standard
+deviation of s; inf before the first observation); z = the state,
+:class:`endo_flow.scale.ScaleState` as a number (0 initializing, 1
+tracking, 2 holding, 3 recovering). The header is the frame's (stamp,
+optical frame id).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from geometry_msgs.msg import Vector3Stamped
+from sensor_msgs.msg import PointCloud2
+
+from endo_flow.scale import ScaleEstimate
+from endo_io.pointcloud import xyz_to_pointcloud2
+from endo_io.stamp import ns_to_stamp
+
+
+def scale_message(estimate: ScaleEstimate, stamp_ns: int, frame_id: str) -> Vector3Stamped:
+    """The scale estimate as the scale topic's message (layout in the module docstring)."""
+    msg = Vector3Stamped()
+    msg.header.stamp = ns_to_stamp(stamp_ns)
+    msg.header.frame_id = frame_id
+    msg.vector.x = float(estimate.value) if np.isfinite(estimate.value) else float("nan")
+    msg.vector.y = float(estimate.log_std) if np.isfinite(estimate.log_std) else float("inf")
+    msg.vector.z = float(int(estimate.state))
+    return msg
+
+
+def grey_cloud(points: np.ndarray, grey: np.ndarray, stamp_ns: int, frame_id: str
+               ) -> PointCloud2:
+    """(N, 3) points, metres, with (N,) grey levels 0–255 as a PointCloud2 (xyz + rgb grey)."""
+    level = np.clip(np.rint(np.asarray(grey, np.float64)), 0, 255).astype(np.uint8)
+    return xyz_to_pointcloud2(np.asarray(points, np.float32), stamp_ns, frame_id,
+                              np.repeat(level[:, None], 3, axis=1))
