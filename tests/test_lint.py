@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import subprocess
 import sys
 from pathlib import Path
@@ -28,3 +29,18 @@ def test_mypy_reports_nothing():
         [str(mypy), *code], cwd=ROOT, capture_output=True, text=True, timeout=300,
     )
     assert result.returncode == 0, result.stdout[-4000:]
+
+
+def test_docstrings_use_one_convention():
+    """Google sections only: ruff's google convention does not flag numpydoc underlines."""
+    underlined = []
+    for path in sorted(ROOT.glob("*/**/*.py")):
+        if ".venv" in path.parts or "build" in path.parts:
+            continue
+        lines = path.read_text(encoding="utf-8").splitlines()
+        for number, (line, below) in enumerate(itertools.pairwise(lines), start=1):
+            if line.strip() in ("Parameters", "Returns", "Raises", "Attributes", "Notes") and (
+                below.strip() and set(below.strip()) == {"-"}
+            ):
+                underlined.append(f"{path.relative_to(ROOT)}:{number}: {line.strip()}")
+    assert underlined == [], "numpydoc sections; write them Google style:\n" + "\n".join(underlined)

@@ -225,8 +225,11 @@ class PiecewiseLinearResponse:
         return np.interp(e, knots, values)
 
     def slope(self, irradiance: ArrayLike) -> NDArray[np.float64]:
-        """df/dE at ``irradiance``, float64, smoothed: the segment slopes interpolated
-        linearly between segment midpoints (a continuous Jacobian for Gauss–Newton)."""
+        """df/dE at ``irradiance``, float64, smoothed.
+
+        The segment slopes interpolated linearly between segment midpoints (a
+        continuous Jacobian for Gauss–Newton).
+        """
         e = np.asarray(irradiance, dtype=np.float64)
         slopes = np.diff(self.values) / np.diff(self.knots)
         mids = 0.5 * (self.knots[:-1] + self.knots[1:])

@@ -1,5 +1,7 @@
-"""endo3d message I/O: message/numpy conversions, camera model, QoS presets,
-rosbag2-compatible MCAP reading and writing, replay and record.
+"""endo3d message I/O: conversions, camera model, QoS, MCAP bags, replay and record.
+
+Message/numpy conversions, the camera model, QoS presets, rosbag2-compatible
+MCAP reading and writing, replay and record.
 
 The main entry points are exported here and imported on first use (so
 ``import endo_io`` loads neither rclpy nor OpenCV):

@@ -31,16 +31,11 @@ DIAGNOSTICS_TOPIC = "/diagnostics"
 class InputHealth:
     """Counts processed and dropped messages of one node and reports them.
 
-    Parameters
-    ----------
-    node:
-        The node that owns the counters; its name prefixes the status name.
-    name:
-        What is being monitored, e.g. ``"image input"``.
-    period_s:
-        Publishing period of ``/diagnostics`` in seconds.
-    log_throttle_s:
-        Minimum interval between two log lines of the same cause.
+    Args:
+        node: The node that owns the counters; its name prefixes the status name.
+        name: What is being monitored, e.g. ``"image input"``.
+        period_s: Publishing period of ``/diagnostics`` in seconds.
+        log_throttle_s: Minimum interval between two log lines of the same cause.
     """
 
     def __init__(

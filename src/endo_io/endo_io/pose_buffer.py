@@ -35,19 +35,14 @@ from endo_io.stamp import NS_PER_S
 class PoseBuffer:
     """Stamped (4, 4) rigid transforms in stamp order, at most ``capacity`` of them.
 
-    Parameters
-    ----------
-    capacity:
-        Poses kept; the oldest go first (at 60 Hz, 600 is ten seconds).
-    max_gap_ns:
-        Longest interval between the two poses around a query that is
-        bridged by interpolation, integer nanoseconds.
-    jump_tolerance_ns:
-        A pose stamped more than this before the newest one is taken for a
-        clock jump (the buffer resets); one stamped less before it, or at the
-        same stamp, is out of order and refused.
-    rotation_tolerance:
-        Allowed deviation of each rotation from orthonormal.
+    Args:
+        capacity: Poses kept; the oldest go first (at 60 Hz, 600 is ten seconds).
+        max_gap_ns: Longest interval between the two poses around a query that is
+            bridged by interpolation, integer nanoseconds.
+        jump_tolerance_ns: A pose stamped more than this before the newest one is taken for a
+            clock jump (the buffer resets); one stamped less before it, or at the
+            same stamp, is out of order and refused.
+        rotation_tolerance: Allowed deviation of each rotation from orthonormal.
     """
 
     def __init__(

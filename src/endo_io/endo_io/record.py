@@ -55,18 +55,13 @@ def topics_to_record(
 ) -> list[TopicChoice]:
     """Choose the newly discovered topics to subscribe to.
 
-    Parameters
-    ----------
-    graph:
-        ``(topic, [type, ...])`` pairs as ``Node.get_topic_names_and_types``
-        returns them; types like ``"sensor_msgs/msg/Image"``.
-    requested:
-        Topic names to record.
-    record_all:
-        Also record every other topic except :data:`EXCLUDED_BY_DEFAULT` and
-        hidden ones (those are recorded only when ``requested`` names them).
-    already:
-        Topics subscribed to before; they are not returned again.
+    Args:
+        graph: ``(topic, [type, ...])`` pairs as ``Node.get_topic_names_and_types``
+            returns them; types like ``"sensor_msgs/msg/Image"``.
+        requested: Topic names to record.
+        record_all: Also record every other topic except :data:`EXCLUDED_BY_DEFAULT` and
+            hidden ones (those are recorded only when ``requested`` names them).
+        already: Topics subscribed to before; they are not returned again.
 
     Returns the choices in topic-name order. A topic published with several
     types is recorded as the first one; the others are listed in
@@ -237,14 +232,10 @@ class RecordReport:
 class Recording:
     """Writes raw messages into a bag as they arrive and says when to stop.
 
-    Parameters
-    ----------
-    writer:
-        An open bag writer; :meth:`close` closes it.
-    max_messages:
-        Stop after this many messages over all topics (None: no limit).
-    max_duration_ns:
-        Stop this long after :meth:`start` (None: no limit).
+    Args:
+        writer: An open bag writer; :meth:`close` closes it.
+        max_messages: Stop after this many messages over all topics (None: no limit).
+        max_duration_ns: Stop this long after :meth:`start` (None: no limit).
     """
 
     def __init__(

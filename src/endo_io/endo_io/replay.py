@@ -463,27 +463,20 @@ class ReplayReport:
 class Player:
     """Sends bag messages to publishers at their scheduled times.
 
-    Parameters
-    ----------
-    open_messages:
-        Returns a fresh iterator over the messages to play (selected topics,
-        log time >= the schedule's origin, log-time order); called once per
-        pass. It may raise :class:`~endo_io.errors.BagCorruptError` after the
-        last intact message.
-    publishers:
-        Bag topic -> function publishing raw CDR bytes. Messages on topics
-        without a publisher (type not installed) are counted as skipped. A
-        function may raise :class:`~endo_io.bag.MessageDeserializationError`
-        for bytes that do not decode: that message is counted as
-        undecodable, not published, and playback goes on.
-    tallies:
-        Bag topic -> :class:`TopicTally` for every topic that may appear.
-    schedule:
-        Maps log times to wall offsets.
-    loop:
-        Start again from the origin after the last message, until stopped.
-    waiter:
-        Monotonic clock and interruptible sleep.
+    Args:
+        open_messages: Returns a fresh iterator over the messages to play (selected topics,
+            log time >= the schedule's origin, log-time order); called once per
+            pass. It may raise :class:`~endo_io.errors.BagCorruptError` after the
+            last intact message.
+        publishers: Bag topic -> function publishing raw CDR bytes. Messages on topics
+            without a publisher (type not installed) are counted as skipped. A
+            function may raise :class:`~endo_io.bag.MessageDeserializationError`
+            for bytes that do not decode: that message is counted as
+            undecodable, not published, and playback goes on.
+        tallies: Bag topic -> :class:`TopicTally` for every topic that may appear.
+        schedule: Maps log times to wall offsets.
+        loop: Start again from the origin after the last message, until stopped.
+        waiter: Monotonic clock and interruptible sleep.
     """
 
     def __init__(

@@ -31,12 +31,9 @@ class MatchedPair(Generic[A, B]):
 class StampMatcher(Generic[A, B]):
     """Pairs messages of two streams whose stamps agree within ``tolerance_ns``.
 
-    Parameters
-    ----------
-    queue_size:
-        How many unmatched messages of each stream are kept.
-    tolerance_ns:
-        Largest stamp difference of a pair, integer nanoseconds (0: exact).
+    Args:
+        queue_size: How many unmatched messages of each stream are kept.
+        tolerance_ns: Largest stamp difference of a pair, integer nanoseconds (0: exact).
     """
 
     def __init__(self, queue_size: int = 10, tolerance_ns: int = 0) -> None:

@@ -211,8 +211,11 @@ def test_interpolate_transform_time_checks():
 
 
 def _stream(seed: int = 0, count: int = 40) -> tuple[np.ndarray, np.ndarray]:
-    """A tracker-like stream: 60 Hz with jitter, two long dropouts, rotations
-    that jump (both quaternion signs, large angles) and one repeated pose."""
+    """A tracker-like stream with the awkward cases.
+
+    60 Hz with jitter, two long dropouts, rotations that jump (both
+    quaternion signs, large angles) and one repeated pose.
+    """
     rng = np.random.default_rng(seed)
     steps = rng.integers(14_000_000, 19_000_000, count - 1)
     dropouts = [count // 4, 2 * count // 3]

@@ -26,8 +26,11 @@ from endo_sfs.reflectance import colocated_radiance
 
 @dataclass(frozen=True)
 class Rendering:
-    """A rendered frame: irradiance (H, W) float64 (NaN where the ray misses),
-    depth (H, W) float64 along the optical axis (NaN where it misses)."""
+    """A rendered frame.
+
+    irradiance (H, W) float64 (NaN where the ray misses), depth (H, W)
+    float64 along the optical axis (NaN where it misses).
+    """
 
     irradiance: np.ndarray
     depth: np.ndarray

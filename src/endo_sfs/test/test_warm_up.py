@@ -1,5 +1,8 @@
-"""numba start-up: kernels cached outside the source tree, --help never compiles,
-and a warm-up that must compile says so first."""
+"""numba start-up: the kernel cache, --help, and the compile notice.
+
+Kernels are cached outside the source tree, --help never compiles, and a
+warm-up that must compile says so first.
+"""
 
 import os
 import subprocess

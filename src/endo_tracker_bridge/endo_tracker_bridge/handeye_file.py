@@ -43,25 +43,17 @@ RESIDUAL_KEYS = ("reprojection_rms_px", "translation_rms_mm", "rotation_rms_deg"
 class HandEyeCalibration:
     """Result of a hand–eye and clock calibration.
 
-    Attributes
-    ----------
-    T_marker_camera:
-        (4,4) float64, metres: camera optical frame → marker frame.
-    time_offset_ns:
-        Integer ns, ``tracker_stamp = camera_time + time_offset_ns``.
-    residuals:
-        ``reprojection_rms_px`` (pixels), ``translation_rms_mm`` and
-        ``rotation_rms_deg`` (spread of the per-view target pose).
-    method:
-        How it was computed (closed-form method chosen + refinement).
-    date:
-        ISO 8601 date-time of the calibration.
-    views_used, views_total:
-        Views kept after outlier rejection, and views with a detected board.
-    T_tracker_target:
-        (4,4) float64 board pose in the tracker frame, or None.
-    details:
-        Free-form extra results (per-method residuals, search range).
+    Attributes:
+        T_marker_camera: (4,4) float64, metres: camera optical frame → marker frame.
+        time_offset_ns: Integer ns, ``tracker_stamp = camera_time + time_offset_ns``.
+        residuals: ``reprojection_rms_px`` (pixels), ``translation_rms_mm`` and
+            ``rotation_rms_deg`` (spread of the per-view target pose).
+        method: How it was computed (closed-form method chosen + refinement).
+        date: ISO 8601 date-time of the calibration.
+        views_used, views_total: Views kept after outlier rejection, and views
+            with a detected board.
+        T_tracker_target: (4,4) float64 board pose in the tracker frame, or None.
+        details: Free-form extra results (per-method residuals, search range).
     """
 
     T_marker_camera: np.ndarray

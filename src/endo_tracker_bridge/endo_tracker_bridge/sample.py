@@ -30,23 +30,16 @@ class ToolStatus(enum.Enum):
 class TrackerSample:
     """One pose of one tool from a tracker.
 
-    Attributes
-    ----------
-    stamp_ns:
-        Time of the measurement on the tracker's clock, integer nanoseconds.
-    T_tracker_marker:
-        (4, 4) float64 homogeneous transform, metres, marker frame → tracker
-        frame (x_tracker = T · x_marker).
-    tool_id:
-        Name of the tool (ROS frame id, OpenIGTLink device name, NDI port
-        handle as text, or the log's tool column).
-    status:
-        Visibility reported by the tracker.
-    frame_number:
-        Tracker frame counter when the tracker has one (NDI: 60 Hz), else None.
-    quality:
-        Tracker's own fit error for the tool when it has one (NDI: RMS marker
-        fit error in mm, lower is better), else None.
+    Attributes:
+        stamp_ns: Time of the measurement on the tracker's clock, integer nanoseconds.
+        T_tracker_marker: (4, 4) float64 homogeneous transform, metres, marker frame → tracker
+            frame (x_tracker = T · x_marker).
+        tool_id: Name of the tool (ROS frame id, OpenIGTLink device name, NDI port
+            handle as text, or the log's tool column).
+        status: Visibility reported by the tracker.
+        frame_number: Tracker frame counter when the tracker has one (NDI: 60 Hz), else None.
+        quality: Tracker's own fit error for the tool when it has one (NDI: RMS marker
+            fit error in mm, lower is better), else None.
     """
 
     stamp_ns: int
