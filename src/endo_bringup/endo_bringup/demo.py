@@ -35,6 +35,7 @@ missing ``--bag``), with one line on stderr.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import os
 import signal
 import sys
@@ -81,6 +82,7 @@ from endo_io.pose import matrix_to_pose
 
 if TYPE_CHECKING:
     from endo_bringup.evaluation import PoseComparison
+    from endo_bringup.live_vs_offline import OfflineRun
     from endo_process.accuracy import Accuracy
     from endo_sfs.evaluation import DepthError
 
@@ -320,6 +322,7 @@ class GraphReport:
     depth_errors: dict[int, DepthError] = field(default_factory=dict)
     poses: PoseComparison | None = None
     accuracy: Accuracy | None = None
+    offline: OfflineRun | None = None
     dds_note: str = ""
     error: str = ""
 
@@ -543,6 +546,57 @@ def print_graph_report(report: GraphReport, rate: float) -> None:
         )
 
 
+def run_offline_stage(
+    report: GraphReport,
+    bag: Path,
+    out_dir: Path,
+    env: dict[str, str],
+    options: argparse.Namespace,
+) -> tuple[list[str], list[str]]:
+    """endo-process on the bag the live graph played; prints live vs offline.
+
+    Returns (failures: endo-process did not finish, shortfalls: the bars its
+    output misses, each prefixed "offline:"). Keeps the run in ``report.offline``.
+    """
+    from endo_bringup.acceptance import accuracy_shortfalls
+    from endo_bringup.live_vs_offline import print_side_by_side, run_endo_process
+
+    print(f"endo-demo: [4/4] endo-process on {bag} (no DDS), the same cores offline")
+    offline = run_endo_process(
+        bag, report.calibrate.result, report.handeye.result, out_dir, env, options.solve_scale
+    )
+    report.offline = offline
+    print_side_by_side(offline, report.accuracy, report.counts.get(topic_names.SCALE, 0))
+    if offline.step.return_code != 0 or offline.accuracy is None:
+        return [f"endo-process exited {offline.step.return_code}"], []
+    shortfalls = [f"offline: {problem}" for problem in accuracy_shortfalls(offline.accuracy)]
+    for problem in shortfalls:
+        print(f"    - {problem}")
+    return [], shortfalls
+
+
+def write_demo_summary(
+    path: Path, report: GraphReport, problems: list[str], options: argparse.Namespace
+) -> None:
+    """out/summary.json: settings, stage counts, calibration, live and offline figures."""
+    from endo_bringup.live_vs_offline import write_summary
+
+    run = report.run
+    stages = (
+        [] if run is None else [dataclasses.asdict(row) for row in stage_counts(run, report.counts)]
+    )
+    write_summary(
+        path,
+        ok=not problems,
+        problems=problems,
+        settings={"playback_rate": options.graph_rate, "solve_scale": options.solve_scale},
+        stages=stages,
+        calibration=None if report.scores is None else dataclasses.asdict(report.scores),
+        live=report.accuracy,
+        offline=report.offline,
+    )
+
+
 def sample_bags_dir(search_dirs: list[Path]) -> Path | None:
     """The first directory holding the three sample bags and the ground truth they need."""
     for directory in search_dirs:
@@ -583,6 +637,11 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument(
         "--round-trip-only", action="store_true", help="skip the calibrations and the graph"
     )
+    parser.add_argument(
+        "--no-offline",
+        action="store_true",
+        help="skip endo-process on the phantom bag (the live vs offline comparison, report.png)",
+    )
     return parser
 
 
@@ -599,7 +658,7 @@ def run_round_trip_stage(bag: Path | None, out_dir: Path, rate: float, env: dict
         return False
     topics, skipped = playable_topics(bag)
     print(
-        f"endo-demo: [1/3] round trip: playing {bag} at {rate:g}x over DDS "
+        f"endo-demo: [1/4] round trip: playing {bag} at {rate:g}x over DDS "
         f"(domain {env['ROS_DOMAIN_ID']}, discovery {env['ROS_AUTOMATIC_DISCOVERY_RANGE']}), "
         f"recording into {output}"
     )
@@ -656,16 +715,24 @@ def main(argv: list[str] | None = None) -> int:
     if options.round_trip_only:
         pass
     elif bags_dir is None:
-        print("endo-demo: [2/3, 3/3] skipped: bags/ lacks graycard, handeye and phantom_colon bags")
+        print("endo-demo: [2/4-4/4] skipped: bags/ lacks graycard, handeye and phantom_colon bags")
     else:
         print(
-            f"endo-demo: [2/3] offline calibrations on {bags_dir / GRAYCARD_BAG} and "
-            f"{bags_dir / HANDEYE_BAG}; [3/3] live graph on {bags_dir / PHANTOM_BAG}"
+            f"endo-demo: [2/4] offline calibrations on {bags_dir / GRAYCARD_BAG} and "
+            f"{bags_dir / HANDEYE_BAG}; [3/4] live graph on {bags_dir / PHANTOM_BAG}"
         )
         report = run_graph_stage(bags_dir, out_dir, env, options.graph_rate, options.solve_scale)
         print_graph_report(report, options.graph_rate)
         failures += report.failures()
         shortfalls = report.shortfalls()
+        if report.run is not None and not options.no_offline:
+            offline_failures, offline_shortfalls = run_offline_stage(
+                report, bags_dir / PHANTOM_BAG, out_dir, env, options
+            )
+            failures += offline_failures
+            shortfalls += offline_shortfalls
+            write_demo_summary(out_dir / "summary.json", report, failures + shortfalls, options)
+            print(f"  summary: {out_dir / 'summary.json'}")
     print(f"endo-demo: outputs in {out_dir} ({time.monotonic() - started:.0f} s in all)")
     if failures:
         print("endo-demo: FAILED: " + "; ".join(failures + shortfalls))

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from endo_bringup.acceptance import (
     AccuracyBars,
@@ -84,3 +85,29 @@ def test_frame_shortfalls_judge_per_frame_outputs_only() -> None:
     assert frame_shortfalls(rows, per_frame) == [
         f"endo-sfs kept 66 of 90 frames on {topics.DEPTH_RELATIVE}"
     ]
+
+
+def test_summary_json_and_side_by_side(tmp_path) -> None:
+    import json
+
+    from endo_bringup.live_vs_offline import side_by_side, write_summary
+
+    live = _accuracy(scale_error=0.04, metric_factor=1.1)
+    offline = _accuracy(scale_error=0.015, metric_factor=1.0)
+    offline.cloud_rms_m = {T0: 0.003}
+    rows = {name: (a, b) for name, a, b in side_by_side(live, offline)}
+    assert rows["cloud-to-truth RMS"][0] == "-"
+    assert rows["cloud-to-truth RMS"][1].startswith("3.00 mm")
+    live_metric, offline_metric = rows["metric depth AbsRel (no scaling)"]
+    assert live_metric != offline_metric
+    path = tmp_path / "summary.json"
+    problems = accuracy_shortfalls(live)
+    write_summary(
+        path, ok=False, problems=problems, settings={"playback_rate": 0.25}, stages=[],
+        calibration={"residual": float("nan")}, live=live, offline=None,
+    )  # fmt: skip
+    document = json.loads(path.read_text())
+    assert document["ok"] is False and document["fell_short"] == problems
+    assert document["calibration"] == {"residual": None}  # strict JSON: no NaN
+    scale = document["live"]["accuracy"]["scale"]["relative_error"]
+    assert scale[:10] == [None] * 10 and scale[-1] == pytest.approx(0.04)

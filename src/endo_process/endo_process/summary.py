@@ -168,8 +168,18 @@ def summary_document(report: ProcessReport, accuracy: Accuracy | None) -> dict[s
         "written": dict(report.written),
         "accuracy": None,
     }  # fmt: skip
+    document["accuracy"] = accuracy_document(accuracy)
+    return _finite(document)
+
+
+def accuracy_document(accuracy: Accuracy | None) -> dict[str, Any] | None:
+    """The accuracy figures as plain JSON-able data (None without ground truth).
+
+    The ``accuracy`` member of :func:`summary_document`; ``endo-demo`` writes
+    the live recording's with it. Units as there; NaN and infinities become None.
+    """
     if accuracy is None or not accuracy.has_truth:
-        return _finite(document)
+        return None
     scored: dict[str, Any] = {
         "truth_frames": accuracy.truth_frames,
         "relative_abs_rel_mean": _mean([e.abs_rel for e in accuracy.relative.values()]),
@@ -201,5 +211,5 @@ def summary_document(report: ProcessReport, accuracy: Accuracy | None) -> dict[s
             "rotation_deg_median": float(np.median(poses.rotation_deg)),
             "rotation_deg_p95": float(np.percentile(poses.rotation_deg, 95)),
         }  # fmt: skip
-    document["accuracy"] = scored
-    return _finite(document)
+    finite: dict[str, Any] = _finite(scored)
+    return finite
