@@ -54,7 +54,7 @@ venv: $(STAMP) $(KERNELS)
 
 demo: export ROS_DOMAIN_ID := $(DEMO_DOMAIN_ID)
 demo: $(STAMP) $(KERNELS)
-	$(VBIN)/endo-demo
+	$(VBIN)/endo-demo --output-dir out
 
 test: export ROS_DOMAIN_ID := $(TEST_DOMAIN_ID)
 test: $(STAMP) $(KERNELS)

@@ -23,7 +23,8 @@ in its own OS process, talking to the others over loopback DDS only:
 
 Parts 2 and 3 need the three sample bags with their ground truth; without
 them (or with ``--round-trip-only``) only part 1 runs. Outputs go to a new
-temporary directory (or ``--output-dir``), never into the repository.
+temporary directory, or to ``--output-dir`` (``make demo``: ``out/``, git-ignored),
+where the files of a previous demo run (:data:`DEMO_OUTPUTS`) are replaced.
 
 Exit status 0 (``endo-demo: OK``) when every played message came back with
 the same bytes, every stage of the graph kept every frame at the playback
@@ -90,6 +91,12 @@ if TYPE_CHECKING:
 DEMO_DOMAIN_ID = "41"
 SYNTHETIC_START_NS = 1_763_800_000_000_000_000
 REPO_ROOT = Path(__file__).resolve().parents[3]
+#: The files a demo run writes into its output directory (a rerun replaces them;
+#: nothing else there is touched).
+DEMO_OUTPUTS = (
+    "round_trip.mcap", "graph.mcap", "offline.mcap", "report.png", "summary.json",
+    "offline_summary.json", "endo3d.yaml", "photometric.yaml", "handeye.yaml",
+)  # fmt: skip
 
 
 # --------------------------------------------------------------------------
@@ -707,6 +714,8 @@ def main(argv: list[str] | None = None) -> int:
     env.setdefault("ROS_DOMAIN_ID", DEMO_DOMAIN_ID)
     out_dir = options.output_dir or Path(tempfile.mkdtemp(prefix="endo_demo_"))
     out_dir.mkdir(parents=True, exist_ok=True)
+    for name in DEMO_OUTPUTS:
+        (out_dir / name).unlink(missing_ok=True)
     started = time.monotonic()
     round_trip_ok = run_round_trip_stage(options.bag, out_dir, options.rate, env)
     failures = [] if round_trip_ok else ["round trip"]
