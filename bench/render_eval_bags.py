@@ -38,9 +38,10 @@ from pathlib import Path
 
 import numpy as np
 
-from endo_bringup.graph import ground_truth_of, run_offline_calibrations
+from endo_bringup.graph import run_offline_calibrations
 from endo_io.pose import rigid_transform
 from endo_process.simulated import write_simulated_parameters
+from endo_sim.ground_truth import ground_truth_of
 from endo_tracker_bridge.handeye_file import HandEyeCalibration
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -27,7 +27,7 @@ from endo_io.stamp import NS_PER_S
 
 if TYPE_CHECKING:
     # endo_process depends on endo_bringup (its scoring pairs streams with
-    # endo_bringup.evaluation): only the type is needed here, not the package.
+    # endo_process.evaluation): only the type is needed here, not the package.
     from endo_process.accuracy import Accuracy
 
 

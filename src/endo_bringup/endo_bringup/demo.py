@@ -80,11 +80,12 @@ from endo_io.cli import exit_on_error
 from endo_io.errors import Endo3dError
 from endo_io.image import array_to_image
 from endo_io.pose import matrix_to_pose
+from endo_sim.errors import GroundTruthError
 
 if TYPE_CHECKING:
-    from endo_bringup.evaluation import PoseComparison
     from endo_bringup.live_vs_offline import OfflineRun
     from endo_process.accuracy import Accuracy
+    from endo_process.evaluation import PoseComparison
     from endo_sfs.evaluation import DepthError
 
 #: DDS domain of the demo when the environment gives none (as in the Makefile).
@@ -378,8 +379,8 @@ def score_calibrations(
     """Compare photometric.yaml and handeye.yaml with the ground truth beside the bags."""
     # The graph's packages are imported only when the graph part runs, so the
     # round trip works whatever state they are in.
-    from endo_bringup import evaluation
     from endo_calib.calibration import PhotometricCalibration
+    from endo_process import evaluation
     from endo_tracker_bridge.handeye_file import HandEyeCalibration
 
     calibration = PhotometricCalibration.load(photometric)
@@ -454,7 +455,7 @@ def run_graph_stage(
         report.run = run_live_graph(
             phantom, calibrate.result, handeye.result, out_dir, graph_env, settings
         )
-    except GraphError as error:
+    except (GraphError, GroundTruthError) as error:
         report.error = str(error)
         return report
     recording = report.run.recording

@@ -18,7 +18,7 @@ The demo's replay → record round trip is a smaller table of the same rows
 (:func:`recorder_process`, :func:`replay_process`), started the same way
 (:class:`~endo_bringup.process_group.ProcessGroup`) and waited for with the
 same :func:`wait_for_recording`. Scoring the recording is
-:mod:`endo_bringup.evaluation`'s job.
+:mod:`endo_process.evaluation`'s job.
 """
 
 from __future__ import annotations
@@ -33,7 +33,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-import yaml
 
 from endo_bringup.process_group import ProcessGroup, console_script
 from endo_io.bag import BagReader
@@ -53,6 +52,7 @@ from endo_io.topics import (
     TRUE_CAMERA_POSE,
     TRUE_DEPTH,
 )
+from endo_sim.ground_truth import ground_truth_of
 
 #: The bag's topics that are played into the graph, unchanged: the bridge
 #: listens on the tracker driver's /tracker/pose, as a real driver publishes it.
@@ -63,17 +63,6 @@ RECORDER, PLAYER = "endo-record", "endo-replay"
 
 class GraphError(RuntimeError):
     """A process of the graph failed to start or to finish its part."""
-
-
-def ground_truth_of(bag: Path) -> dict[str, object]:
-    """The simulator's ``<stem>.ground_truth.yaml`` beside ``bag``."""
-    path = bag.with_name(bag.stem + ".ground_truth.yaml")
-    if not path.exists():
-        raise GraphError(f"{path} not found (endo-sim writes it beside the bag)")
-    loaded = yaml.safe_load(path.read_text())
-    if not isinstance(loaded, dict):
-        raise GraphError(f"{path} is not a ground-truth mapping")
-    return loaded
 
 
 # --------------------------------------------------------------------------

@@ -10,7 +10,7 @@ recordings are scored by :func:`endo_process.accuracy.score_recording`, so
 the two columns are the same figures computed the same way.
 
 endo_process depends on endo_bringup (its scoring pairs streams with
-:mod:`endo_bringup.evaluation`), so it is imported only when this part runs.
+:mod:`endo_process.evaluation`), so it is imported only when this part runs.
 """
 
 from __future__ import annotations

@@ -12,10 +12,10 @@ from endo_bringup.acceptance import (
     frame_shortfalls,
     metric_oracle_gap,
 )
-from endo_bringup.evaluation import PoseComparison
 from endo_bringup.graph import StageCount
 from endo_io import topics
 from endo_process.accuracy import Accuracy, ScaleTrack
+from endo_process.evaluation import PoseComparison
 from endo_sfs.evaluation import depth_error
 
 T0 = 1_000_000_000_000

@@ -4,7 +4,7 @@ Works on any MCAP that holds the graph's topics beside ``/ground_truth/*``:
 ``endo-process``'s output (which copies the truth through) and a live
 recording alike, so the two are scored by the same code. Depth is scored
 with :func:`endo_sfs.evaluation.depth_error`, streams are read and paired by
-:mod:`endo_bringup.evaluation` (the demo's scoring); nothing here measures
+:mod:`endo_process.evaluation` (the demo's scoring); nothing here measures
 an error a second way.
 
 * **relative depth**: AbsRel of ``/endoscope/depth_relative`` after one
@@ -28,7 +28,6 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial import cKDTree
 
-from endo_bringup.evaluation import PoseComparison, compare_poses, depth_errors_at_truth
 from endo_io import topics
 from endo_io.bag import BagReader, deserialize
 from endo_io.bag.streams import read_depth_frames, read_pose_stream
@@ -36,6 +35,7 @@ from endo_io.camera import CameraModel
 from endo_io.pointcloud import pointcloud2_to_xyz
 from endo_io.pose import transform_points
 from endo_io.stamp import stamp_to_ns
+from endo_process.evaluation import PoseComparison, compare_poses, depth_errors_at_truth
 from endo_sfs.evaluation import DepthError, depth_error
 
 

@@ -16,8 +16,8 @@ from typing import Any
 import numpy as np
 import yaml
 
-from endo_bringup.graph import ground_truth_of
 from endo_process.settings import BRIDGE_NODE, SFS_NODE
+from endo_sim.ground_truth import ground_truth_of
 
 
 def simulated_parameters(bag: Path, **sfs: Any) -> dict[str, Any]:

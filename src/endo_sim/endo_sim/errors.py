@@ -20,3 +20,7 @@ class SimulationParameterError(SimulatorError, ValueError):
 
 class UnknownSceneError(SimulationParameterError):
     """A scene name is not one of the scenes the simulator knows."""
+
+
+class GroundTruthError(SimulatorError):
+    """A bag's ground-truth file is missing or unreadable."""

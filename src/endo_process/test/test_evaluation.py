@@ -1,4 +1,4 @@
-"""Scores of endo_bringup.evaluation on streams with known errors."""
+"""Scores of endo_process.evaluation on streams with known errors."""
 
 from __future__ import annotations
 
@@ -8,17 +8,17 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from endo_bringup.evaluation import (
+from endo_io.bag import BagWriter
+from endo_io.bag.streams import count_messages, read_depth_frames, read_pose_stream
+from endo_io.image import array_to_image
+from endo_io.pose import matrix_to_pose, rigid_transform
+from endo_process.evaluation import (
     compare_poses,
     depth_errors_at_truth,
     handeye_error,
     inverse_response_error,
     transform_errors,
 )
-from endo_io.bag import BagWriter
-from endo_io.bag.streams import count_messages, read_depth_frames, read_pose_stream
-from endo_io.image import array_to_image
-from endo_io.pose import matrix_to_pose, rigid_transform
 
 MS = 1_000_000
 
