@@ -2,12 +2,12 @@
 
 from __future__ import annotations
 
-import os
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
 
-from endo_bringup.graph import run_offline_calibrations
 from endo_process.simulated import write_simulated_parameters
 
 BAGS = Path(__file__).resolve().parents[3] / "bags"
@@ -18,12 +18,19 @@ PHANTOM = BAGS / "phantom_colon.mcap"
 def calibrations(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
     """(photometric.yaml, handeye.yaml) from endo-calibrate and endo-handeye on the sample bags."""
     out = tmp_path_factory.mktemp("calibrations")
-    photometric, handeye = run_offline_calibrations(
-        BAGS / "graycard.mcap", BAGS / "handeye.mcap", out, dict(os.environ)
-    )
-    assert photometric.return_code == 0, photometric.output
-    assert handeye.return_code == 0, handeye.output
-    return photometric.result, handeye.result
+    photometric, handeye = out / "photometric.yaml", out / "handeye.yaml"
+    bin_dir = Path(sys.executable).parent
+    # The commands docs/process.md gives, with the sample bags' card distance and board.
+    for argv in (
+        [bin_dir / "endo-calibrate", "--bag", BAGS / "graycard.mcap", "--card-distance", "0.0265",
+         "-o", photometric],
+        [bin_dir / "endo-handeye", BAGS / "handeye.mcap", "-o", handeye, "--board", "8x5",
+         "--square-mm", "4", "--pose-unit", "m"],
+    ):
+        done = subprocess.run([str(a) for a in argv], capture_output=True, text=True, check=False,
+                              timeout=300)
+        assert done.returncode == 0, done.stdout + done.stderr
+    return photometric, handeye
 
 
 @pytest.fixture(scope="session")
