@@ -69,6 +69,8 @@ class _Listener:
         self.poses: dict[int, np.ndarray] = {}
         self.frames: set[str] = set()
         self.diagnostics: dict[str, str] = {}
+        self.level = b"\x00"
+        self.message = ""
         self.node.create_subscription(PoseStamped, "/endoscope/pose", self._on_pose, 50)
         self.node.create_subscription(DiagnosticArray, "/diagnostics", self._on_diagnostics, 10)
 
@@ -81,6 +83,7 @@ class _Listener:
         for status in msg.status:
             if "tracker_bridge" in status.name:
                 self.diagnostics = {kv.key: kv.value for kv in status.values}
+                self.level, self.message = status.level, status.message
 
     def spin(self, seconds: float) -> None:
         end = time.monotonic() + seconds
@@ -217,3 +220,54 @@ def test_igtl_client_publishes_camera_pose_and_survives_a_server_restart(tmp_pat
         print(output)  # shown by pytest when the test fails
     assert bridge.returncode == 0, output
     assert "connected to OpenIGTLink server" in output
+
+
+def test_igtl_connection_state_on_diagnostics_follows_the_server():
+    # issue 16: with no server the status said OK without a connected key, and
+    # 8 s after the server stopped it still said connected: True.
+    from diagnostic_msgs.msg import DiagnosticStatus
+
+    port = _free_port()
+    env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
+    previous_handlers = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
+    listener = _Listener()
+    bridge = subprocess.Popen(
+        [str(BRIDGE), "--ros-args", "-p", "source:=igtl", "-p", f"igtl_port:={port}",
+         "-p", "igtl_reconnect_interval_s:=0.1"],
+        env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+    )
+    server = None
+
+    def wait_for(condition, seconds):
+        end = time.monotonic() + seconds
+        while time.monotonic() < end and not condition():
+            listener.spin(0.05)
+        return condition()
+
+    try:
+        assert wait_for(lambda: listener.diagnostics.get("connected") == "False", 20.0)
+        assert listener.level == DiagnosticStatus.WARN
+        assert f"not connected to 127.0.0.1:{port}" in listener.message
+        server = pyigtl.OpenIGTLinkServer(port=port, local_server=True)
+        assert wait_for(lambda: listener.diagnostics.get("connected") == "True", 10.0)
+        assert "not connected" not in listener.message
+        server.stop()
+        stopped = time.monotonic()
+        assert wait_for(lambda: listener.diagnostics.get("connected") == "False", 5.0)
+        assert time.monotonic() - stopped < 2.5
+        assert "not connected" in listener.message and listener.level == DiagnosticStatus.WARN
+        assert bridge.poll() is None
+    finally:
+        if server is not None:
+            server.stop()
+        bridge.send_signal(signal.SIGINT)
+        try:
+            output, _ = bridge.communicate(timeout=10)
+        except subprocess.TimeoutExpired:
+            bridge.kill()
+            output, _ = bridge.communicate()
+        listener.close()
+        for sig, handler in previous_handlers.items():
+            signal.signal(sig, handler)
+        print(output)
+    assert bridge.returncode == 0, output

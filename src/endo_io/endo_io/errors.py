@@ -69,6 +69,14 @@ class ClockJumpError(Endo3dError):
     """Time jumped (a bag loop, a driver restart): state kept over time was reset."""
 
 
+class StampOrderError(Endo3dError):
+    """A stamp is at or shortly before its stream's newest: the sample is out of order."""
+
+
+class FutureStampError(StampOrderError):
+    """A stamp is far ahead of its stream's newest and no later sample confirms a jump yet."""
+
+
 class ParameterValidationError(Endo3dError, ValueError):
     """A node parameter has the wrong type, is out of its range or not one of its choices.
 

@@ -9,9 +9,12 @@ never extrapolates and never hands out a stale pose: a query it cannot
 answer raises why, so the caller can wait (:class:`PoseNotYetError`) or
 give up (:class:`PoseTooOldError`, :class:`PoseGapError`).
 
-Time that goes backwards by more than ``jump_tolerance_ns`` (a bag that
-loops, a tracker that restarts) clears the buffer, keeps the new pose and
-raises :class:`ClockJumpError` so that the caller logs and counts the reset.
+Stamps are checked by :class:`endo_io.clock_jump.ClockJumpDetector`. Time
+that goes backwards by more than ``jump_tolerance_ns`` (a bag that loops, a
+tracker that restarts), or a forward jump confirmed by the next pose, clears
+the buffer, keeps the new pose and raises :class:`ClockJumpError` so that
+the caller logs and counts the reset. One pose stamped far in the future is
+refused (:class:`FutureStampError`) and locks nothing out.
 """
 
 from __future__ import annotations
@@ -20,13 +23,16 @@ from collections import deque
 
 import numpy as np
 
+from endo_io.clock_jump import DEFAULT_FORWARD_TOLERANCE_NS, ClockJumpDetector
 from endo_io.errors import (
     ClockJumpError,
+    FutureStampError,
     PoseError,
     PoseGapError,
     PoseNotYetError,
     PoseOrderError,
     PoseTooOldError,
+    StampOrderError,
 )
 from endo_io.pose import DEFAULT_TOLERANCE, check_rotation, interpolate_transforms
 from endo_io.stamp import NS_PER_S
@@ -42,6 +48,9 @@ class PoseBuffer:
         jump_tolerance_ns: A pose stamped more than this before the newest one is taken for a
             clock jump (the buffer resets); one stamped less before it, or at the
             same stamp, is out of order and refused.
+        forward_tolerance_ns: A pose stamped more than this after the newest one (and not
+            arriving after an equally long silence) is refused until the next pose
+            confirms the jump.
         rotation_tolerance: Allowed deviation of each rotation from orthonormal.
     """
 
@@ -51,6 +60,7 @@ class PoseBuffer:
         capacity: int = 600,
         max_gap_ns: int = NS_PER_S // 10,
         jump_tolerance_ns: int = NS_PER_S,
+        forward_tolerance_ns: int = DEFAULT_FORWARD_TOLERANCE_NS,
         rotation_tolerance: float = DEFAULT_TOLERANCE,
     ) -> None:
         if capacity < 2:
@@ -63,6 +73,9 @@ class PoseBuffer:
         self.rotation_tolerance = rotation_tolerance
         self._stamps: deque[int] = deque(maxlen=capacity)
         self._poses: deque[np.ndarray] = deque(maxlen=capacity)
+        self._clock = ClockJumpDetector(
+            back_tolerance_ns=self.jump_tolerance_ns, forward_tolerance_ns=forward_tolerance_ns
+        )
 
     def __len__(self) -> int:
         return len(self._stamps)
@@ -78,38 +91,42 @@ class PoseBuffer:
         return self._stamps[-1] if self._stamps else None
 
     def clear(self) -> None:
-        """Forget every pose."""
+        """Forget every pose (and the stream's timeline)."""
         self._stamps.clear()
         self._poses.clear()
+        self._clock.reset()
 
-    def insert(self, stamp_ns: int, T: np.ndarray) -> None:
+    def insert(self, stamp_ns: int, T: np.ndarray, *, arrival_ns: int | None = None) -> None:
         """Add the (4, 4) transform ``T`` at ``stamp_ns`` (integer ns).
+
+        ``arrival_ns`` (``time.monotonic_ns()`` when the pose arrived) lets a
+        pose after a long tracker silence in without a confirmation.
 
         Raises:
             PoseError: ``T`` is not a finite rigid transform (nothing stored).
             PoseOrderError: ``stamp_ns`` is at or before the newest pose, within
                 the jump tolerance (nothing stored).
-            ClockJumpError: ``stamp_ns`` is more than the jump tolerance before
-                the newest pose; the buffer was cleared and now holds this pose.
+            FutureStampError: ``stamp_ns`` is far after the newest pose and not
+                yet confirmed by a later one (nothing stored).
+            ClockJumpError: time jumped (back by more than the jump tolerance,
+                or a confirmed forward jump); the buffer was cleared and now
+                holds this pose.
         """
         mat = np.array(T, dtype=np.float64)
         if mat.shape != (4, 4) or not np.all(np.isfinite(mat)):
             raise PoseError(f"pose at {stamp_ns} ns is not a finite (4, 4) transform")
         check_rotation(mat[:3, :3], self.rotation_tolerance)
-        newest = self.newest_ns
-        if newest is not None and stamp_ns <= newest:
-            back_ns = newest - stamp_ns
-            if back_ns <= self.jump_tolerance_ns:
-                raise PoseOrderError(
-                    f"pose at {stamp_ns} ns is {back_ns / 1e6:.3f} ms before or at the "
-                    f"newest {newest} ns"
-                )
-            self.clear()
+        try:
+            jump = self._clock.check(stamp_ns, arrival_ns)
+        except FutureStampError:
+            raise
+        except StampOrderError as error:
+            raise PoseOrderError(f"pose {error}") from None
+        if jump is not None:
+            self._stamps.clear()
+            self._poses.clear()
             self._append(stamp_ns, mat)
-            raise ClockJumpError(
-                f"pose time jumped back {back_ns / NS_PER_S:.3f} s (from {newest} to "
-                f"{stamp_ns} ns); pose buffer reset"
-            )
+            raise ClockJumpError(f"{jump.describe('pose time')}; pose buffer reset")
         self._append(stamp_ns, mat)
 
     def _append(self, stamp_ns: int, mat: np.ndarray) -> None:

@@ -8,6 +8,7 @@ from scipy.spatial.transform import Rotation, Slerp
 
 from endo_io.errors import (
     ClockJumpError,
+    FutureStampError,
     PoseError,
     PoseGapError,
     PoseNotYetError,
@@ -81,11 +82,36 @@ def test_backward_jump_resets_and_future_sample_does_not_lock_out():
     with pytest.raises(ClockJumpError):
         buffer.insert(stamps[0] - 3_000 * MS, poses[0])
     assert len(buffer) == 1 and buffer.newest_ns == stamps[0] - 3_000 * MS
-    # one future-stamped sample, then the good stream again: the stream wins after a reset
+    # one future-stamped sample, then the good stream again: refused, nothing is reset
     buffer.clear()
     buffer.insert(stamps[0], poses[0])
-    buffer.insert(stamps[0] + 3_600_000 * MS, poses[1])
-    with pytest.raises(ClockJumpError):
+    with pytest.raises(FutureStampError):
+        buffer.insert(stamps[0] + 3_600_000 * MS, poses[1])
+    buffer.insert(stamps[1], poses[1])
+    buffer.insert(stamps[2], poses[2])
+    assert len(buffer) == 3
+    np.testing.assert_allclose(buffer.query(stamps[2]), poses[2])
+
+
+def test_short_loop_within_the_tolerance_resets_after_one_pose():
+    # a loop shorter than the jump tolerance: the first pose of the new pass is
+    # out of order, the second confirms the restart, and the buffer resumes
+    buffer = PoseBuffer(jump_tolerance_ns=1_000 * MS)
+    stamps, poses = _stream(4)
+    for s, T in zip(stamps, poses, strict=True):
+        buffer.insert(s, T)
+    with pytest.raises(PoseOrderError):
+        buffer.insert(stamps[0], poses[0])
+    with pytest.raises(ClockJumpError, match="pose time jumped back"):
         buffer.insert(stamps[1], poses[1])
     buffer.insert(stamps[2], poses[2])
-    np.testing.assert_allclose(buffer.query(stamps[2]), poses[2])
+    assert len(buffer) == 2 and buffer.oldest_ns == stamps[1]
+
+
+def test_pose_after_a_long_silence_is_taken_when_arrival_times_agree():
+    buffer = PoseBuffer(forward_tolerance_ns=2_000 * MS)
+    stamps, poses = _stream(2)
+    buffer.insert(stamps[0], poses[0], arrival_ns=0)
+    # 60 s later on both clocks: a tracker occlusion, not a jump
+    buffer.insert(stamps[0] + 60_000 * MS, poses[1], arrival_ns=60_000 * MS)
+    assert len(buffer) == 2

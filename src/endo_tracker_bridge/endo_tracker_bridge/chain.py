@@ -25,6 +25,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from endo_io.clock_jump import ClockJump
 from endo_tracker_bridge.composition import compose_camera_pose, corrected_stamp_ns
 from endo_tracker_bridge.handeye_file import HandEyeCalibration
 from endo_tracker_bridge.sample import TrackerSample
@@ -39,11 +40,14 @@ class CameraPose:
         sample: the accepted tracker sample (T_tracker_marker, tracker clock).
         stamp_ns: integer ns on the camera's clock (tracker stamp − time offset).
         T_world_camera: (4, 4) float64, metres, optical frame → world.
+        clock_jump: the jump of the tool's time this sample revealed (its
+            history was reset before it was accepted), or None.
     """
 
     sample: TrackerSample
     stamp_ns: int
     T_world_camera: np.ndarray = field(repr=False)
+    clock_jump: ClockJump | None = None
 
 
 class CameraPoseChain:
@@ -68,20 +72,28 @@ class CameraPoseChain:
         )
         self.gate = SampleGate(limits)
 
-    def accept(self, sample: TrackerSample) -> CameraPose:
+    def accept(self, sample: TrackerSample, arrival_ns: int | None = None) -> CameraPose:
         """Gate ``sample`` and return its camera pose.
+
+        Args:
+            sample: the tracker sample.
+            arrival_ns: ``time.monotonic_ns()`` when it arrived (a live source),
+                so that a pose after a long silence is not taken for a jump;
+                None offline.
 
         Raises:
             ToolNotVisibleError, NonFinitePoseError, TimeWentBackwardsError,
-            SpeedLimitError: the gate rejected the sample (it is not remembered).
+            FutureStampError, SpeedLimitError: the gate rejected the sample (it
+            is not remembered).
             StampCorrectionError: the corrected stamp would be negative.
         """
-        accepted = self.gate.check(sample)
+        admitted = self.gate.admit(sample, arrival_ns)
+        accepted = admitted.sample
         T_world_camera = compose_camera_pose(
             self.T_world_tracker, accepted.T_tracker_marker, self.calibration.T_marker_camera
         )
         stamp_ns = corrected_stamp_ns(accepted.stamp_ns, self.calibration.time_offset_ns)
-        return CameraPose(accepted, stamp_ns, T_world_camera)
+        return CameraPose(accepted, stamp_ns, T_world_camera, admitted.clock_jump)
 
     def reset(self) -> None:
         """Forget the gate's history (a restarted tracker, a looped recording)."""

@@ -21,13 +21,20 @@ that cannot work is refused with the reason and changes nothing.
 Rejected samples (NaN, non-unit quaternion, tool missing, time going
 backwards, speed jump, bad message) are dropped and counted by cause on
 ``/diagnostics``; the node keeps running, and network/serial sources
-reconnect by themselves.
+reconnect by themselves. Time that jumps (a looped recording, a restarted
+driver: :mod:`endo_io.clock_jump`) resets the tool's history with one log
+line, counted as ``clock_jumps``, and the stream goes on; one sample stamped
+far in the future is dropped (``FutureStampError``) and locks nothing out.
+The status is WARN while the tracker input is silent (``input_stale_s``) or,
+for a network or serial source, not connected; the source's state
+(``connected``, ``connections``, ...) is refreshed every period.
 """
 
 from __future__ import annotations
 
 import math
 import sys
+import time
 from collections.abc import Mapping, Sequence
 from typing import Any
 
@@ -38,7 +45,7 @@ from rclpy.node import Node
 from rclpy.subscription import Subscription
 
 from endo_io import topics
-from endo_io.diagnostics import InputHealth
+from endo_io.diagnostics import HEALTH_PARAMETERS, InputHealth
 from endo_io.errors import ParameterValidationError
 from endo_io.parameters import NodeParameters, ParameterSpec
 from endo_io.pose import matrix_to_pose
@@ -144,6 +151,7 @@ PARAMETERS: tuple[ParameterSpec, ...] = (
         "csv_rate", 1.0, "source=csv: replay speed factor; 0 = as fast as possible",
         range=(0.0, 1000.0),
     ),
+    *HEALTH_PARAMETERS,
 )
 
 #: Parameters whose change restarts the source with the new values.
@@ -181,7 +189,9 @@ class TrackerBridgeNode(Node):
             world_tracker_from_parameter(p["T_world_tracker"]),
             _speed_limits(p),
         )
-        self._health = InputHealth(self, "tracker input")
+        self._health = InputHealth(self, "tracker input", settings=self.parameters)
+        self._health.on_refresh(self._refresh_source_status)
+        self._input_name = ""
         self._marker_publisher = create_reliable_publisher(self, PoseStamped, topics.MARKER_POSE)
         self._camera_publisher = create_reliable_publisher(self, PoseStamped, topics.CAMERA_POSE)
         self._source: BackgroundSource | None = None
@@ -329,13 +339,16 @@ class TrackerBridgeNode(Node):
                 sample = sample_from_pose_stamped(msg, unit, frame_id, tool_id, tolerance)
                 self._publish(sample)
 
-            self._subscription = self.create_subscription(
-                PoseStamped, p["ros_topic"], self._health.guard(on_pose), SENSOR_DATA_QOS
+            self._subscription = self._health.subscribe(
+                PoseStamped, p["ros_topic"], on_pose, SENSOR_DATA_QOS
             )
+            self._input_name = self._subscription.topic_name
             self.get_logger().info(f"source ros: {self._subscription.topic_name} ({unit.value})")
             return
         # The source's thread wakes the executor through a guard condition, so
         # a pose is published as soon as it arrives, without a polling timer.
+        self._input_name = f"{p['source']} source"
+        self._health.watch(self._input_name)
         self._source = source
         self._wake = self.create_guard_condition(self._drain_source)
         source.start(self._wake.trigger)
@@ -343,6 +356,10 @@ class TrackerBridgeNode(Node):
 
     def _stop_source(self) -> None:
         """Stop the running source; poses it still held are dropped."""
+        if self._input_name:
+            self._health.unwatch(self._input_name)
+            self._input_name = ""
+        self._health.set_problem("connection", None)
         if self._subscription is not None:
             self.destroy_subscription(self._subscription)
             self._subscription = None
@@ -358,9 +375,25 @@ class TrackerBridgeNode(Node):
         if source is None:  # stopped while the wake-up was pending
             return
         for item in source.drain():
+            self._health.received(self._input_name)
             self._guarded_item(source, item)
-        for key, value in source.status().items():
+        self._refresh_source_status()
+
+    def _refresh_source_status(self) -> None:
+        """Copy the source's state into the status (each period, not only on data)."""
+        source = self._source
+        if source is None:
+            return
+        status = source.status()
+        for key, value in status.items():
             self._health.set_value(key, value)
+        connected = status.get("connected")
+        where = status.get("server", "")
+        self._health.set_problem(
+            "connection",
+            None if connected in (None, "True")
+            else f"{self._input_name} not connected{f' to {where}' if where else ''}",
+        )
 
     def _process_item(self, source: BackgroundSource, item: Any) -> None:
         self._publish(source.to_sample(item))
@@ -369,7 +402,12 @@ class TrackerBridgeNode(Node):
 
     def _publish(self, sample: TrackerSample) -> None:
         """Gate the sample (raises to drop it), then publish the marker and camera poses."""
-        pose = self._chain.accept(sample)
+        pose = self._chain.accept(sample, time.monotonic_ns())
+        if pose.clock_jump is not None:
+            self._health.clock_jump(
+                f"{pose.clock_jump.describe(f'tool {sample.tool_id!r} time')}; its history "
+                "was reset"
+            )
         tracker_frame = self.parameters["tracker_frame"]
         self._marker_publisher.publish(
             matrix_to_pose(sample.T_tracker_marker, sample.stamp_ns, tracker_frame)

@@ -9,6 +9,11 @@ Two kinds of checks:
   visible, time must go forwards, and the marker must not move faster than a
   hand can move an endoscope. A jump beyond that speed is a tracking glitch
   (a reflection taken for a marker sphere, a swapped tool), not motion.
+  Time is checked per tool by :class:`endo_io.clock_jump.ClockJumpDetector`:
+  a jump back (a looped recording, a restarted driver) or a confirmed jump
+  forward forgets the tool's history and the sample is accepted, reported
+  as a :class:`~endo_io.clock_jump.ClockJump`; one sample stamped far in the
+  future is dropped and locks nothing out.
 
 Each failure raises its own :mod:`endo_tracker_bridge.errors` class with a
 one-line message.
@@ -21,7 +26,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from endo_io.errors import PoseError
+from endo_io.clock_jump import (
+    DEFAULT_BACK_TOLERANCE_NS,
+    DEFAULT_FORWARD_TOLERANCE_NS,
+    ClockJump,
+    ClockJumpDetector,
+)
+from endo_io.errors import FutureStampError, PoseError, StampOrderError
 from endo_io.pose import DEFAULT_TOLERANCE, check_rotation, rotation_angle, unit_quaternion
 from endo_tracker_bridge.errors import (
     NonFinitePoseError,
@@ -112,39 +123,83 @@ class SpeedLimits:
     angular_deg_s: float = 720.0
 
 
+@dataclass(frozen=True)
+class GateResult:
+    """An accepted sample, and the clock jump that reset its tool's history (or None)."""
+
+    sample: TrackerSample
+    clock_jump: ClockJump | None = None
+
+
 class SampleGate:
     """Stateful acceptance of a tool's sample stream.
 
     :meth:`check` raises a named error for a sample that must be dropped and
     remembers each accepted one (per tool) as the reference for the next.
+
+    Args:
+        limits: the speed limits.
+        back_tolerance_ns: a stamp more than this before its tool's newest is
+            a clock jump (history reset); less is out of order (dropped).
+        forward_tolerance_ns: a stamp more than this after its tool's newest,
+            without an equally long silence on the arrival clock, is dropped
+            until the next sample confirms the jump.
     """
 
-    def __init__(self, limits: SpeedLimits | None = None) -> None:
+    def __init__(
+        self,
+        limits: SpeedLimits | None = None,
+        *,
+        back_tolerance_ns: int = DEFAULT_BACK_TOLERANCE_NS,
+        forward_tolerance_ns: int = DEFAULT_FORWARD_TOLERANCE_NS,
+    ) -> None:
         self.limits = limits or SpeedLimits()
+        self.back_tolerance_ns = back_tolerance_ns
+        self.forward_tolerance_ns = forward_tolerance_ns
         self._last: dict[str, TrackerSample] = {}
+        self._clocks: dict[str, ClockJumpDetector] = {}
 
     def reset(self) -> None:
         """Forget the history (e.g. after a reconnection to a restarted tracker)."""
         self._last.clear()
+        self._clocks.clear()
 
-    def check(self, sample: TrackerSample) -> TrackerSample:
-        """Return ``sample`` if it is acceptable, else raise.
+    def check(self, sample: TrackerSample, arrival_ns: int | None = None) -> TrackerSample:
+        """Return ``sample`` if it is acceptable, else raise (see :meth:`admit`)."""
+        return self.admit(sample, arrival_ns).sample
 
-        Raises :class:`ToolNotVisibleError`, :class:`NonFinitePoseError`,
-        :class:`TimeWentBackwardsError` or :class:`SpeedLimitError`.
+    def admit(self, sample: TrackerSample, arrival_ns: int | None = None) -> GateResult:
+        """Accept ``sample`` (with the clock jump it revealed, if any), or raise.
+
+        Args:
+            sample: the tracker sample.
+            arrival_ns: ``time.monotonic_ns()`` when it arrived; None: judge
+                by stamps alone.
+
+        Raises:
+            ToolNotVisibleError, NonFinitePoseError, SpeedLimitError;
+            TimeWentBackwardsError: at or shortly before the tool's newest stamp;
+            FutureStampError: far after it, not yet confirmed by a later sample.
         """
         if sample.status is not ToolStatus.VISIBLE:
             raise ToolNotVisibleError(f"tool '{sample.tool_id}' reported {sample.status.value}")
         check_finite(sample.T_tracker_marker, f"pose of tool '{sample.tool_id}'")
-        previous = self._last.get(sample.tool_id)
-        if previous is not None:
-            dt_ns = sample.stamp_ns - previous.stamp_ns
-            if dt_ns <= 0:
-                raise TimeWentBackwardsError(
-                    f"tool '{sample.tool_id}' stamp {sample.stamp_ns} ns is {-dt_ns} ns "
-                    f"before or at the previous {previous.stamp_ns} ns"
-                )
-            dt_s = dt_ns * 1e-9
+        clock = self._clocks.get(sample.tool_id)
+        if clock is None:
+            clock = self._clocks[sample.tool_id] = ClockJumpDetector(
+                back_tolerance_ns=self.back_tolerance_ns,
+                forward_tolerance_ns=self.forward_tolerance_ns,
+            )
+        try:
+            # committed below, once the speed check has passed too
+            jump = clock.check(sample.stamp_ns, arrival_ns, commit=False)
+        except FutureStampError as error:
+            raise FutureStampError(f"tool '{sample.tool_id}' {error}") from None
+        except StampOrderError as error:
+            raise TimeWentBackwardsError(f"tool '{sample.tool_id}' {error}") from None
+        previous = None if jump is not None else self._last.get(sample.tool_id)
+        if previous is not None and sample.stamp_ns > previous.stamp_ns:
+            dt_s = (sample.stamp_ns - previous.stamp_ns) * 1e-9
             distance_m = float(np.linalg.norm(sample.translation_m - previous.translation_m))
             if distance_m / dt_s > self.limits.linear_m_s:
                 raise SpeedLimitError(
@@ -158,5 +213,6 @@ class SampleGate:
                     f"tool '{sample.tool_id}' turned {angle_deg:.1f}° in {dt_s * 1e3:.1f} ms "
                     f"({angle_deg / dt_s:.0f}°/s > limit {self.limits.angular_deg_s:g}°/s)"
                 )
+        clock.adopt(sample.stamp_ns, arrival_ns)
         self._last[sample.tool_id] = sample
-        return sample
+        return GateResult(sample, jump)

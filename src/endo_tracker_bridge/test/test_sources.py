@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import socket
 import threading
 import time
 
@@ -32,7 +33,12 @@ from endo_tracker_bridge.sources.csv import (
     read_tracker_log,
     sample_from_log_row,
 )
-from endo_tracker_bridge.sources.igtl import IgtlFrame, parse_header, sample_from_igtl_frame
+from endo_tracker_bridge.sources.igtl import (
+    IgtlFrame,
+    IgtlSource,
+    parse_header,
+    sample_from_igtl_frame,
+)
 from endo_tracker_bridge.sources.ndi import (
     NdiOptions,
     NdiSource,
@@ -350,3 +356,39 @@ def test_csv_replay_keeps_the_logs_own_stamps(tmp_path):
     assert [s.stamp_ns for s in samples] == [1_000_000_000, 1_033_333_334, 1_066_666_668]
     np.testing.assert_allclose([s.translation_m[0] for s in samples], [0.0, 0.002, 0.004])
     assert source.status()["finished"] == "True"
+
+
+def test_igtl_junk_stream_is_logged_throttled_and_connection_state_follows():
+    # A peer that sends bytes that are not OpenIGTLink and hangs up, again and
+    # again: the source reconnects each time but logs a few lines, not 2 a second.
+    listener = socket.create_server(("127.0.0.1", 0))
+    listener.settimeout(0.2)
+    port = listener.getsockname()[1]
+    serving = threading.Event()
+    serving.set()
+
+    def serve() -> None:
+        while serving.is_set():
+            try:
+                peer, _ = listener.accept()
+            except TimeoutError:
+                continue
+            with peer:
+                peer.sendall(b"\x00\x02" + b"JUNK" * 40)  # a header whose body size is huge
+
+    server = threading.Thread(target=serve, daemon=True)
+    server.start()
+    lines: list[str] = []
+    source = IgtlSource(port=port, reconnect_interval_s=0.05, log=lines.append)
+    source.start(lambda: None)
+    try:
+        time.sleep(1.5)
+        assert source.connections >= 8
+        assert 1 <= len(lines) <= 3, lines
+        assert any("is not OpenIGTLink" in line for line in lines)
+    finally:
+        serving.clear()
+        source.stop()
+        server.join(2.0)
+        listener.close()
+    assert source.status()["connected"] == "False"

@@ -100,3 +100,45 @@ def test_speed_jumps_are_rejected():
         gate.check(_sample(32, x_m=0.010, angle_deg=10.0))
     # after the glitch the stream resumes against the last good sample
     assert gate.check(_sample(48, x_m=0.012, angle_deg=2.0)).stamp_ns == 48 * MS
+
+
+def _run(gate, samples):
+    """Feed samples; return (accepted stamps, clock jumps, causes of drops)."""
+    accepted, jumps, causes = [], [], []
+    for sample in samples:
+        try:
+            result = gate.admit(sample)
+        except Exception as error:  # the test counts every cause
+            causes.append(type(error).__name__)
+            continue
+        accepted.append(result.sample.stamp_ns)
+        if result.clock_jump is not None:
+            jumps.append(result.clock_jump)
+    return accepted, jumps, causes
+
+
+def test_one_future_stamped_pose_does_not_lock_the_tool_out():
+    # issue 16: 60 good poses, one at +3600 s, 120 good ones -> the 120 pass
+    good = [_sample(1_000 + 16 * k, x_m=0.0001 * k) for k in range(180)]
+    future = _sample(1_000 + 16 * 59 + 3_600_000, x_m=0.0059)
+    accepted, jumps, causes = _run(SampleGate(), [*good[:60], future, *good[60:]])
+    assert causes == ["FutureStampError"]
+    assert accepted == [s.stamp_ns for s in good] and not jumps
+
+
+def test_a_looped_recording_resets_the_gate_and_every_pass_is_accepted():
+    one_pass = [_sample(1_000 + 16 * k, x_m=0.0005 * k) for k in range(180)]  # 3 s, 3 cm
+    accepted, jumps, causes = _run(SampleGate(), one_pass * 3)
+    # the loop jumps back 3 cm in no time: without the reset, a speed or time glitch
+    assert len(accepted) == 540 and not causes
+    assert [j.delta_ns for j in jumps] == [-179 * 16 * MS] * 2
+
+
+def test_a_restarted_driver_is_accepted_from_its_second_sample():
+    before = [_sample(5_000_000 + 16 * k) for k in range(30)]
+    after = [_sample(1_000 + 16 * k, x_m=0.05) for k in range(30)]  # earlier clock, moved
+    accepted, jumps, causes = _run(SampleGate(), [*before, *after])
+    assert not causes and len(jumps) == 1 and len(accepted) == 60
+    later = [_sample(9_000_000 + 16 * k, x_m=0.05) for k in range(30)]  # later clock
+    accepted, jumps, causes = _run(SampleGate(), [*before, *later])
+    assert causes == ["FutureStampError"] and len(jumps) == 1 and len(accepted) == 59

@@ -13,6 +13,7 @@ from __future__ import annotations
 import abc
 import collections
 import threading
+import time
 from collections.abc import Callable
 from typing import Any
 
@@ -21,6 +22,8 @@ from endo_tracker_bridge.sample import TrackerSample
 #: Raw items kept when the owner falls behind; the oldest go first (a pose
 #: that old is of no use to a live consumer anyway).
 DEFAULT_QUEUE_LENGTH = 256
+#: Shortest interval between two lines of one repeated message (s).
+LOG_THROTTLE_S = 10.0
 
 
 def _ignore(_: str) -> None:
@@ -45,6 +48,7 @@ class BackgroundSource(abc.ABC):
         self._thread: threading.Thread | None = None
         self._notify: Callable[[], None] = lambda: None
         self._status: dict[str, str] = {}
+        self._throttle: dict[str, tuple[float, int]] = {}
         self.overflowed = 0
 
     def start(self, notify: Callable[[], None]) -> None:
@@ -82,6 +86,20 @@ class BackgroundSource(abc.ABC):
     def _set_status(self, **values: object) -> None:
         with self._lock:
             self._status.update({k: str(v) for k, v in values.items()})
+
+    def _log_throttled(self, key: str, text: str, interval_s: float = LOG_THROTTLE_S) -> None:
+        """Log ``text`` at most once per ``interval_s`` for ``key``, saying how many were held back.
+
+        For messages a broken peer repeats several times a second (a junk
+        stream that is reconnected and fails again).
+        """
+        now = time.monotonic()
+        last, held = self._throttle.get(key, (-float("inf"), 0))
+        if now - last < interval_s:
+            self._throttle[key] = (last, held + 1)
+            return
+        self._throttle[key] = (now, 0)
+        self._log(text + (f" ({held} more like this in {now - last:.0f} s)" if held else ""))
 
     def _emit(self, item: Any) -> None:
         with self._lock:

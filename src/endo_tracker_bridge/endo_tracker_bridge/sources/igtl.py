@@ -142,6 +142,7 @@ class IgtlSource(BackgroundSource):
         self.stale_timeout_s = stale_timeout_s
         self.connections = 0
         self.ignored = 0
+        self._junk = False
         self._set_status(connected=False, connections=0, server=f"{host}:{port}")
 
     def to_sample(self, item: IgtlFrame) -> TrackerSample:
@@ -165,12 +166,26 @@ class IgtlSource(BackgroundSource):
             waiting_logged = False
             self.connections += 1
             self._set_status(connected=True, connections=self.connections)
-            self._log(f"connected to OpenIGTLink server {self.host}:{self.port}")
+            # After a junk stream the next connection is likely junk too: its
+            # lines are throttled until a good TRANSFORM arrives.
+            text = f"connected to OpenIGTLink server {self.host}:{self.port}"
+            if self._junk:
+                self._log_throttled("connected", text)
+            else:
+                self._log(text)
             try:
                 connection.settimeout(0.1)
                 _enable_keepalive(connection)
                 self._receive(connection, stop)
-            except (OSError, IgtlMessageError) as error:
+            except IgtlMessageError as error:
+                self._junk = True
+                self._log_throttled(
+                    "junk",
+                    f"OpenIGTLink stream from {self.host}:{self.port} is not OpenIGTLink "
+                    f"({error}); reconnecting",
+                )
+            except OSError as error:
+                self._junk = False
                 self._log(
                     f"OpenIGTLink connection to {self.host}:{self.port} lost: {error}; reconnecting"
                 )
@@ -195,6 +210,7 @@ class IgtlSource(BackgroundSource):
                 self.ignored += 1
                 self._set_status(ignored_messages=self.ignored)
                 continue
+            self._junk = False
             self._emit(IgtlFrame(header, body, stamp_ns, crc, time.time_ns()))
 
     def _read_exactly(

@@ -1,0 +1,170 @@
+"""endo_io.diagnostics.InputHealth: stale and never-seen inputs, recovery, separate counters,
+frames lost in transport, undecodable CDR, and no false drop while shutting down."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pytest
+import rclpy
+from diagnostic_msgs.msg import DiagnosticStatus
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.serialization import serialize_message
+from sensor_msgs.msg import Image
+
+from endo_io.diagnostics import InputHealth
+from endo_io.errors import ClockJumpError, ImageEncodingError
+from endo_io.image import array_to_image
+from endo_io.qos import reliable_qos
+from endo_io.sequence_gaps import SequenceGapCounter
+
+MS = 1_000_000
+
+
+@pytest.fixture
+def node():
+    context = rclpy.Context()
+    rclpy.init(context=context)
+    node = Node("diagnostics_under_test", context=context)
+    yield node
+    node.destroy_node()
+    rclpy.try_shutdown(context=context)
+
+
+def _values(health: InputHealth) -> dict[str, str]:
+    return {kv.key: kv.value for kv in health.status().values}
+
+
+def test_an_input_never_seen_or_stale_warns_and_recovers(node):
+    health = InputHealth(node, "image input", settings={"input_stale_s": 0.2})
+    health.watch("/camera")
+    status = health.status()
+    assert status.level == DiagnosticStatus.WARN
+    assert status.message == "no message yet on /camera"
+    assert _values(health)["age_s./camera"] == "never"
+    health.received("/camera")
+    assert health.status().level == DiagnosticStatus.OK and health.status().message == "ok"
+    time.sleep(0.3)
+    status = health.status()
+    assert status.level == DiagnosticStatus.WARN and "/camera stale" in status.message
+    health.received("/camera")
+    assert health.status().level == DiagnosticStatus.OK
+
+
+def test_one_drop_warns_for_the_window_then_the_level_returns_to_ok(node):
+    # issue 16: "a status stays WARN forever after a single drop"
+    health = InputHealth(node, "input", window_s=0.3)
+    health.guard(lambda: 1 / 0)()
+    status = health.status()
+    assert status.level == DiagnosticStatus.WARN
+    assert "1 dropped in the last 0.3 s (last: ZeroDivisionError" in status.message
+    time.sleep(0.4)
+    status = health.status()
+    assert status.level == DiagnosticStatus.OK and status.message == "ok"
+    # the counters stay: the history is not forgotten, only the level recovers
+    assert _values(health)["dropped.ZeroDivisionError"] == "1"
+
+
+def test_counters_separate_received_processed_and_dropped_by_cause(node):
+    health = InputHealth(node, "pairs")
+    outputs = []
+
+    def half(value: int) -> None:
+        if value < 0:
+            raise ImageEncodingError("bad")
+        if value % 2:  # every second message completes an output
+            outputs.append(value)
+            health.ok()
+
+    guarded = health.guard(half, input_name="/in", processed=False)
+    for value in (0, 1, 2, 3, -1, 5):
+        guarded(value)
+    values = _values(health)
+    assert values["received"] == values["received./in"] == "6"
+    assert values["processed"] == "3" == str(len(outputs))
+    assert values["dropped"] == values["dropped.ImageEncodingError"] == "1"
+
+
+def test_a_clock_jump_is_counted_as_a_reset_not_a_drop(node):
+    health = InputHealth(node, "poses", window_s=60.0)
+
+    def insert() -> None:
+        raise ClockJumpError("pose time jumped back 3.000 s; pose buffer reset")
+
+    health.guard(insert)()
+    values = _values(health)
+    assert values["clock_jumps"] == "1" and values["dropped"] == "0"
+    assert "1 clock jump" in health.status().message
+    assert health.status().level == DiagnosticStatus.WARN
+
+
+def test_set_problem_holds_warn_until_cleared_and_refresh_runs_each_period(node):
+    health = InputHealth(node, "tracker input")
+    state = {"connected": False}
+
+    def refresh() -> None:
+        message = None if state["connected"] else "not connected to 127.0.0.1:18944"
+        health.set_problem("connection", message)
+
+    health.on_refresh(refresh)
+    health.publish()
+    assert health.status().message == "not connected to 127.0.0.1:18944"
+    state["connected"] = True
+    health.publish()
+    assert health.status().level == DiagnosticStatus.OK
+
+
+def test_gap_counter_counts_missing_frames_at_the_estimated_rate():
+    counter = SequenceGapCounter()
+    period = 33_333_333
+    stamps = [k * period + (k % 3) * 2 * MS for k in range(60)]  # ±2 ms jitter
+    missing = {20, 21, 40}
+    counts = [counter.add(s) for k, s in enumerate(stamps) if k not in missing]
+    assert counter.lost == 3 and sum(counts) == 3
+    assert counter.period_ns == pytest.approx(period, rel=0.1)
+    # a pause of 10 s (a replay between passes) is not loss, nor is a jump back
+    assert counter.add(stamps[-1] + 10_000 * MS) == 0
+    assert counter.add(0) == 0 and counter.lost == 3
+    # a new stream at 15 Hz: no loss counted while the estimate follows it
+    counts = [counter.add(k * 2 * period) for k in range(1, 40)]
+    assert sum(counts) <= 2
+
+
+def test_undecodable_cdr_is_logged_and_counted_and_good_frames_pass(node):
+    health = InputHealth(node, "image input")
+    got: list[Image] = []
+    health.subscribe(Image, "/diag_test/image", got.append, reliable_qos(10), gaps=True)
+    publisher = node.create_publisher(Image, "/diag_test/image", reliable_qos(10))
+    executor = SingleThreadedExecutor(context=node.context)
+    executor.add_node(node)
+    deadline = time.monotonic() + 10.0
+    while publisher.get_subscription_count() == 0 and time.monotonic() < deadline:
+        executor.spin_once(timeout_sec=0.05)
+    good = array_to_image(np.ones((4, 6), np.float32), "32FC1", 1_000 * MS, "cam")
+    data = serialize_message(good)
+    for payload in (data, data[:40], b"\x00\x01\x00\x00" + b"\xff" * 64, good):
+        publisher.publish(payload)
+    deadline = time.monotonic() + 10.0
+    while health.dropped["UndecodableMessageError"] + len(got) < 4:
+        executor.spin_once(timeout_sec=0.05)
+        assert time.monotonic() < deadline, _values(health)
+    assert [m.width for m in got] == [6, 6]
+    values = _values(health)
+    assert values["dropped.UndecodableMessageError"] == "2"
+    assert values["received./diag_test/image"] == "4" and values["processed"] == "2"
+    assert "do not decode as Image" in health.last_error
+    executor.shutdown()
+
+
+def test_an_error_while_shutting_down_is_not_a_dropped_message():
+    context = rclpy.Context()
+    rclpy.init(context=context)
+    node = Node("shutdown_under_test", context=context)
+    health = InputHealth(node, "input")
+    publisher = node.create_publisher(Image, "/diag_test/out", reliable_qos(1))
+    rclpy.shutdown(context=context)  # what SIGINT does while a callback runs
+    health.guard(lambda: publisher.publish(Image()))()
+    assert not health.dropped and health.processed == 0
+    node.destroy_node()
