@@ -119,6 +119,41 @@ class PhotometricCalibration:
         self.light_source = light_source
         self.fit_summary = dict(fit_summary or {})
         self._correctors: dict[tuple[int, int], _Corrector] = {}
+        self._check_light_maps()
+
+    def _check_light_maps(self) -> None:
+        """Refuse a light map the correction cannot divide by (zero, negative, non-finite).
+
+        A light map that is not positive over most of the field of view makes
+        every corrected pixel NaN: a zero light model (all coefficients 0), a
+        light-map PNG of zeros, a corrupt model.
+
+        Raises:
+            CalibrationError: one line naming the channel and what is wrong.
+        """
+        inside = self.fov_mask
+        if not inside.any():
+            raise CalibrationError("the light map is 0 everywhere: there is no field of view")
+        for ch in self.channels:
+            if self.light_source == "model" and ch.light_model is not None:
+                what = f"light model of channel {ch.name}"
+                coefficients = ch.light_model.coefficients
+                if not np.all(np.isfinite(coefficients)):
+                    raise CalibrationError(f"{what} has coefficients that are not finite")
+                if not np.any(coefficients):
+                    raise CalibrationError(
+                        f"{what} has all coefficients 0: every corrected pixel would be NaN"
+                    )
+                values = ch.light_model.evaluate(self.width, self.height)[inside]
+            else:
+                what = f"light map of channel {ch.name}"
+                values = ch.light_pixels[inside]
+            usable = float(np.mean(np.isfinite(values) & (values > 0.0)))
+            if usable < 0.5:
+                raise CalibrationError(
+                    f"{what} is positive on {100 * usable:.0f} % of the field of view: most "
+                    "corrected pixels would be NaN"
+                )
 
     # ----------------------------------------------------------------- views
     @property

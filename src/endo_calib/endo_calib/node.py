@@ -10,8 +10,10 @@ NaN. The calibration comes from the ``calibration_file`` parameter
 restart. Images of another resolution with the calibration's aspect ratio
 (binned or scaled streams) are corrected with a resampled light map.
 
-A missing or corrupt calibration, an image that does not match it, or a bad
-encoding: the frame is dropped with a one-line error (counted on
+A missing or corrupt calibration (a light map or light model that is not
+positive over the field of view, such as all coefficients 0, is refused at
+load), an image that does not match it, a bad encoding or undecodable CDR:
+the frame is dropped with a one-line error (counted on
 ``/diagnostics``), nothing is published, and the node keeps running. Setting
 the parameter to a file that cannot be loaded is rejected with the reason and
 the previous calibration stays in use. A ``channel`` the calibration cannot
@@ -32,7 +34,7 @@ from endo_calib.calibration import OUTPUT_CHANNELS, PhotometricCalibration, sele
 from endo_calib.errors import CalibrationError, CalibrationFileError
 from endo_calib.raw_image import to_raw_frame
 from endo_io import topics
-from endo_io.diagnostics import InputHealth
+from endo_io.diagnostics import HEALTH_PARAMETERS, InputHealth
 from endo_io.errors import ParameterValidationError
 from endo_io.image import array_to_image, image_to_array
 from endo_io.parameters import NodeParameters, ParameterSpec
@@ -56,6 +58,7 @@ PARAMETERS: tuple[ParameterSpec, ...] = (
         "channel needs a colour calibration",
         choices=OUTPUT_CHANNELS,
     ),
+    *HEALTH_PARAMETERS,
 )
 
 
@@ -80,7 +83,7 @@ class PhotometricCorrectionNode(Node):
     def __init__(self, node_name: str = "photometric_correction", **kwargs: object) -> None:
         super().__init__(node_name, **kwargs)  # type: ignore[arg-type]
         self.parameters = NodeParameters(self, PARAMETERS)
-        self.health = InputHealth(self, "image input")
+        self.health = InputHealth(self, "image input", settings=self.parameters)
         self.calibration: PhotometricCalibration | None = None
         self.load_error = "calibration_file is not set"
         self.publisher = create_reliable_publisher(self, Image, topics.IMAGE_CORRECTED)
@@ -100,8 +103,8 @@ class PhotometricCorrectionNode(Node):
                 self.calibration = calibration
                 self._report_loaded(path)
         self.parameters.on_change(self._apply_parameters)
-        self.subscription = self.create_subscription(
-            Image, topics.IMAGE_RAW, self.health.guard(self._on_image), SENSOR_DATA_QOS
+        self.subscription = self.health.subscribe(
+            Image, topics.IMAGE_RAW, self._on_image, SENSOR_DATA_QOS, gaps=True
         )
 
     @property

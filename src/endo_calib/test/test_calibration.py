@@ -129,3 +129,20 @@ def test_missing_and_corrupt_files_are_named_errors(tmp_path):
     other.write_text("image_width: 640\n")
     with pytest.raises(CalibrationFileError, match="not an endo3d"):
         PhotometricCalibration.load(other)
+
+
+def test_a_zero_light_model_is_refused_at_load_with_one_line(tmp_path):
+    # issue 16: a zero light model was accepted; every output was NaN, counted "processed"
+    path = _calibration(source="model").save(tmp_path / "cal.yaml")
+    document = yaml.safe_load(path.read_text())
+    coefficients = document["light_map"]["model"]["coefficients"]["mono"]
+    document["light_map"]["model"]["coefficients"]["mono"] = [0.0] * len(coefficients)
+    path.write_text(yaml.safe_dump(document))
+    with pytest.raises(CalibrationFileError, match="all coefficients 0") as refused:
+        PhotometricCalibration.load(path)
+    assert "\n" not in str(refused.value) and "cal.yaml" in str(refused.value)
+    # a negated model (positive nowhere) is refused the same way
+    document["light_map"]["model"]["coefficients"]["mono"] = [-c for c in coefficients]
+    path.write_text(yaml.safe_dump(document))
+    with pytest.raises(CalibrationFileError, match="positive on 0 %"):
+        PhotometricCalibration.load(path)

@@ -11,6 +11,7 @@ import time
 import numpy as np
 import pytest
 import rclpy
+import yaml
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
 from sensor_msgs.msg import Image
@@ -180,3 +181,19 @@ def test_a_colour_channel_of_a_mono_calibration_is_refused_at_start_and_at_run_t
         [Parameter("calibration_file", value=str(mono)), Parameter("channel", value="luminance")]
     ).successful
     assert node.calibration.channel_names == ("mono",) and node.channel == "luminance"
+
+
+def test_a_zero_light_model_is_refused_and_nothing_is_counted_processed(ros, tmp_path):
+    # issue 16: a zero light model was accepted: every output NaN, counted "processed"
+    _, executor = ros
+    calibration = synthetic_calibration(W, H, light_model_degree=4, light_source="model")
+    path = calibration.save(tmp_path / "zero.yaml")
+    document = yaml.safe_load(path.read_text())
+    document["light_map"]["model"]["coefficients"]["mono"] = [0.0] * 15
+    path.write_text(yaml.safe_dump(document))
+    node, publisher, received = _start(ros, [Parameter("calibration_file", value=str(path))])
+    assert "all coefficients 0" in node.load_error
+    msg = array_to_image(np.full((H, W), 100, np.uint8), "mono8", 1)
+    assert _exchange(executor, publisher, received, msg, expect=False, timeout=1.5) is None
+    assert node.health.dropped["CalibrationNotLoadedError"] >= 1
+    assert node.health.processed == 0

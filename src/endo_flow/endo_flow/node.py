@@ -36,8 +36,9 @@ Publications (reliable, QoS overridable):
   state (:class:`endo_flow.scale.ScaleState`: 0 initializing, 1 tracking,
   2 holding, 3 recovering); header = the frame's (why this type:
   :mod:`endo_flow.messages`);
-* ``/diagnostics``: processed and dropped frames per cause, and the scale,
-  its state and the track counts.
+* ``/diagnostics``: frames and poses received, frames processed, dropped per
+  cause and lost in transport (stamp gaps), clock jumps, and the scale, its
+  state and the track counts (:class:`endo_io.diagnostics.InputHealth`).
 
 Services (std_srvs/Trigger): ``~/reset_map`` empties the map; ``~/export_map``
 writes it to ``ply_path`` as binary PLY (:func:`endo_flow.voxel_map.write_ply`).
@@ -45,8 +46,11 @@ writes it to ``ply_path`` as binary PLY (:func:`endo_flow.voxel_map.write_ply`).
 Bad input (one log line, counted, that frame dropped, the node keeps
 running): an image that is not 32FC1, a depth_relative or image of another
 size than camera_info, a NaN pose (rejected by the pose buffer), a
-textureless frame, a clock jump backwards (a looping bag: every buffer, the
-scale filter and the map are reset and tracking resumes).
+textureless frame, undecodable CDR. Time that jumps (a looping bag, a
+restarted camera: :mod:`endo_io.clock_jump`, on the frames' stamps, and the
+pose buffer's own on the poses') resets the tracks, the scale filter and the
+map with one log line, counted as ``clock_jumps``, and tracking resumes; one
+frame stamped far in the future is dropped (``FutureStampError``).
 """
 
 from __future__ import annotations
@@ -72,7 +76,8 @@ from endo_flow.shape_correction import SHAPE_CORRECTION_MODES, ShapeCorrectionOp
 from endo_flow.tracking import TrackingOptions
 from endo_io import topics
 from endo_io.camera import CameraModel
-from endo_io.diagnostics import InputHealth
+from endo_io.clock_jump import ClockJumpDetector
+from endo_io.diagnostics import HEALTH_PARAMETERS, InputHealth
 from endo_io.errors import ClockJumpError, Endo3dError, PoseLookupError, PoseNotYetError
 from endo_io.image import array_to_image, image_to_array
 from endo_io.parameters import NodeParameters, ParameterSpec
@@ -138,6 +143,7 @@ PARAMETERS: tuple[ParameterSpec, ...] = (
     ParameterSpec("map_min_count", 1, "voxels fused from fewer points are not published or "
                   "exported", range=(1, 1000)),
     ParameterSpec("ply_path", "endo3d_map.ply", "file ~/export_map writes"),
+    *HEALTH_PARAMETERS,
 )
 
 
@@ -190,21 +196,23 @@ class FlowNode(Node):
         self._pending: deque[_Pending] = deque()
         self._camera: CameraModel | None = None
         self._camera_key: tuple[Any, ...] | None = None
-        self.health = InputHealth(self, "frames")
-        self.pose_health = InputHealth(self, "poses")
+        self.health = InputHealth(self, "frames", settings=self.parameters)
+        self.pose_health = InputHealth(self, "poses", settings=self.parameters)
+        self._frame_time = ClockJumpDetector()
         self.depth_pub = create_reliable_publisher(self, Image, topics.DEPTH)
         self.points_pub = create_reliable_publisher(self, PointCloud2, topics.POINTS, depth=2)
         self.scale_pub = create_reliable_publisher(self, Vector3Stamped, topics.SCALE)
         self.map_pub = self.create_publisher(PointCloud2, topics.MAP,
                                              reliable_qos(1, latched=True))
-        self.create_subscription(Image, topics.IMAGE_CORRECTED,
-                                 self.health.guard(self._on_image), SENSOR_DATA_QOS)
-        self.create_subscription(Image, topics.DEPTH_RELATIVE,
-                                 self.health.guard(self._on_depth), SENSOR_DATA_QOS)
-        self.create_subscription(CameraInfo, topics.CAMERA_INFO,
-                                 self.health.guard(self._on_info), SENSOR_DATA_QOS)
-        self.create_subscription(PoseStamped, topics.CAMERA_POSE,
-                                 self.pose_health.guard(self._on_pose), SENSOR_DATA_QOS)
+        # "processed" counts frames (_process), not the three inputs' callbacks
+        self.health.subscribe(Image, topics.IMAGE_CORRECTED, self._on_image, SENSOR_DATA_QOS,
+                              processed=False, gaps=True)
+        self.health.subscribe(Image, topics.DEPTH_RELATIVE, self._on_depth, SENSOR_DATA_QOS,
+                              processed=False, gaps=True)
+        self.health.subscribe(CameraInfo, topics.CAMERA_INFO, self._on_info, SENSOR_DATA_QOS,
+                              processed=False)
+        self.pose_health.subscribe(PoseStamped, topics.CAMERA_POSE, self._on_pose,
+                                   SENSOR_DATA_QOS)
         self.create_service(Trigger, "~/reset_map", self._reset_map)
         self.create_service(Trigger, "~/export_map", self._export_map)
         self.create_timer(0.02, self._expire_pending)
@@ -246,7 +254,7 @@ class FlowNode(Node):
     def _on_pose(self, msg: PoseStamped) -> None:
         T, stamp = pose_to_matrix(msg)
         try:
-            self.poses.insert(stamp, T)
+            self.poses.insert(stamp, T, arrival_ns=time.monotonic_ns())
         finally:
             self._drain()
 
@@ -295,9 +303,8 @@ class FlowNode(Node):
     def _process(self, pending: _Pending, pose: np.ndarray | None) -> None:
         try:
             out = self._step(pending, pose)
-        except ClockJumpError as error:
-            self._pending.clear()
-            self.health.drop(type(error).__name__, str(error))
+        except ClockJumpError as error:  # the pipeline reset itself; this frame is dropped
+            self.health.clock_jump(str(error))
             return
         except Endo3dError as error:
             self.health.drop(type(error).__name__, str(error))
@@ -315,6 +322,12 @@ class FlowNode(Node):
         camera = self._camera_model(pending.info)
         frame = FlowFrame(pending.stamp_ns, image_to_array(pending.image),
                           image_to_array(pending.depth), camera, pose)
+        jump = self._frame_time.check(pending.stamp_ns, time.monotonic_ns())
+        if jump is not None:
+            self.pipeline.reset()
+            self.health.clock_jump(
+                f"{jump.describe('frame time')}; tracks, scale filter and map reset"
+            )
         return self.pipeline.process(frame)
 
     def _publish(self, pending: _Pending, out: FlowOutput) -> None:

@@ -269,8 +269,11 @@ class InputHealth:
         now = time.monotonic()
         if now - self._last_log.get(key, -1e18) >= self._log_throttle_s:
             self._last_log[key] = now
-            logger = self._node.get_logger()
-            (logger.error if level == "error" else logger.warning)(text)
+            # rclpy fixes a call site's severity: one call per severity
+            if level == "error":
+                self._node.get_logger().error(text)
+            else:
+                self._node.get_logger().warning(text)
 
     # -- callbacks ------------------------------------------------------------------
 
@@ -345,10 +348,8 @@ class InputHealth:
         self.watch(name, gaps=gaps)
 
         def decode_and_call(data: Any) -> None:
-            if isinstance(data, msg_type):
-                msg = data  # called directly with a message (tests, offline drivers)
-            else:
-                msg = self._decode(data, msg_type, name)
+            # a message given directly (tests, offline drivers) needs no decoding
+            msg = data if isinstance(data, msg_type) else self._decode(data, msg_type, name)
             header = getattr(msg, "header", None)
             self.received(name, stamp_to_ns(header.stamp) if header is not None else None)
             callback(msg)

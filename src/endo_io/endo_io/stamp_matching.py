@@ -7,6 +7,14 @@ stream; a pair comes out as soon as both halves of one stamp have arrived
 matched pair can no longer be matched and is dropped, as are the oldest
 entries beyond the queue size, so memory stays bounded when one stream
 stops.
+
+A stream whose time jumps (a bag that loops, a camera driver that
+restarts; :class:`endo_io.clock_jump.ClockJumpDetector`) would leave the old
+timeline's unmatched messages behind, where a later message of the same
+stamp could pair with them: on a jump of one stream, its queue is emptied
+and the other stream's messages far (more than the jump tolerance) from the
+new stamp are dropped, counted in :attr:`StampMatcher.dropped` and
+:attr:`StampMatcher.clock_jumps`.
 """
 
 from __future__ import annotations
@@ -14,6 +22,10 @@ from __future__ import annotations
 from collections import OrderedDict
 from dataclasses import dataclass
 from typing import Any, Generic, TypeVar
+
+from endo_io.clock_jump import ClockJumpDetector
+from endo_io.errors import StampOrderError
+from endo_io.stamp import NS_PER_S
 
 A = TypeVar("A")
 B = TypeVar("B")
@@ -34,9 +46,12 @@ class StampMatcher(Generic[A, B]):
     Args:
         queue_size: How many unmatched messages of each stream are kept.
         tolerance_ns: Largest stamp difference of a pair, integer nanoseconds (0: exact).
+        jump_tolerance_ns: A stream's stamp this far before its newest is a clock jump.
     """
 
-    def __init__(self, queue_size: int = 10, tolerance_ns: int = 0) -> None:
+    def __init__(
+        self, queue_size: int = 10, tolerance_ns: int = 0, *, jump_tolerance_ns: int = NS_PER_S
+    ) -> None:
         if queue_size < 1:
             raise ValueError(f"queue_size must be at least 1, got {queue_size}")
         if tolerance_ns < 0:
@@ -46,9 +61,16 @@ class StampMatcher(Generic[A, B]):
         self._first: OrderedDict[int, A] = OrderedDict()
         self._second: OrderedDict[int, B] = OrderedDict()
         self.dropped = 0
+        self.clock_jumps = 0
+        self.jump_tolerance_ns = int(jump_tolerance_ns)
+        self._clocks = (
+            ClockJumpDetector(back_tolerance_ns=self.jump_tolerance_ns),
+            ClockJumpDetector(back_tolerance_ns=self.jump_tolerance_ns),
+        )
 
     def add_first(self, stamp_ns: int, message: A) -> MatchedPair[A, B] | None:
         """Offer a message of the first stream; returns its pair if complete."""
+        self._follow(0, stamp_ns)
         partner = self._closest(self._second, stamp_ns)
         if partner is None:
             self._store(self._first, stamp_ns, message)
@@ -59,6 +81,7 @@ class StampMatcher(Generic[A, B]):
 
     def add_second(self, stamp_ns: int, message: B) -> MatchedPair[A, B] | None:
         """Offer a message of the second stream; returns its pair if complete."""
+        self._follow(1, stamp_ns)
         partner = self._closest(self._first, stamp_ns)
         if partner is None:
             self._store(self._second, stamp_ns, message)
@@ -66,6 +89,30 @@ class StampMatcher(Generic[A, B]):
         first = self._first.pop(partner)
         self._forget_older_than(min(stamp_ns, partner))
         return MatchedPair(partner, first, message)
+
+    def clear(self) -> None:
+        """Drop every unmatched message and forget both streams' timelines."""
+        self.dropped += len(self._first) + len(self._second)
+        self._first.clear()
+        self._second.clear()
+        for clock in self._clocks:
+            clock.reset()
+
+    def _follow(self, stream: int, stamp_ns: int) -> None:
+        """Track a stream's time; on a jump, drop what the old timeline left unmatched."""
+        try:
+            jump = self._clocks[stream].check(stamp_ns)
+        except StampOrderError:
+            return  # out of order or one wild stamp: matching does not care
+        if jump is None:
+            return
+        own, other = (self._first, self._second) if stream == 0 else (self._second, self._first)
+        far = [s for s in other if abs(s - stamp_ns) > self.jump_tolerance_ns]
+        self.dropped += len(own) + len(far)
+        own.clear()
+        for stale in far:
+            del other[stale]
+        self.clock_jumps += 1
 
     def pending(self) -> tuple[int, int]:
         """Unmatched messages held of (first, second) stream."""

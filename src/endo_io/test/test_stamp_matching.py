@@ -55,3 +55,24 @@ def test_bad_settings_are_rejected():
         StampMatcher(queue_size=0)
     with pytest.raises(ValueError, match="tolerance_ns"):
         StampMatcher(tolerance_ns=-1)
+
+
+def test_a_loop_drops_the_old_timelines_leftovers_so_they_never_pair_with_the_new():
+    ms = 1_000_000
+    matcher: StampMatcher[str, str] = StampMatcher(queue_size=20)
+    for k in range(90):  # a 3 s bag; the last image's camera_info was lost
+        stamp = 10_000 * ms + k * 33 * ms
+        matcher.add_first(stamp, f"pass1 image {k}")
+        if k != 89:
+            assert matcher.add_second(stamp, f"pass1 info {k}") is not None
+    assert matcher.pending() == (1, 0)
+    # second pass: same stamps again; its frame 89 must pair with pass 2's image
+    pairs = []
+    for k in range(90):
+        stamp = 10_000 * ms + k * 33 * ms
+        pairs.append(matcher.add_second(stamp, f"pass2 info {k}"))
+        pairs.append(matcher.add_first(stamp, f"pass2 image {k}"))
+    matched = [p for p in pairs if p is not None]
+    assert len(matched) == 90 and matcher.clock_jumps == 2
+    assert all(p.first.startswith("pass2") and p.second.startswith("pass2") for p in matched)
+    assert matcher.pending() == (0, 0)

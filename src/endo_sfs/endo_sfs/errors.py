@@ -25,5 +25,13 @@ class NoValidPixelsError(SfsInputError):
     """No pixel is usable: the frame is all dark, all saturated, NaN or masked."""
 
 
+class IrradianceRangeError(SfsInputError):
+    """A frame holds irradiance above ``max_irradiance``: it cannot be linear irradiance."""
+
+
+class SolutionRangeError(SfsError):
+    """The solve gave depth that is not a finite positive number (an overflow)."""
+
+
 class UnknownModelError(SfsError, ValueError):
     """The requested reflectance or camera model is not one endo_sfs implements."""

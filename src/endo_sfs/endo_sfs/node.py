@@ -23,9 +23,17 @@ before the subscriptions exist, so the first real frame is not slow;
 ``--help`` skips that.
 
 Bad input never stops the node: a wrong encoding, a camera_info of another
-size, or a frame with no usable pixel (all dark, all saturated, all NaN) is
-logged once per second and counted on ``/diagnostics``; a frame without
-usable pixels still gets an all-NaN depth image, so consumers stay in step.
+size, undecodable CDR, a frame with no usable pixel (all dark, all
+saturated, all NaN) or with irradiance above ``max_irradiance`` (not
+irradiance at all: 1e30), or a solve that overflows, is logged once per
+second and counted on ``/diagnostics``; a frame refused for its values
+still gets an all-NaN depth image, so consumers stay in step. ``processed``
+counts the depth images solved and published, one per frame (not the
+camera_info callbacks); frames missing from the image stream's stamps are
+counted as ``lost``. Time that jumps (a looped bag, a restarted camera:
+:mod:`endo_io.clock_jump`) drops the warm start and the unmatched messages
+with one log line, counted as ``clock_jumps``; one frame stamped far in the
+future is dropped (``FutureStampError``).
 """
 
 from __future__ import annotations
@@ -41,7 +49,8 @@ from sensor_msgs.msg import CameraInfo, Image
 
 from endo_io import topics
 from endo_io.camera import CameraModel
-from endo_io.diagnostics import InputHealth
+from endo_io.clock_jump import ClockJumpDetector
+from endo_io.diagnostics import HEALTH_PARAMETERS, InputHealth
 from endo_io.errors import ParameterValidationError
 from endo_io.image import array_to_image, image_to_array
 from endo_io.parameters import NodeParameters, ParameterSpec
@@ -49,9 +58,21 @@ from endo_io.process import describing_only, run_node
 from endo_io.qos import SENSOR_DATA_QOS, create_reliable_publisher
 from endo_io.stamp import NS_PER_S, stamp_to_ns
 from endo_io.stamp_matching import StampMatcher
-from endo_sfs.errors import NoValidPixelsError, SfsError, SfsInputError
+from endo_sfs.errors import (
+    IrradianceRangeError,
+    NoValidPixelsError,
+    SfsError,
+    SfsInputError,
+    SolutionRangeError,
+)
 from endo_sfs.near_light import MAX_ROUGHNESS
-from endo_sfs.options import DEFAULT_MAX_ITERATIONS, DEFAULT_TOLERANCE, MODELS, SfsOptions
+from endo_sfs.options import (
+    DEFAULT_MAX_IRRADIANCE,
+    DEFAULT_MAX_ITERATIONS,
+    DEFAULT_TOLERANCE,
+    MODELS,
+    SfsOptions,
+)
 from endo_sfs.relative_depth import SfsSolution, solve, surface_normals
 from endo_sfs.warm_up import warm_up_kernels
 
@@ -105,6 +126,12 @@ PARAMETERS: tuple[ParameterSpec, ...] = (
         "irradiance at or below this is not data (noise floor), image units", range=(0.0, 1e6),
     ),
     ParameterSpec(
+        "max_irradiance", DEFAULT_MAX_IRRADIANCE,
+        "a frame with irradiance above this is refused as not irradiance (the correction's "
+        "output stays below ~1e2), image units",
+        range=(1e-6, 1e38),
+    ),
+    ParameterSpec(
         "fov_radius", 0.0,
         "radius in pixels of the circular field of view around the principal point (0: whole "
         "image; NaN pixels are excluded anyway)",
@@ -134,13 +161,14 @@ PARAMETERS: tuple[ParameterSpec, ...] = (
         "queue_size", 10, "unmatched images and camera_infos kept while waiting for a partner",
         range=(1, 100), read_only=True,
     ),
+    *HEALTH_PARAMETERS,
 )
 
 
 #: The node parameters that are :class:`SfsOptions` fields of the same name.
 _OPTION_PARAMETERS = frozenset({
     "model", "roughness", "solve_scale", "tolerance", "max_iterations", "order", "threads",
-    "dark_level", "smoothing", "mask_highlights",
+    "dark_level", "max_irradiance", "smoothing", "mask_highlights",
 })
 
 
@@ -171,7 +199,8 @@ class SfsNode(Node):
             seconds = warm_up_kernels(announce=self.get_logger().info)
             self.get_logger().info(f"shape-from-shading kernels ready in {seconds:.2f} s")
 
-        self.health = InputHealth(self, "image input")
+        self.health = InputHealth(self, "image input", settings=self.parameters)
+        self._frame_time = ClockJumpDetector()
         self._camera: CameraModel | None = None
         self._fov_mask: tuple[float, np.ndarray] | None = None
         self._previous: SfsSolution | None = None
@@ -180,12 +209,14 @@ class SfsNode(Node):
         )
         self.depth_publisher = create_reliable_publisher(self, Image, topics.DEPTH_RELATIVE)
         self.normals_publisher = create_reliable_publisher(self, Image, topics.NORMALS)
-        self.create_subscription(
-            Image, topics.IMAGE_CORRECTED, self.health.guard(self._on_image), SENSOR_DATA_QOS
+        # "processed" counts published depth images (_process), not callbacks.
+        self.health.subscribe(
+            Image, topics.IMAGE_CORRECTED, self._on_image, SENSOR_DATA_QOS,
+            processed=False, gaps=True,
         )
-        self.create_subscription(
-            CameraInfo, topics.CAMERA_INFO, self.health.guard(self._on_camera_info),
-            SENSOR_DATA_QOS,
+        self.health.subscribe(
+            CameraInfo, topics.CAMERA_INFO, self._on_camera_info, SENSOR_DATA_QOS,
+            processed=False,
         )
         self.parameters.on_change(self._apply_parameters)
 
@@ -244,13 +275,17 @@ class SfsNode(Node):
         camera = self._camera_model(info)
         stamp_ns = stamp_to_ns(image_msg.header.stamp)
         frame_id = image_msg.header.frame_id
+        jump = self._frame_time.check(stamp_ns, time.monotonic_ns())  # raises for a wild stamp
+        if jump is not None:
+            self._previous = None
+            self.health.clock_jump(f"{jump.describe('frame time')}; warm start dropped")
         warm = self._previous if self.parameters["warm_start"] else None
         start = time.perf_counter()
         try:
             solution = solve(
                 irradiance, camera, self._options, mask=self._mask(camera), warm_start=warm
             )
-        except NoValidPixelsError:
+        except (NoValidPixelsError, IrradianceRangeError, SolutionRangeError):
             # Nothing to reconstruct: say so downstream with an all-NaN depth,
             # then let the guard log and count the cause.
             empty = np.full(irradiance.shape, np.nan, dtype=np.float32)
@@ -263,6 +298,7 @@ class SfsNode(Node):
         if self.parameters["publish_normals"]:
             normals = surface_normals(solution.depth, camera)
             self.normals_publisher.publish(array_to_image(normals, "32FC3", stamp_ns, frame_id))
+        self.health.ok()
         self.health.set_value("solve_ms", f"{elapsed_ms:.1f}")
         self.health.set_value("iterations", solution.info.iterations)
         self.health.set_value("converged", solution.info.converged)

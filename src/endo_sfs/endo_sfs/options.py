@@ -25,6 +25,13 @@ ORDERS: tuple[int, ...] = (1, 2, 3)
 #: ln r in a full iteration (a relative depth change of 1e-5).
 DEFAULT_TOLERANCE = 1e-5
 DEFAULT_MAX_ITERATIONS = 60
+#: Largest irradiance a frame may hold (image units). endo_calib's correction
+#: gives g(v)/L(x) with g ≤ 1 and the light map L normalised to ≤ 1, so its
+#: values stay within 1/L_min (~1e2 at a vignetted rim); 1e6 leaves room for
+#: other linear sources (float counts of a 16-bit sensor) while refusing a
+#: frame whose values cannot be irradiance (1e30: an overflowed upstream
+#: computation, garbage bytes read as float).
+DEFAULT_MAX_IRRADIANCE = 1e6
 
 
 @dataclass(frozen=True)
@@ -46,6 +53,9 @@ class SfsOptions:
         dark_level: irradiance at or below this is not data, ≥ 0.
         saturation: irradiance at or above this is not data; None: no upper
             limit. Must exceed ``dark_level``.
+        max_irradiance: a frame with a finite pixel above this is physically
+            implausible and refused (:class:`endo_sfs.errors.IrradianceRangeError`),
+            > ``dark_level``; see :data:`DEFAULT_MAX_IRRADIANCE`.
         singular_tolerance: orthographic only: nodes with
             c ≥ max(c) − this are singular points (sources of the Eikonal)
             when no ``boundary_depth`` is given, in [0, 1).
@@ -75,6 +85,7 @@ class SfsOptions:
     order: int = 2
     dark_level: float = 0.0
     saturation: float | None = None
+    max_irradiance: float = DEFAULT_MAX_IRRADIANCE
     singular_tolerance: float = 1e-3
     concave: bool = False
     smoothing: float = 0.0
@@ -110,6 +121,11 @@ class SfsOptions:
             raise InvalidOptionError(
                 f"saturation must exceed dark_level ({self.dark_level}), got {self.saturation}"
             )
+        if not self.max_irradiance > self.dark_level:  # also False for NaN
+            raise InvalidOptionError(
+                f"max_irradiance must exceed dark_level ({self.dark_level}), "
+                f"got {self.max_irradiance}"
+            )
         if not 0.0 <= self.singular_tolerance < 1.0:  # also False for NaN
             raise InvalidOptionError(
                 f"singular_tolerance must be in [0, 1), got {self.singular_tolerance}"
@@ -119,8 +135,8 @@ class SfsOptions:
             raise InvalidOptionError(f"threads must be >= 1, got {self.threads}")
 
 
-_FLOATS = ("roughness", "solve_scale", "tolerance", "dark_level", "singular_tolerance",
-           "smoothing")
+_FLOATS = ("roughness", "solve_scale", "tolerance", "dark_level", "max_irradiance",
+           "singular_tolerance", "smoothing")
 _INTEGERS = ("max_iterations", "order", "threads")
 
 

@@ -27,7 +27,13 @@ import numba
 import numpy as np
 
 from endo_io.camera import CameraModel
-from endo_sfs.errors import CameraMismatchError, NoValidPixelsError, SfsInputError
+from endo_sfs.errors import (
+    CameraMismatchError,
+    IrradianceRangeError,
+    NoValidPixelsError,
+    SfsInputError,
+    SolutionRangeError,
+)
 from endo_sfs.grid import Projection, SolveGrid, solve_grid
 from endo_sfs.highlights import detect_highlights
 from endo_sfs.near_light import solve_near_light
@@ -128,6 +134,38 @@ def _check_inputs(
     return image
 
 
+def _check_irradiance_range(image: np.ndarray, max_irradiance: float) -> None:
+    """Refuse a frame whose finite values exceed ``max_irradiance`` (not irradiance).
+
+    Raises:
+        IrradianceRangeError: one line with the peak and the bound.
+    """
+    peak = float(np.max(image, where=np.isfinite(image), initial=-np.inf))
+    if peak > max_irradiance:
+        raise IrradianceRangeError(
+            f"irradiance reaches {peak:.3g}, above max_irradiance {max_irradiance:.3g}: not "
+            "linear irradiance from the photometric correction (frame refused)"
+        )
+
+
+def _check_solution(depth: np.ndarray, model: str) -> None:
+    """Refuse a solution with infinite (or, near-light, zero) depth: the solve overflowed.
+
+    Raises:
+        SolutionRangeError: one line naming how many pixels.
+    """
+    with np.errstate(invalid="ignore"):
+        bad = np.isinf(depth)
+        if model == "near_light":
+            bad |= depth <= 0.0
+    count = int(np.count_nonzero(bad))
+    if count:
+        raise SolutionRangeError(
+            f"the {model} solve overflowed: {count} pixels of depth are infinite or not "
+            "positive (frame refused)"
+        )
+
+
 def _warm_nodes(
     warm_start: SfsSolution | np.ndarray | None, grid: SolveGrid
 ) -> tuple[np.ndarray | None, np.ndarray | None, np.ndarray | None]:
@@ -206,6 +244,7 @@ def solve(
     # numba's thread count is per calling thread: set it for this call only.
     with _numba_threads(options.threads):
         image = _check_inputs(irradiance, camera, mask)
+        _check_irradiance_range(image, options.max_irradiance)
         valid = valid_pixels(image, mask, options.dark_level, options.saturation)
         if options.mask_highlights:
             valid &= ~detect_highlights(image, mask, options.saturation)
@@ -259,8 +298,10 @@ def solve(
                 tolerance=options.tolerance, max_iterations=options.max_iterations,
             )
             depth = grid.to_pixels(node_solution, valid)
+        depth = depth.astype(np.float32)
+        _check_solution(depth, model)
         return SfsSolution(
-            depth=depth.astype(np.float32),
+            depth=depth,
             node_solution=node_solution,
             node_irradiance=nodes,
             grid=grid,

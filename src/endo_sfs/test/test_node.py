@@ -146,3 +146,40 @@ def test_matched_frames_give_the_library_depth_and_bad_frames_do_not_stop_the_no
     np.testing.assert_allclose(image_to_array(received["depth"][-1]), depth, rtol=1e-4)
     assert stamp_to_ns(received["depth"][-1].header.stamp) == stamp + 40
     assert ns_to_stamp(stamp + 40) == received["depth"][-1].header.stamp
+
+
+def _values(sfs):
+    return {kv.key: kv.value for kv in sfs.health.status().values}
+
+
+def test_processed_counts_frames_and_implausible_or_jumping_frames_are_handled(graph):
+    sfs, images, infos, received, spin_until = graph
+    camera = scene_camera(SIZE)
+    image = render_near_light(camera, near_light_surface("sphere")).irradiance.astype(np.float32)
+    stamp = 1_763_900_000_000_000_000
+    for k in range(3):  # three frames, six callbacks
+        msg, info = _frame(stamp + k * 33_000_000, image, camera)
+        infos.publish(info)
+        images.publish(msg)
+        assert spin_until(lambda n=k: len(received["depth"]) == n + 1)
+    good = image_to_array(received["depth"][-1])
+    assert sfs.health.processed == 3
+    assert _values(sfs)["received"] == "6"
+
+    # issue 16: a frame of 1e30 irradiance gave finite depth with status ok
+    msg, info = _frame(stamp + 99_000_000, image * np.float32(1e30), camera)
+    infos.publish(info)
+    images.publish(msg)
+    assert spin_until(lambda: len(received["depth"]) == 4)
+    assert np.all(np.isnan(image_to_array(received["depth"][-1])))
+    assert sfs.health.dropped["IrradianceRangeError"] == 1
+    assert "above max_irradiance" in sfs.health.last_error
+    assert sfs.health.processed == 3
+
+    # a bag loop: time jumps back 3 s; the warm start goes, the frame is solved
+    msg, info = _frame(stamp - 3_000_000_000, image, camera)
+    infos.publish(info)
+    images.publish(msg)
+    assert spin_until(lambda: len(received["depth"]) == 5)
+    assert sfs.health.clock_jumps == 1 and sfs.health.processed == 4
+    np.testing.assert_allclose(image_to_array(received["depth"][-1]), good, rtol=1e-3)
