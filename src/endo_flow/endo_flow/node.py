@@ -341,7 +341,8 @@ class FlowNode(Node):
                            ("scale_gated", self.pipeline.scale_filter.gated),
                            ("scale_steps", self.pipeline.scale_filter.steps),
                            ("shape_correction_active", d.shape_correction),
-                           ("map_voxels", len(self.pipeline.voxel_map or ()))):
+                           ("map_voxels", len(self.pipeline.voxel_map or ())),
+                           ("camera_changes", self.pipeline.camera_changes)):
             self.health.set_value(key, value)
         if d.gated:
             self.get_logger().warning(

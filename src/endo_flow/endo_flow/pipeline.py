@@ -379,6 +379,7 @@ class FlowPipeline:
         self._last_stamp_ns: int | None = None
         self.frames = 0
         self.resets = 0
+        self.camera_changes = 0
 
     @property
     def scale(self) -> ScaleEstimate:
@@ -438,6 +439,12 @@ class FlowPipeline:
     def _prepare(self, camera: CameraModel) -> None:
         if self._camera is not None and self._camera == camera:
             return
+        if self._camera is not None:
+            # another camera (a new resolution mid-stream): the tracks and the
+            # keyframes' pixels belong to the old one; the scale and the map stay
+            self.tracker.reset()
+            self.window.clear()
+            self.camera_changes += 1
         self._camera = camera
         self._cloud_camera = binned_camera(camera, self.options.cloud_decimation)
         radius = 0.5 * min(camera.width, camera.height)

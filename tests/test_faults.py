@@ -1,0 +1,300 @@
+"""Faults of the live graph, each node its own OS process (issue 16, "Faults").
+
+The graph: ``endo-photometric-correction`` → ``endo-sfs`` → ``endo-flow``, and
+``endo-tracker-bridge`` → ``endo-flow``, fed by ``endo-replay`` of a small
+simulated colon bag (160×120, 15 fps, 2 s) rendered in a temporary directory, with
+the simulator's true calibration. The test process only listens to
+``/diagnostics``: each node's status gives its ``processed`` counter (a
+restarted node starts again from 0; a node that was not restarted keeps
+counting) and its ``clock_jumps``.
+
+* ``kill -9`` each node in turn and start it again: the graph resumes (the
+  restarted node gives output again, the others go on counting), and none of
+  the others is restarted or dies. The replay loops the bag meanwhile, so
+  every pass is also a clock jump the stateful nodes must survive.
+* The camera changes resolution mid-stream (the same frames resampled to
+  128×96, continuing the 160×120 bag's clock): every node re-plans and keeps
+  giving output.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import IO
+
+import cv2
+import numpy as np
+import pytest
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray
+from rclpy.executors import SingleThreadedExecutor
+
+from endo_calib.calibration import ChannelCalibration, PhotometricCalibration
+from endo_calib.response import InverseResponse
+from endo_io import topics
+from endo_io.bag import BagReader, BagWriter, deserialize, serialize
+from endo_io.camera import CameraModel
+from endo_io.image import array_to_image, image_to_array
+from endo_io.stamp import NS_PER_S, ns_to_stamp, stamp_to_ns
+from endo_sim.bagout import write_bag
+from endo_sim.sequences import SimulationConfig, build_sequence
+
+pytestmark = pytest.mark.ros
+
+BIN = Path(sys.executable).parent
+DURATION_S = 2.0
+FPS = 15.0
+START_NS = 1_800_000_000 * NS_PER_S
+#: status name of each node's main InputHealth
+STATUS = {
+    "correction": "photometric_correction: image input",
+    "sfs": "sfs: image input",
+    "bridge": "tracker_bridge: tracker input",
+    "flow": "flow: frames",
+}
+INPUTS = [topics.IMAGE_RAW, topics.CAMERA_INFO, topics.TRACKER_POSE]
+
+
+def _render(path: Path) -> Path:
+    sequence = build_sequence(SimulationConfig(
+        scene="colon", width=160, height=120, fps=FPS, duration_s=DURATION_S, seed=5,
+        depth_every=1000, start_ns=START_NS,
+    ))
+    return write_bag(sequence, path).bag_path
+
+
+def _resized_copy(source: Path, path: Path, width: int, height: int, shift_ns: int) -> Path:
+    """The bag's camera stream resampled to ``width``×``height``, its clock shifted on."""
+    with BagReader(source) as reader, BagWriter(path) as writer:
+        for topic in INPUTS:
+            writer.add_topic(topic, reader.topics[topic].msgtype)
+        for message in reader.messages(INPUTS):
+            msg = deserialize(message)
+            msg.header.stamp = ns_to_stamp(stamp_to_ns(msg.header.stamp) + shift_ns)
+            if message.topic == topics.IMAGE_RAW:
+                small = cv2.resize(image_to_array(msg), (width, height),
+                                   interpolation=cv2.INTER_AREA)
+                msg = array_to_image(small, msg.encoding, stamp_to_ns(msg.header.stamp),
+                                     msg.header.frame_id)
+            elif message.topic == topics.CAMERA_INFO:
+                camera = CameraModel.from_camera_info(msg).resized(width, height)
+                stamp, frame_id = msg.header.stamp, msg.header.frame_id
+                msg = camera.to_camera_info(stamp_to_ns(stamp))
+                msg.header.frame_id = frame_id
+            writer.write(message.topic, serialize(msg), message.log_time_ns + shift_ns)
+    return path
+
+
+@pytest.fixture(scope="module")
+def bags(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path, Path]:
+    """(160×120 bag, the same at 128×96 continuing its clock, the true photometric.yaml)."""
+    out = tmp_path_factory.mktemp("fault_bags")
+    first = _render(out / "colon160.mcap")
+    second = _resized_copy(first, out / "colon128.mcap", 128, 96,
+                           round((DURATION_S + 1.0) * NS_PER_S))
+    lut = np.load(out / "colon160.inverse_response.npy")
+    light = np.load(out / "colon160.light_map.npy")
+    fov = light > 0
+    channel = ChannelCalibration("mono", InverseResponse(lut, 8), np.where(fov, light, 0.0), None)
+    calibration = PhotometricCalibration([channel], fov, None, "pixels").save(
+        out / "photometric.yaml"
+    )
+    return first, second, calibration
+
+
+@dataclass
+class Graph:
+    """The node processes, their commands and logs, and a /diagnostics listener."""
+
+    log_dir: Path
+    commands: dict[str, list[str]]
+    env: dict[str, str]
+    processes: dict[str, subprocess.Popen[str]] = field(default_factory=dict)
+    logs: dict[str, IO[str]] = field(default_factory=dict)
+    status: dict[str, dict[str, str]] = field(default_factory=dict)
+    starts: dict[str, int] = field(default_factory=dict)
+
+    def start(self, name: str) -> None:
+        self.starts[name] = self.starts.get(name, 0) + 1
+        log = (self.log_dir / f"{name}.{self.starts[name]}.log").open("w+")
+        self.logs[name] = log
+        self.processes[name] = subprocess.Popen(
+            self.commands[name], env=self.env, stdout=log, stderr=subprocess.STDOUT, text=True
+        )
+
+    def processed(self, name: str) -> int:
+        return int(self.status.get(STATUS[name], {}).get("processed", "-1"))
+
+    def value(self, name: str, key: str) -> str:
+        return self.status.get(STATUS[name], {}).get(key, "")
+
+    def output(self, name: str) -> str:
+        log = self.logs[name]
+        log.flush()
+        log.seek(0)
+        return log.read()
+
+    def describe(self) -> str:
+        lines = [f"{n}: alive {self.processes[n].poll() is None}, status {self.status.get(s)}"
+                 for n, s in STATUS.items() if n in self.processes]
+        for name in self.processes:
+            lines.append(f"--- {name} ---\n{self.output(name)[-1500:]}")
+        return "\n".join(lines)
+
+
+def _replay(bag: Path, *extra: str) -> list[str]:
+    # waits until each topic has a subscriber: a message sent before discovery is lost
+    return [str(BIN / "endo-replay"), str(bag), "--topics", *INPUTS, "--wait-for-subscribers",
+            "1", "--wait-timeout", "60", *extra]
+
+
+@pytest.fixture(scope="module")
+def graph(bags, tmp_path_factory) -> Iterator[tuple[Graph, Callable[..., bool]]]:
+    first, _, calibration = bags
+    env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST", PYTHONUNBUFFERED="1")
+    graph = Graph(tmp_path_factory.mktemp("fault_logs"), {
+        "correction": [str(BIN / "endo-photometric-correction"), "--ros-args",
+                       "-p", f"calibration_file:={calibration}"],
+        "sfs": [str(BIN / "endo-sfs"), "--ros-args", "-p", "threads:=1"],
+        "bridge": [str(BIN / "endo-tracker-bridge")],
+        "flow": [str(BIN / "endo-flow"), "--ros-args", "-p", "tracking_downsample:=1",
+                 "-p", "map_enabled:=false"],
+        "replay": _replay(first, "--loop"),
+    }, env)
+    previous_handlers = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
+    context = rclpy.Context()
+    rclpy.init(context=context)
+    listener = rclpy.create_node("fault_listener", context=context)
+
+    def on_diagnostics(msg: DiagnosticArray) -> None:
+        for status in msg.status:
+            graph.status[status.name] = {kv.key: kv.value for kv in status.values}
+
+    listener.create_subscription(DiagnosticArray, "/diagnostics", on_diagnostics, 50)
+    executor = SingleThreadedExecutor(context=context)
+    executor.add_node(listener)
+
+    def spin_until(condition: Callable[[], bool], seconds: float) -> bool:
+        deadline = time.monotonic() + seconds
+        while not condition() and time.monotonic() < deadline:
+            executor.spin_once(timeout_sec=0.05)
+        return condition()
+
+    try:
+        for name in ("correction", "sfs", "bridge", "flow", "replay"):
+            graph.start(name)
+        assert spin_until(lambda: all(graph.processed(n) > 0 for n in STATUS), 60.0), (
+            graph.describe()
+        )
+        yield graph, spin_until
+    finally:
+        for process in graph.processes.values():
+            if process.poll() is None:
+                process.send_signal(signal.SIGINT)
+        for process in graph.processes.values():
+            try:
+                process.wait(15)
+            except subprocess.TimeoutExpired:
+                process.kill()
+        executor.shutdown()
+        listener.destroy_node()
+        rclpy.shutdown(context=context)
+        for sig, handler in previous_handlers.items():
+            signal.signal(sig, handler)
+
+
+def test_kill_9_each_node_in_turn_and_restart_it_the_graph_resumes_on_a_looping_bag(graph):
+    graph, spin_until = graph
+    for victim in ("correction", "sfs", "bridge", "flow"):
+        others = {n: graph.processes[n] for n in STATUS if n != victim}
+        before = {n: graph.processed(n) for n in others}
+        graph.processes[victim].kill()  # SIGKILL: no cleanup, no goodbye on DDS
+        graph.processes[victim].wait(10)
+        graph.status.pop(STATUS[victim], None)  # only the new process's status counts
+        graph.start(victim)
+        resumed = spin_until(
+            lambda: graph.processed(victim) > 0  # noqa: B023 - the loop waits here
+            and all(graph.processed(n) > before[n] for n in others),  # noqa: B023
+            45.0,
+        )
+        assert resumed, f"after kill -9 of {victim}:\n{graph.describe()}"
+        # nobody else was restarted: the same processes, still running, still counting
+        for name, process in others.items():
+            assert graph.processes[name] is process and process.poll() is None, name
+        assert graph.processes["replay"].poll() is None, graph.output("replay")
+    # the bag loops every 2 s: each stateful node saw its time jump back and went on
+    for name in ("sfs", "bridge", "flow"):
+        assert spin_until(lambda n=name: int(graph.value(n, "clock_jumps") or 0) >= 1, 15.0), (
+            f"{name}: no clock jump counted\n{graph.describe()}"
+        )
+    for name in STATUS:
+        assert "Traceback" not in graph.output(name), graph.output(name)
+
+
+def test_a_camera_info_size_change_mid_stream_is_replanned_by_every_node(graph, bags):
+    graph, spin_until = graph
+    _, second, _ = bags
+    graph.processes["replay"].send_signal(signal.SIGINT)
+    graph.processes["replay"].wait(10)
+    spin_until(lambda: False, 1.0)
+    before = {n: graph.processed(n) for n in STATUS}
+    graph.commands["replay"] = _replay(second)  # 128×96, on the same clock, once
+    graph.start("replay")
+    changed = spin_until(
+        lambda: all(graph.processed(n) > before[n] + 8 for n in STATUS)
+        and int(graph.value("flow", "camera_changes") or 0) >= 1,
+        45.0,
+    )
+    assert changed, graph.describe()
+    for name in STATUS:
+        assert graph.processes[name].poll() is None, graph.output(name)
+        assert "Traceback" not in graph.output(name), graph.output(name)
+
+
+def test_sigint_while_the_graph_works_exits_cleanly_without_a_false_drop(graph, bags):
+    # issue 16: SIGINT during a solve logged "dropped message … RCLError"
+    graph, spin_until = graph
+    first, _, _ = bags
+    graph.commands["replay"] = _replay(first, "--loop")
+    graph.start("replay")
+    before = {n: graph.processed(n) for n in STATUS}
+    assert spin_until(lambda: all(graph.processed(n) > before[n] + 2 for n in STATUS), 45.0), (
+        graph.describe()
+    )
+    seen = {name: len(graph.output(name)) for name in STATUS}
+    for name in STATUS:  # Ctrl-C while frames are in flight (sfs and flow mid-frame)
+        graph.processes[name].send_signal(signal.SIGINT)
+    for name in STATUS:
+        assert graph.processes[name].wait(20) == 0, graph.output(name)
+        after = graph.output(name)[seen[name]:]
+        assert "dropped message" not in after and "context is invalid" not in after, after
+        assert "Traceback" not in after, after
+
+
+def test_sim_live_stops_on_sigint_without_an_error_line():
+    # issue 16: endo-sim live printed "[ERROR] … publisher's context is invalid" at shutdown
+    env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST", PYTHONUNBUFFERED="1")
+    sim = subprocess.Popen([str(BIN / "endo-sim"), "live", "abdomen", "--width", "320",
+                            "--height", "240"], env=env,
+                           stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        assert sim.stdout is not None
+        deadline = time.monotonic() + 60.0
+        for line in sim.stdout:  # the DDS line comes once the node spins
+            if "DDS: domain" in line or time.monotonic() > deadline:
+                break
+        time.sleep(1.5)  # frames rendering and publishing on the worker thread
+        sim.send_signal(signal.SIGINT)
+        output = sim.communicate(timeout=20)[0]
+    finally:
+        if sim.poll() is None:
+            sim.kill()
+    assert sim.returncode == 0, output
+    assert "[ERROR]" not in output and "context is invalid" not in output, output
