@@ -1,5 +1,8 @@
-"""endo_io.diagnostics.InputHealth: stale and never-seen inputs, recovery, separate counters,
-frames lost in transport, undecodable CDR, and no false drop while shutting down."""
+"""endo_io.diagnostics.InputHealth: what its status says and counts.
+
+Stale and never-seen inputs, recovery after a window, separate counters,
+frames lost in transport, undecodable CDR, no false drop while shutting down.
+"""
 
 from __future__ import annotations
 
