@@ -55,12 +55,12 @@ from results import replace_section
 from sensor_msgs.msg import Image
 
 from endo_bringup.dds_profile import with_large_frame_profile
-from endo_bringup.graph import ground_truth_of
 from endo_calib.calibration import ChannelCalibration, PhotometricCalibration
 from endo_calib.response import InverseResponse
 from endo_io import topics
 from endo_io.qos import SENSOR_DATA_QOS
 from endo_process.simulated import write_simulated_parameters
+from endo_sim.ground_truth import ground_truth_of
 from endo_tracker_bridge.handeye_file import HandEyeCalibration
 
 ROOT = Path(__file__).resolve().parents[1]
