@@ -15,6 +15,9 @@ counting) and its ``clock_jumps``.
 * The camera changes resolution mid-stream (the same frames resampled to
   128×96, continuing the 160×120 bag's clock): every node re-plans and keeps
   giving output.
+* A corrupt bag (bytes flipped inside one chunk) fed to ``endo-replay``: it
+  plays every intact chunk, then stops with one error line naming the file and
+  the damage (exit 1); the nodes stay up and keep giving output.
 """
 
 from __future__ import annotations
@@ -34,6 +37,7 @@ import numpy as np
 import pytest
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
+from mcap.reader import make_reader
 from rclpy.executors import SingleThreadedExecutor
 
 from endo_calib.calibration import ChannelCalibration, PhotometricCalibration
@@ -41,6 +45,7 @@ from endo_calib.response import InverseResponse
 from endo_io import topics
 from endo_io.bag import BagReader, BagWriter, deserialize, serialize
 from endo_io.camera import CameraModel
+from endo_io.errors import BagCorruptError
 from endo_io.image import array_to_image, image_to_array
 from endo_io.stamp import NS_PER_S, ns_to_stamp, stamp_to_ns
 from endo_sim.bagout import write_bag
@@ -90,6 +95,37 @@ def _resized_copy(source: Path, path: Path, width: int, height: int, shift_ns: i
                 msg.header.frame_id = frame_id
             writer.write(message.topic, serialize(msg), message.log_time_ns + shift_ns)
     return path
+
+
+def _corrupt_copy(source: Path, path: Path) -> tuple[Path, int, int]:
+    """``source`` in 64 KiB uncompressed chunks, bytes flipped in the middle of the fourth.
+
+    Returns:
+        (the damaged bag, images in the source, images the damaged bag still reads).
+    """
+    whole = path.with_name(f"{path.stem}.whole.mcap")
+    with BagReader(source) as reader, BagWriter(whole, compression="none",
+                                                chunk_size=1 << 16) as writer:
+        for topic in INPUTS:
+            writer.add_topic(topic, reader.topics[topic].msgtype)
+        images = 0
+        for message in reader.messages(INPUTS):
+            images += message.topic == topics.IMAGE_RAW
+            writer.write(message.topic, message.data, message.log_time_ns)
+    with whole.open("rb") as stream:
+        chunks = sorted((c.chunk_start_offset, c.chunk_length)
+                        for c in make_reader(stream).get_summary().chunk_indexes)
+    assert len(chunks) >= 6, chunks
+    start, length = chunks[3]
+    raw = bytearray(whole.read_bytes())
+    middle = start + length // 2
+    raw[middle:middle + 16] = bytes(b ^ 0x5A for b in raw[middle:middle + 16])
+    path.write_bytes(bytes(raw))
+    intact = 0
+    with BagReader(path) as reader, pytest.raises(BagCorruptError):
+        for message in reader.messages(INPUTS):
+            intact += message.topic == topics.IMAGE_RAW
+    return path, images, intact
 
 
 @pytest.fixture(scope="module")
@@ -253,6 +289,46 @@ def test_a_camera_info_size_change_mid_stream_is_replanned_by_every_node(graph, 
         45.0,
     )
     assert changed, graph.describe()
+    for name in STATUS:
+        assert graph.processes[name].poll() is None, graph.output(name)
+        assert "Traceback" not in graph.output(name), graph.output(name)
+
+
+def test_a_corrupt_bag_stops_the_replay_with_one_line_and_the_nodes_stay_up(graph, bags,
+                                                                         tmp_path):
+    # issue 16, "Faults": feed a corrupt bag to replay; it stops at the damage
+    # with one line, the others stay up
+    graph, spin_until = graph
+    first, _, _ = bags
+    corrupt, images, intact = _corrupt_copy(first, tmp_path / "corrupt.mcap")
+    assert 0 < intact < images  # the flipped chunk held images, the others are whole
+    if graph.processes["replay"].poll() is None:
+        graph.processes["replay"].send_signal(signal.SIGINT)
+        graph.processes["replay"].wait(10)
+    before = {n: graph.processed(n) for n in STATUS}
+    lost_before = int(graph.value("correction", "lost") or 0)
+    replay = subprocess.Popen(_replay(corrupt), env=graph.env, stdout=subprocess.PIPE,
+                              stderr=subprocess.PIPE, text=True)
+    try:
+        out, err = replay.communicate(timeout=60)
+    finally:
+        if replay.poll() is None:
+            replay.kill()
+    assert replay.returncode == 1, (out, err)
+    errors = [line for line in err.splitlines() if "error" in line.lower()]
+    assert len(errors) == 1 and errors[0].startswith("endo-replay: error: "), err
+    assert str(corrupt) in errors[0] and "corrupt" in errors[0], errors
+    assert f"{topics.IMAGE_RAW} [sensor_msgs/msg/Image]: {intact} messages" in out, out
+    assert "stopped at damaged data" in out, out
+    # the graph worked on what was played and is still up, counting
+    assert spin_until(lambda: all(graph.processed(n) > before[n] for n in STATUS), 30.0), (
+        graph.describe()
+    )
+    # the frames of the skipped chunk are a gap in the stamps: counted as lost
+    assert spin_until(
+        lambda: int(graph.value("correction", "lost") or 0) >= lost_before + images - intact,
+        10.0,
+    ), graph.describe()
     for name in STATUS:
         assert graph.processes[name].poll() is None, graph.output(name)
         assert "Traceback" not in graph.output(name), graph.output(name)
