@@ -39,7 +39,7 @@ from endo_io.errors import ParameterValidationError
 from endo_io.image import array_to_image, image_to_array
 from endo_io.parameters import NodeParameters, ParameterSpec
 from endo_io.process import run_node
-from endo_io.qos import SENSOR_DATA_QOS, create_reliable_publisher
+from endo_io.qos import NEWEST_FRAME_QOS, create_reliable_publisher
 from endo_io.stamp import stamp_to_ns
 
 
@@ -104,7 +104,7 @@ class PhotometricCorrectionNode(Node):
                 self._report_loaded(path)
         self.parameters.on_change(self._apply_parameters)
         self.subscription = self.health.subscribe(
-            Image, topics.IMAGE_RAW, self._on_image, SENSOR_DATA_QOS, gaps=True
+            Image, topics.IMAGE_RAW, self._on_image, NEWEST_FRAME_QOS, gaps=True, newest=True
         )
 
     @property

@@ -84,7 +84,12 @@ from endo_io.parameters import NodeParameters, ParameterSpec
 from endo_io.pose import pose_to_matrix
 from endo_io.pose_buffer import PoseBuffer
 from endo_io.process import run_node
-from endo_io.qos import SENSOR_DATA_QOS, create_reliable_publisher, reliable_qos
+from endo_io.qos import (
+    NEWEST_FRAME_QOS,
+    SENSOR_DATA_QOS,
+    create_reliable_publisher,
+    reliable_qos,
+)
 from endo_io.stamp import NS_PER_S, stamp_to_ns
 from endo_io.stamp_matching import StampMatcher
 
@@ -204,11 +209,13 @@ class FlowNode(Node):
         self.scale_pub = create_reliable_publisher(self, Vector3Stamped, topics.SCALE)
         self.map_pub = self.create_publisher(PointCloud2, topics.MAP,
                                              reliable_qos(1, latched=True))
-        # "processed" counts frames (_process), not the three inputs' callbacks
-        self.health.subscribe(Image, topics.IMAGE_CORRECTED, self._on_image, SENSOR_DATA_QOS,
+        # "processed" counts frames (_process), not the three inputs' callbacks. The
+        # depth drives a frame: only the newest is processed, stale ones are skipped;
+        # the images wait (as deep) for the depth of their stamp.
+        self.health.subscribe(Image, topics.IMAGE_CORRECTED, self._on_image, NEWEST_FRAME_QOS,
                               processed=False, gaps=True)
-        self.health.subscribe(Image, topics.DEPTH_RELATIVE, self._on_depth, SENSOR_DATA_QOS,
-                              processed=False, gaps=True)
+        self.health.subscribe(Image, topics.DEPTH_RELATIVE, self._on_depth, NEWEST_FRAME_QOS,
+                              processed=False, gaps=True, newest=True)
         self.health.subscribe(CameraInfo, topics.CAMERA_INFO, self._on_info, SENSOR_DATA_QOS,
                               processed=False)
         self.pose_health.subscribe(PoseStamped, topics.CAMERA_POSE, self._on_pose,

@@ -24,13 +24,22 @@ What the status says (one ``DiagnosticStatus`` per :class:`InputHealth`):
   (frames missing from an image stream at its nominal rate: lost in
   transport, :class:`endo_io.sequence_gaps.SequenceGapCounter`);
   ``clock_jumps`` (state reset because time jumped); ``age_s.<input>``
-  (seconds since the input's last message, or ``never``).
+  (seconds since the input's last message, or ``never``); ``skipped`` and
+  ``skipped.<input>`` (stale frames passed over for a newer one, below).
 
 Subscriptions made by :meth:`subscribe` take the serialized message
 (``raw=True``) and deserialize it inside the guard, so that a message whose
 CDR cannot be decoded is counted (``dropped.UndecodableMessageError``) and
 logged; a typed rclpy subscription loses it inside the middleware without a
 trace. It costs one copy of the message (about 0.1 ms for a 1.2 MB image).
+
+Newest frame: a subscription made with ``newest=True`` (the frame a node
+processes, through :data:`endo_io.qos.NEWEST_FRAME_QOS`) takes, before each
+frame, every frame that waits behind it in the subscription and processes
+only the newest; the others are received and **skipped** (counted under
+``skipped``, not as dropped or lost: the node chose the present over a
+backlog, nothing was wrong with them). The ``newest_frame`` parameter
+(false) processes every frame in arrival order instead, as before.
 
 While the process shuts down (SIGINT in the middle of a callback), an
 exception from a publisher whose context is gone is not a dropped message:
@@ -56,6 +65,7 @@ from endo_io.errors import ClockJumpError, Endo3dError, MessageConversionError
 from endo_io.parameters import ParameterSpec
 from endo_io.qos import reliable_qos
 from endo_io.sequence_gaps import SequenceGapCounter
+from endo_io.serialized_stamp import serialized_header_stamp_ns
 from endo_io.stamp import stamp_to_ns
 
 F = TypeVar("F", bound=Callable[..., Any])
@@ -75,6 +85,11 @@ HEALTH_PARAMETERS: tuple[ParameterSpec, ...] = (
         "input_stale_s", DEFAULT_STALE_S,
         "diagnostics: an input without a message for this long is stale (WARN), seconds",
         range=(0.05, 3600.0),
+    ),
+    ParameterSpec(
+        "newest_frame", True,
+        "process only the newest waiting frame of the node's frame input and skip (count) the "
+        "stale ones; false: every frame in arrival order",
     ),
     ParameterSpec(
         "status_window_s", DEFAULT_WINDOW_S,
@@ -156,6 +171,7 @@ class InputHealth:
         self._settings = settings
         self.processed = 0
         self.dropped: Counter[str] = Counter()
+        self.skipped: Counter[str] = Counter()
         self.clock_jumps = 0
         self.last_error = ""
         self._inputs: dict[str, _Input] = {}
@@ -180,6 +196,16 @@ class InputHealth:
     def window_s(self) -> float:
         """Seconds a drop, a loss or a clock jump keeps the level WARN."""
         return self._setting("status_window_s", self._window_s)
+
+    @property
+    def newest_frame(self) -> bool:
+        """Whether ``newest=True`` subscriptions skip stale frames (``newest_frame``)."""
+        if self._settings is not None:
+            try:
+                return bool(self._settings["newest_frame"])
+            except KeyError:
+                pass
+        return True
 
     def _setting(self, key: str, default: float) -> float:
         if self._settings is not None:
@@ -217,6 +243,10 @@ class InputHealth:
             missing = entry.gaps.add(stamp_ns)
             if missing:
                 self.lose(input_name, missing)
+
+    def skip(self, input_name: str, count: int = 1) -> None:
+        """Count ``count`` stale frames of ``input_name`` passed over for a newer one."""
+        self.skipped[input_name] += count
 
     def lose(self, input_name: str, count: int) -> None:
         """Count ``count`` frames of ``input_name`` lost in transport (logged, throttled)."""
@@ -328,6 +358,7 @@ class InputHealth:
         *,
         processed: bool = True,
         gaps: bool = False,
+        newest: bool = False,
     ) -> Subscription:
         """Subscribe ``callback`` to ``topic`` through the guard, decoding inside it.
 
@@ -340,6 +371,9 @@ class InputHealth:
             qos: the subscription's QoS.
             processed: as in :meth:`guard`.
             gaps: count frames missing from the header stamps (image topics).
+            newest: before each message, take the ones waiting behind it and
+                process only the newest; the others are counted as skipped
+                (unless the ``newest_frame`` setting is false).
 
         Returns:
             The rclpy subscription (raw: it delivers bytes to the guard).
@@ -348,6 +382,8 @@ class InputHealth:
         self.watch(name, gaps=gaps)
 
         def decode_and_call(data: Any) -> None:
+            if newest and isinstance(data, bytes) and self.newest_frame:
+                data = self._take_newest(subscription, msg_type, name, data)
             # a message given directly (tests, offline drivers) needs no decoding
             msg = data if isinstance(data, msg_type) else self._decode(data, msg_type, name)
             header = getattr(msg, "header", None)
@@ -357,7 +393,21 @@ class InputHealth:
         def guarded(data: Any) -> Any:
             return self._call(decode_and_call, processed, data)
 
-        return self._node.create_subscription(msg_type, topic, guarded, qos, raw=True)
+        subscription = self._node.create_subscription(msg_type, topic, guarded, qos, raw=True)
+        return subscription
+
+    def _take_newest(
+        self, subscription: Subscription, msg_type: Any, name: str, data: bytes
+    ) -> bytes:
+        """The newest serialized message waiting behind ``data``; the rest received and skipped."""
+        while True:
+            with subscription.handle:
+                taken = subscription.handle.take_message(msg_type, True)
+            if taken is None:
+                return data
+            self.received(name, serialized_header_stamp_ns(data))
+            self.skip(name)
+            data = taken[0]
 
     def _decode(self, data: bytes, msg_type: Any, name: str) -> Any:
         """Deserialize CDR ``data``; an undecodable message is received, then refused.
@@ -406,6 +456,7 @@ class InputHealth:
         pairs: list[tuple[str, object]] = [
             ("received", sum(entry.received for _, entry in inputs)),
             ("processed", self.processed),
+            ("skipped", sum(self.skipped.values())),
             ("dropped", sum(count for _, count in dropped)),
             *((f"dropped.{cause}", count) for cause, count in dropped),
             ("lost", sum(self.lost_on(name) for name, _ in inputs)),
@@ -414,6 +465,8 @@ class InputHealth:
         for name, entry in inputs:
             age = "never" if entry.last_arrival is None else f"{now - entry.last_arrival:.2f}"
             pairs += [(f"received.{name}", entry.received), (f"age_s.{name}", age)]
+            if name in self.skipped:
+                pairs.append((f"skipped.{name}", self.skipped[name]))
             if entry.gaps is not None:
                 pairs.append((f"lost.{name}", entry.gaps.lost))
         if self.last_error:

@@ -8,6 +8,15 @@
   parameters (``qos_overrides./topic.publisher.reliability`` and friends), as
   image_pipeline's nodes do. A user who wants best effort for a wireless link
   sets it at launch without code changes.
+* The frame a node processes (the raw image of the correction, the corrected
+  image of SFS, the relative depth of flow) comes through
+  :data:`NEWEST_FRAME_QOS`: best effort, keep last :data:`NEWEST_FRAME_DEPTH`.
+  The node takes every frame waiting there, processes the newest and counts
+  the others as skipped (:meth:`endo_io.diagnostics.InputHealth.subscribe`
+  with ``newest=True``), so a stage slower than the camera works on the
+  present, never on a backlog, and no queue grows. Why not keep-last-1: DDS
+  would then overwrite the stale frames where the node cannot see them, and
+  a skip would be indistinguishable from a frame lost in transport.
 """
 
 from __future__ import annotations
@@ -25,6 +34,19 @@ from rclpy.qos_overriding_options import QoSOverridingOptions
 
 #: Subscription profile for sensor streams (REP 2003).
 SENSOR_DATA_QOS: QoSProfile = qos_profile_sensor_data
+
+#: Frames a newest-frame subscription holds while its node is busy: 8 frames
+#: cover 0.27 s at 30 fps, longer than any stage takes per frame here, so the
+#: node itself sees (and counts) every frame it skips.
+NEWEST_FRAME_DEPTH = 8
+
+#: Subscription profile of the frame a node processes (see the module docstring).
+NEWEST_FRAME_QOS = QoSProfile(
+    history=HistoryPolicy.KEEP_LAST,
+    depth=NEWEST_FRAME_DEPTH,
+    reliability=ReliabilityPolicy.BEST_EFFORT,
+    durability=DurabilityPolicy.VOLATILE,
+)
 
 
 def reliable_qos(depth: int = 10, *, latched: bool = False) -> QoSProfile:

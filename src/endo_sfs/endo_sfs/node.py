@@ -55,7 +55,7 @@ from endo_io.errors import ParameterValidationError
 from endo_io.image import array_to_image, image_to_array
 from endo_io.parameters import NodeParameters, ParameterSpec
 from endo_io.process import describing_only, run_node
-from endo_io.qos import SENSOR_DATA_QOS, create_reliable_publisher
+from endo_io.qos import NEWEST_FRAME_QOS, SENSOR_DATA_QOS, create_reliable_publisher
 from endo_io.stamp import NS_PER_S, stamp_to_ns
 from endo_io.stamp_matching import StampMatcher
 from endo_sfs.errors import (
@@ -211,8 +211,8 @@ class SfsNode(Node):
         self.normals_publisher = create_reliable_publisher(self, Image, topics.NORMALS)
         # "processed" counts published depth images (_process), not callbacks.
         self.health.subscribe(
-            Image, topics.IMAGE_CORRECTED, self._on_image, SENSOR_DATA_QOS,
-            processed=False, gaps=True,
+            Image, topics.IMAGE_CORRECTED, self._on_image, NEWEST_FRAME_QOS,
+            processed=False, gaps=True, newest=True,
         )
         self.health.subscribe(
             CameraInfo, topics.CAMERA_INFO, self._on_camera_info, SENSOR_DATA_QOS,

@@ -31,7 +31,9 @@ SIZE = 64
 def graph():
     """An sfs node and a test node publishing its inputs and collecting its outputs."""
     rclpy.init()  # domain from ROS_DOMAIN_ID in the environment
-    sfs = SfsNode(parameter_overrides=[Parameter("publish_normals", value=True)])
+    # the tests publish frames back to back and follow each: every frame, not the newest
+    sfs = SfsNode(parameter_overrides=[Parameter("publish_normals", value=True),
+                                       Parameter("newest_frame", value=False)])
     peer = Node("sfs_test_peer")
     received: dict[str, list[Image]] = {"depth": [], "normals": []}
     peer.create_subscription(Image, topics.DEPTH_RELATIVE, received["depth"].append,

@@ -1,0 +1,101 @@
+"""Newest-frame subscriptions: a busy node processes the newest frame, counts the rest skipped.
+
+Frames are published while the subscriber does not spin (a node busy with an
+earlier frame); one spin then delivers only the newest, and /diagnostics says
+how many were skipped (not dropped, not lost). With ``newest_frame`` false
+every frame comes, in order. Also the header stamp read from the CDR bytes.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pytest
+import rclpy
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.serialization import serialize_message
+from sensor_msgs.msg import CameraInfo, Image
+
+from endo_io.diagnostics import InputHealth
+from endo_io.image import array_to_image
+from endo_io.qos import NEWEST_FRAME_DEPTH, NEWEST_FRAME_QOS, reliable_qos
+from endo_io.serialized_stamp import serialized_header_stamp_ns
+from endo_io.stamp import stamp_to_ns
+
+PERIOD_NS = 33_333_333
+START_NS = 1_700_000_000 * 1_000_000_000
+
+
+@pytest.fixture
+def node():
+    context = rclpy.Context()
+    rclpy.init(context=context)
+    node = Node("newest_frame_under_test", context=context)
+    yield node
+    node.destroy_node()
+    rclpy.try_shutdown(context=context)
+
+
+def _frame(k: int) -> Image:
+    return array_to_image(np.full((4, 6), k, np.float32), "32FC1", START_NS + k * PERIOD_NS, "c")
+
+
+def _deliver(node: Node, health: InputHealth, topic: str, frames: int, got: list[Image],
+             expected_calls: int) -> None:
+    """Publish ``frames`` frames while not spinning, then spin until ``expected_calls`` came."""
+    publisher = node.create_publisher(Image, topic, reliable_qos(NEWEST_FRAME_DEPTH))
+    executor = SingleThreadedExecutor(context=node.context)
+    executor.add_node(node)
+    deadline = time.monotonic() + 10.0
+    while publisher.get_subscription_count() == 0:
+        executor.spin_once(timeout_sec=0.05)
+        assert time.monotonic() < deadline, "no subscription matched"
+    for k in range(frames):
+        publisher.publish(_frame(k))
+    time.sleep(0.3)  # every frame has reached the subscription's queue
+    deadline = time.monotonic() + 10.0
+    while len(got) < expected_calls:
+        executor.spin_once(timeout_sec=0.05)
+        assert time.monotonic() < deadline, (len(got), health.skipped)
+    executor.spin_once(timeout_sec=0.2)  # nothing else may come
+    executor.shutdown()
+
+
+def _values(health: InputHealth) -> dict[str, str]:
+    return {kv.key: kv.value for kv in health.status().values}
+
+
+def test_a_busy_node_gets_the_newest_frame_and_counts_the_stale_ones_as_skipped(node):
+    health = InputHealth(node, "image input", settings={"newest_frame": True})
+    got: list[Image] = []
+    health.subscribe(Image, "/newest_test/image", got.append, NEWEST_FRAME_QOS, gaps=True,
+                     newest=True)
+    _deliver(node, health, "/newest_test/image", 5, got, 1)
+    assert [stamp_to_ns(m.header.stamp) for m in got] == [START_NS + 4 * PERIOD_NS]
+    assert np.frombuffer(bytes(got[0].data), np.float32)[0] == 4.0
+    values = _values(health)
+    assert values["received"] == "5" and values["processed"] == "1"
+    assert values["skipped"] == values["skipped./newest_test/image"] == "4"
+    assert values["dropped"] == "0" and values["lost"] == "0"
+
+
+def test_with_newest_frame_false_every_frame_comes_in_order(node):
+    health = InputHealth(node, "image input", settings={"newest_frame": False})
+    got: list[Image] = []
+    health.subscribe(Image, "/newest_test/all", got.append, NEWEST_FRAME_QOS, gaps=True,
+                     newest=True)
+    _deliver(node, health, "/newest_test/all", 5, got, 5)
+    assert [stamp_to_ns(m.header.stamp) for m in got] == [
+        START_NS + k * PERIOD_NS for k in range(5)
+    ]
+    assert _values(health)["skipped"] == "0"
+
+
+def test_the_header_stamp_is_read_from_the_cdr_bytes():
+    for msg in (_frame(7), CameraInfo()):
+        msg.header.stamp.sec, msg.header.stamp.nanosec = 1_700_000_123, 456_789
+        assert serialized_header_stamp_ns(serialize_message(msg)) == 1_700_000_123_000_456_789
+    assert serialized_header_stamp_ns(b"\x00\x01\x00") is None
+    assert serialized_header_stamp_ns(b"\x00\x07" + bytes(20)) is None  # not plain CDR
