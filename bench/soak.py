@@ -144,22 +144,22 @@ class Sample:
     latency_ms: dict[str, tuple[float, float]]  # (median, p95)
 
 
-def _setup(out: Path, solve_scale: float) -> tuple[Path, Path, Path]:
-    """The true photometric.yaml, handeye.yaml and parameter file of the phantom bag."""
-    lut = np.load(BAG.with_suffix(".inverse_response.npy"))
-    light = np.load(BAG.with_suffix(".light_map.npy"))
+def _setup(out: Path, solve_scale: float, bag: Path = BAG) -> tuple[Path, Path, Path]:
+    """The true photometric.yaml, handeye.yaml and parameter file of ``bag`` (the phantom)."""
+    lut = np.load(bag.with_suffix(".inverse_response.npy"))
+    light = np.load(bag.with_suffix(".light_map.npy"))
     fov = light > 0
     channel = ChannelCalibration("mono", InverseResponse(lut, 8), np.where(fov, light, 0.0), None)
     photometric = PhotometricCalibration([channel], fov, None, "pixels").save(
         out / "photometric.yaml"
     )
-    tracker = ground_truth_of(BAG)["tracker"]
+    tracker = ground_truth_of(bag)["tracker"]
     handeye = out / "handeye.yaml"
     HandEyeCalibration(
         T_marker_camera=np.asarray(tracker["T_marker_camera"], np.float64),
         time_offset_ns=round(float(tracker["latency_s"]) * 1e9),
     ).save(handeye)
-    params = write_simulated_parameters(BAG, out / "endo3d.yaml", solve_scale=solve_scale)
+    params = write_simulated_parameters(bag, out / "endo3d.yaml", solve_scale=solve_scale)
     return photometric, handeye, params
 
 

@@ -70,6 +70,14 @@ from endo_bringup.graph import (
     run_offline_calibrations,
     stage_counts,
 )
+from endo_bringup.graph_monitor import (
+    GraphFigures,
+    GraphMonitor,
+    ProcessSampler,
+    graph_figures,
+    planned_graph,
+    stage_lines,
+)
 from endo_bringup.process_group import ProcessGroup
 from endo_io import topics as topic_names
 from endo_io.bag import BagReader, BagWriter, message_class, msgtype_of, serialize
@@ -319,7 +327,9 @@ class GraphReport:
     against the ground truth (:func:`endo_process.accuracy.score_recording`);
     depth_errors: stamp (ns) -> median-scaled error of each relative depth
     frame that has a ground truth, and poses: the bridge's /endoscope/pose
-    against /ground_truth/camera_pose (both from ``accuracy``).
+    against /ground_truth/camera_pose (both from ``accuracy``); figures:
+    frames, skips, rates, latency, CPU and RSS of the run as
+    bench/bench_graph.py measures them (:mod:`endo_bringup.graph_monitor`).
     """
 
     calibrate: OfflineStep
@@ -331,6 +341,7 @@ class GraphReport:
     poses: PoseComparison | None = None
     accuracy: Accuracy | None = None
     offline: OfflineRun | None = None
+    figures: GraphFigures | None = None
     dds_note: str = ""
     error: str = ""
 
@@ -451,10 +462,13 @@ def run_graph_stage(
     report.scores = score_calibrations(calibrate.result, handeye.result, graycard, handeye_bag)
     graph_env, report.dds_note = with_large_frame_profile(env, out_dir)
     settings = graph_settings_for(phantom, rate, solve_scale)
+    processes = planned_graph(phantom, calibrate.result, handeye.result, out_dir, settings)
     try:
-        report.run = run_live_graph(
-            phantom, calibrate.result, handeye.result, out_dir, graph_env, settings
-        )
+        with GraphMonitor(processes, graph_env) as monitor, ProcessSampler(processes) as sampler:
+            report.run = run_live_graph(
+                phantom, calibrate.result, handeye.result, out_dir, graph_env, settings
+            )
+        report.figures = graph_figures(report.run.processes, monitor, sampler)
     except (GraphError, GroundTruthError) as error:
         report.error = str(error)
         return report
@@ -494,6 +508,10 @@ def print_graph_report(report: GraphReport, rate: float) -> None:
                 f"    {row.stage:<28} {row.topic:<30} {row.count_in:>5} {row.count_out:>5} "
                 f"{dropped:>7}  {code}"
             )
+    if report.figures is not None:
+        print("    as bench/bench_graph.py measures it (endo_bringup.graph_monitor):")
+        for line in stage_lines(report.figures):
+            print(f"      {line}")
     rows: list[tuple[str, str]] = []
     scores = report.scores
     if scores is not None:
@@ -602,6 +620,7 @@ def write_demo_summary(
         calibration=None if report.scores is None else dataclasses.asdict(report.scores),
         live=report.accuracy,
         offline=report.offline,
+        timing=None if report.figures is None else report.figures.document(),
     )
 
 

@@ -29,7 +29,7 @@ import subprocess
 import time
 from collections import Counter
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -205,6 +205,8 @@ class GraphSettings:
     kernel cache is empty the SFS node first compiles its numba kernels:
     about 20 s of CPU, more while the other processes start);
     drain_timeout_s: how long to wait for the outputs after the replay ends.
+    node_parameters: extra ROS parameters per process name, added to that
+    row's (a benchmark's configuration, e.g. ``{"endo-sfs": {"warm_start": "false"}}``).
     """
 
     rate: float = 0.25
@@ -214,6 +216,7 @@ class GraphSettings:
     T_world_tracker: np.ndarray = field(default_factory=lambda: np.eye(4))
     startup_timeout_s: float = 90.0
     drain_timeout_s: float = 20.0
+    node_parameters: Mapping[str, Mapping[str, str]] = field(default_factory=dict)
 
 
 def _float_list(values: np.ndarray) -> str:
@@ -283,6 +286,11 @@ def graph_processes(
             publishes=(SCALE, DEPTH, POINTS, MAP),
             per_frame=(SCALE,),
         ),
+    ]
+    nodes = [
+        replace(node, parameters={**node.parameters, **settings.node_parameters[node.name]})
+        if node.name in settings.node_parameters else node
+        for node in nodes
     ]
     recorded = [*node_outputs(nodes), CAMERA_INFO, TRUE_DEPTH, TRUE_CAMERA_POSE]
     return [

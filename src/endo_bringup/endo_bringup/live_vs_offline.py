@@ -114,11 +114,14 @@ def write_summary(
     calibration: dict[str, Any] | None,
     live: Accuracy | None,
     offline: OfflineRun | None,
+    timing: dict[str, Any] | None = None,
 ) -> None:
     """``summary.json``: every figure the demo printed, machine-readable (strict JSON).
 
     live: the live recording's accuracy (the layout of endo-process's
-    ``accuracy`` member); offline: endo-process's whole summary document.
+    ``accuracy`` member); offline: endo-process's whole summary document;
+    timing: the live graph's frames, skips, rates, latency, CPU and RSS
+    (:class:`endo_bringup.graph_monitor.GraphFigures` as a dict; NaN as null).
     """
     from endo_process.summary import _finite, accuracy_document
 
@@ -129,7 +132,8 @@ def write_summary(
         "fell_short": problems,
         "settings": settings,
         "calibration": _finite(calibration),
-        "live": {"stages": stages, "accuracy": accuracy_document(live)},
+        "live": {"stages": stages, "accuracy": accuracy_document(live),
+                 "timing": _finite(timing)},
         "offline": None if offline is None else offline.summary,
     }
     path.write_text(json.dumps(document, indent=1, allow_nan=False) + "\n")

@@ -1,0 +1,499 @@
+"""Watching the live graph from outside: frames per stage, latency, CPU and memory.
+
+One code path for every figure the live graph is judged by: ``endo-demo``
+prints them after its run and ``bench/bench_graph.py`` writes them into
+docs/benchmarks.md. Both run the graph of :func:`endo_bringup.graph.graph_processes`
+(the one description of the graph) and watch it with:
+
+* :class:`GraphMonitor`: a listener node in this process, on the graph's DDS
+  domain. It subscribes (serialized, only the header stamp read, so it costs
+  next to nothing) to the played image topic and to every topic the nodes
+  publish, and keeps per topic the stamps that arrived and when. The image's
+  publish time at the replay is its DDS source timestamp; an output's arrival
+  is its DDS reception timestamp here; both on the system clock of this one
+  machine. Latency of an output = its arrival minus the publish of the image
+  with the same stamp (correction: one hop; SFS: two; flow's cloud: the whole
+  graph, end to end). It also keeps the nodes' last ``/diagnostics``
+  (received, processed, skipped, dropped, lost).
+* :class:`ProcessSampler`: CPU time (utime + stime of ``/proc/<pid>/stat``)
+  and resident memory (``VmRSS``) of this process's children, sampled every
+  ``period_s``; each child is named after the row of the table whose
+  executable it runs.
+
+:func:`graph_figures` turns both into :class:`GraphFigures` over the play
+window (first to last image published, plus one frame period):
+
+* per stage (a node of the table, its first per-frame output): frames in (on
+  its first input, seen here), received (by the node on that input, its
+  /diagnostics: fewer than in when DDS overwrote frames the node never saw,
+  or the run ended while frames waited), out (on the output, seen here),
+  skipped (the node's own count: stale frames passed over for a newer one,
+  by design), dropped and lost (its /diagnostics), output rate (out per
+  second of the play window), latency p50 / p99;
+* end to end: the image's publish at the replay to the cloud
+  (``/endoscope/points``) arriving here, p50 / p99;
+* per process: CPU as a percentage of one core over the window, peak RSS.
+
+:func:`stage_lines` prints them (the demo); the bench formats the same
+:class:`GraphFigures` as markdown.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import json
+import os
+import threading
+import time
+from collections import defaultdict
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from endo_bringup.dds_profile import PROFILE_VARIABLES
+from endo_bringup.graph import (
+    PLAYED_TOPICS,
+    PLAYER,
+    RECORDER,
+    GraphProcess,
+    GraphSettings,
+    graph_processes,
+)
+from endo_io import topics
+from endo_io.bag import BagReader
+from endo_io.serialized_stamp import serialized_header_stamp_ns
+
+#: The output that ends the graph: the world cloud, the end-to-end latency's end.
+CLOUD_TOPIC = topics.POINTS
+#: Topics whose stamps are not the images' (latency against the image is meaningless).
+_NOT_IMAGE_STAMPED = frozenset({topics.CAMERA_POSE, topics.MARKER_POSE, topics.MAP})
+
+
+def node_name_of(process: GraphProcess) -> str:
+    """The ROS node name a row runs: its executable without ``endo-``, dashes as underscores."""
+    return process.executable.removeprefix("endo-").replace("-", "_")
+
+
+# --------------------------------------------------------------------------
+# The listener
+
+
+@dataclass
+class _Arrivals:
+    """Per topic: stamp -> (source time, reception time), wall-clock ns."""
+
+    lock: threading.Lock = field(default_factory=threading.Lock)
+    times: dict[str, dict[int, tuple[int, int]]] = field(
+        default_factory=lambda: defaultdict(dict)
+    )
+    status: dict[str, dict[str, str]] = field(default_factory=dict)
+
+    def add(self, topic: str, data: bytes, info: Mapping[str, Any]) -> None:
+        stamp = serialized_header_stamp_ns(data)
+        if stamp is None:
+            return
+        received = int(info.get("received_timestamp") or 0) or time.time_ns()
+        source = int(info.get("source_timestamp") or 0) or received
+        with self.lock:
+            self.times[topic].setdefault(stamp, (source, received))
+
+
+class GraphMonitor:
+    """A listener node on the graph's outputs and /diagnostics (see the module docstring).
+
+    Use as a context manager around the run; it spins in a thread of its own.
+    Its subscriptions are best effort and 100 deep, so they match every
+    publisher and keep up with every message (raw, stamp only).
+
+    Args:
+        processes: the graph's table (:func:`endo_bringup.graph.graph_processes`).
+        env: the graph's environment: its ``ROS_DOMAIN_ID`` and Fast DDS
+            profile variables (large shared-memory frames) apply here too; the
+            profile variables are put into this process's environment, where
+            Fast DDS reads them.
+    """
+
+    def __init__(self, processes: Sequence[GraphProcess], env: Mapping[str, str]) -> None:
+        self.processes = list(processes)
+        self.domain_id = int(env.get("ROS_DOMAIN_ID", "0"))
+        for name in PROFILE_VARIABLES:
+            if name in env:
+                os.environ[name] = env[name]
+        self.arrivals = _Arrivals()
+        self._context: Any = None
+        self._executor: Any = None
+        self._thread: threading.Thread | None = None
+
+    def watched_topics(self) -> list[str]:
+        """The player's first topic (the images) and every topic a node publishes."""
+        player = next(p for p in self.processes if p.name == PLAYER)
+        nodes = [p for p in self.processes if p.name not in (PLAYER, RECORDER)]
+        return list(dict.fromkeys([player.publishes[0], *(t for n in nodes for t in n.publishes)]))
+
+    def __enter__(self) -> GraphMonitor:
+        import rclpy
+        from diagnostic_msgs.msg import DiagnosticArray
+        from rclpy.executors import SingleThreadedExecutor
+        from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+        from rclpy.signals import SignalHandlerOptions
+
+        from endo_io.bag import message_class
+        from endo_io.diagnostics import DIAGNOSTICS_TOPIC
+
+        self._context = rclpy.Context()
+        rclpy.init(
+            context=self._context,
+            domain_id=self.domain_id,
+            signal_handler_options=SignalHandlerOptions.NO,  # Ctrl-C is the caller's
+        )
+        node = rclpy.create_node("graph_monitor", context=self._context)
+        qos = QoSProfile(
+            history=HistoryPolicy.KEEP_LAST, depth=100, reliability=ReliabilityPolicy.BEST_EFFORT
+        )
+        for topic in self.watched_topics():
+            # a callback of two arguments gets the message info (the DDS timestamps)
+            on_message: Any = functools.partial(self.arrivals.add, topic)
+            node.create_subscription(
+                message_class(TOPIC_TYPES[topic]), topic, on_message, qos, raw=True
+            )
+        node.create_subscription(DiagnosticArray, DIAGNOSTICS_TOPIC, self._on_diagnostics, 100)
+        self._executor = SingleThreadedExecutor(context=self._context)
+        self._executor.add_node(node)
+        self._thread = threading.Thread(target=self._spin, daemon=True)
+        self._thread.start()
+        return self
+
+    def _spin(self) -> None:
+        import contextlib
+
+        # the context is shut down from __exit__ while this spins
+        with contextlib.suppress(Exception):
+            self._executor.spin()
+
+    def _on_diagnostics(self, msg: Any) -> None:
+        with self.arrivals.lock:
+            for status in msg.status:
+                values = {kv.key: kv.value for kv in status.values}
+                values["hardware_id"] = status.hardware_id
+                self.arrivals.status[status.name] = values
+
+    def __exit__(self, *exc: object) -> None:
+        import rclpy
+
+        if self._executor is not None:
+            self._executor.shutdown(timeout_sec=1.0)
+        rclpy.try_shutdown(context=self._context)
+        if self._thread is not None:
+            self._thread.join(timeout=5.0)
+
+    def snapshot(self) -> tuple[dict[str, dict[int, tuple[int, int]]], dict[str, dict[str, str]]]:
+        """(topic -> stamp -> (source, reception) ns, status name -> key -> value), copied."""
+        with self.arrivals.lock:
+            return (
+                {t: dict(v) for t, v in self.arrivals.times.items()},
+                {n: dict(v) for n, v in self.arrivals.status.items()},
+            )
+
+
+#: Message type of each topic the monitor may watch (a subscription needs it
+#: before the publisher exists, so it cannot come from discovery).
+TOPIC_TYPES: dict[str, str] = {
+    topics.IMAGE_RAW: "sensor_msgs/msg/Image",
+    topics.IMAGE_CORRECTED: "sensor_msgs/msg/Image",
+    topics.DEPTH_RELATIVE: "sensor_msgs/msg/Image",
+    topics.DEPTH: "sensor_msgs/msg/Image",
+    topics.NORMALS: "sensor_msgs/msg/Image",
+    topics.POINTS: "sensor_msgs/msg/PointCloud2",
+    topics.MAP: "sensor_msgs/msg/PointCloud2",
+    topics.SCALE: "geometry_msgs/msg/Vector3Stamped",
+    topics.CAMERA_POSE: "geometry_msgs/msg/PoseStamped",
+    topics.MARKER_POSE: "geometry_msgs/msg/PoseStamped",
+}
+
+
+# --------------------------------------------------------------------------
+# CPU and memory of the children
+
+
+@dataclass
+class _Sample:
+    t: float
+    cpu_s: float
+    rss_mb: float
+
+
+def _children(parent: int) -> list[int]:
+    """Pids of the direct children of ``parent``."""
+    found = []
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit():
+            continue
+        try:
+            stat = (entry / "stat").read_text()
+        except OSError:
+            continue
+        fields = stat.rsplit(")", 1)[1].split()
+        if int(fields[1]) == parent:  # fields[0] is the state, [1] the parent pid
+            found.append(int(entry.name))
+    return found
+
+
+def _cpu_and_rss(pid: int) -> tuple[float, float] | None:
+    """(CPU seconds user + system, VmRSS MB) of ``pid``; None once it is gone."""
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+        status = Path(f"/proc/{pid}/status").read_text()
+    except OSError:
+        return None
+    ticks = os.sysconf("SC_CLK_TCK")
+    cpu_s = (int(fields[11]) + int(fields[12])) / ticks  # utime, stime (fields 14, 15)
+    rss = next((line.split()[1] for line in status.splitlines() if line.startswith("VmRSS:")), "0")
+    return cpu_s, int(rss) / 1024
+
+
+class ProcessSampler:
+    """CPU time and RSS of this process's children every ``period_s``, in a thread.
+
+    Args:
+        processes: the table; a child is named after the row whose executable
+            appears in its command line.
+        period_s: sampling period, seconds.
+    """
+
+    def __init__(self, processes: Sequence[GraphProcess], period_s: float = 0.5) -> None:
+        self.executables = {Path(p.command()[0]).name: p.name for p in processes}
+        self.period_s = period_s
+        self.samples: dict[str, list[_Sample]] = defaultdict(list)
+        self._names: dict[int, str | None] = {}
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+
+    def __enter__(self) -> ProcessSampler:
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._stop.set()
+        self._thread.join(timeout=5.0)
+
+    def _name(self, pid: int) -> str | None:
+        if pid not in self._names:
+            try:
+                argv = Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0")
+            except OSError:
+                return None
+            names = [self.executables.get(Path(a.decode(errors="replace")).name) for a in argv]
+            self._names[pid] = next((n for n in names if n is not None), None)
+        return self._names[pid]
+
+    def _run(self) -> None:
+        parent = os.getpid()
+        while not self._stop.is_set():
+            now = time.time()
+            for pid in _children(parent):
+                name = self._name(pid)
+                usage = _cpu_and_rss(pid) if name is not None else None
+                if name is not None and usage is not None:
+                    self.samples[name].append(_Sample(now, *usage))
+            self._stop.wait(self.period_s)
+
+
+# --------------------------------------------------------------------------
+# The figures
+
+
+@dataclass(frozen=True)
+class StageFigures:
+    """One stage over the play window (see the module docstring)."""
+
+    stage: str
+    input_topic: str
+    output_topic: str
+    frames_in: int
+    received: int | None
+    frames_out: int
+    skipped: int | None
+    dropped: int | None
+    lost: int | None
+    rate_hz: float
+    latency_ms: tuple[float, float]  # p50, p99 (NaN: none)
+
+
+@dataclass(frozen=True)
+class ProcessFigures:
+    """One process: CPU (% of one core) over the play window, peak RSS (MB)."""
+
+    name: str
+    cpu_percent: float
+    rss_mb: float
+
+
+@dataclass(frozen=True)
+class GraphFigures:
+    """Everything measured on one run (see the module docstring).
+
+    window_s: the play window; frames_played: images published by the
+    replay; end_to_end_ms: (p50, p99) image publish → cloud arrival, and
+    end_to_end_frames how many clouds it is over; load: 1-minute load
+    average at the end.
+    """
+
+    window_s: float
+    frames_played: int
+    stages: list[StageFigures]
+    end_to_end_ms: tuple[float, float]
+    end_to_end_frames: int
+    processes: list[ProcessFigures]
+    load: float
+
+    def document(self) -> dict[str, Any]:
+        """The figures as plain JSON-able data (pairs as lists; NaN stays NaN)."""
+        return dict(json.loads(json.dumps(dataclasses.asdict(self))))
+
+    def stage(self, name: str) -> StageFigures:
+        """The figures of stage ``name`` (a process name of the table)."""
+        return next(s for s in self.stages if s.stage == name)
+
+    @property
+    def every_frame_kept(self) -> bool:
+        """No stage skipped, dropped or lost a frame, and every per-frame output carried all."""
+        return all(
+            not s.skipped and not s.dropped and not s.lost and s.frames_out >= self.frames_played
+            for s in self.stages
+        )
+
+
+def _percentiles(values: list[float]) -> tuple[float, float]:
+    if not values:
+        return float("nan"), float("nan")
+    array = np.asarray(values)
+    return float(np.percentile(array, 50)), float(np.percentile(array, 99))
+
+
+def _latencies_ms(sent: Mapping[int, tuple[int, int]],
+                  arrived: Mapping[int, tuple[int, int]]) -> list[float]:
+    return [
+        (reception - sent[stamp][0]) / 1e6
+        for stamp, (_, reception) in arrived.items()
+        if stamp in sent
+    ]
+
+
+def _diagnostic_counts(status: Mapping[str, Mapping[str, str]], node: str, first_input: str
+                       ) -> dict[str, int] | None:
+    """The node's counters summed over its statuses (None: no status from it).
+
+    ``received`` is what reached its first input; skipped, dropped and lost
+    are over all its inputs.
+    """
+    mine = [v for v in status.values() if v.get("hardware_id", "").lstrip("/") == node]
+    if not mine:
+        return None
+    counts = {key: sum(int(v.get(key, 0)) for v in mine) for key in ("skipped", "dropped", "lost")}
+    counts["received"] = sum(int(v.get(f"received.{first_input}", 0)) for v in mine)
+    return counts
+
+
+def graph_figures(
+    processes: Sequence[GraphProcess],
+    monitor: GraphMonitor,
+    sampler: ProcessSampler | None,
+) -> GraphFigures:
+    """The figures of a finished run (see the module docstring)."""
+    arrivals, status = monitor.snapshot()
+    player = next(p for p in processes if p.name == PLAYER)
+    images = arrivals.get(player.publishes[0], {})
+    sent = sorted(source for source, _ in images.values())
+    if len(sent) > 1:
+        period = (sent[-1] - sent[0]) / (len(sent) - 1)
+        start, end = sent[0], sent[-1] + period
+    else:
+        start, end = (sent[0], sent[0] + 1) if sent else (0, 1)
+    window_s = (end - start) / 1e9
+    stages = []
+    for process in processes:
+        if process.name in (PLAYER, RECORDER):
+            continue
+        output = process.per_frame_outputs[0]
+        first = process.subscribes[0]
+        counts = _diagnostic_counts(status, node_name_of(process), first)
+        got = arrivals.get(output, {})
+        latency = (
+            (float("nan"), float("nan")) if output in _NOT_IMAGE_STAMPED
+            else _percentiles(_latencies_ms(images, got))
+        )
+        stages.append(StageFigures(
+            stage=process.name, input_topic=first, output_topic=output,
+            frames_in=len(arrivals.get(first, {})),
+            received=None if counts is None else counts["received"], frames_out=len(got),
+            skipped=None if counts is None else counts["skipped"],
+            dropped=None if counts is None else counts["dropped"],
+            lost=None if counts is None else counts["lost"],
+            rate_hz=len(got) / window_s if window_s > 0 else 0.0, latency_ms=latency,
+        ))  # fmt: skip
+    clouds = _latencies_ms(images, arrivals.get(CLOUD_TOPIC, {}))
+    figures_of_processes = []
+    if sampler is not None:
+        for name, samples in sampler.samples.items():
+            inside = [s for s in samples if start / 1e9 <= s.t <= end / 1e9 + sampler.period_s]
+            cpu = (
+                100.0 * (inside[-1].cpu_s - inside[0].cpu_s) / (inside[-1].t - inside[0].t)
+                if len(inside) > 1 and inside[-1].t > inside[0].t else float("nan")
+            )
+            figures_of_processes.append(
+                ProcessFigures(name, cpu, max(s.rss_mb for s in samples))
+            )
+    return GraphFigures(
+        window_s=window_s, frames_played=len(images), stages=stages,
+        end_to_end_ms=_percentiles(clouds), end_to_end_frames=len(clouds),
+        processes=figures_of_processes, load=os.getloadavg()[0],
+    )  # fmt: skip
+
+
+def _count(value: int | None) -> str:
+    return "?" if value is None else str(value)
+
+
+def stage_lines(figures: GraphFigures) -> list[str]:
+    """The figures as plain text lines (what ``endo-demo`` prints)."""
+    lines = [
+        f"{'stage':<28} {'output':<26} {'in':>5} {'rcvd':>5} {'out':>5} {'skipped':>7} "
+        f"{'dropped':>7} {'lost':>4} {'rate/s':>6}  latency p50/p99 ms"
+    ]
+    for s in figures.stages:
+        lines.append(
+            f"{s.stage:<28} {s.output_topic:<26} {s.frames_in:>5} {_count(s.received):>5} "
+            f"{s.frames_out:>5} "
+            f"{_count(s.skipped):>7} {_count(s.dropped):>7} {_count(s.lost):>4} "
+            f"{s.rate_hz:>6.1f}  {s.latency_ms[0]:.0f}/{s.latency_ms[1]:.0f}"
+        )
+    p50, p99 = figures.end_to_end_ms
+    lines.append(
+        f"end to end (image published by the replay -> {CLOUD_TOPIC} here): p50 {p50:.0f} ms, "
+        f"p99 {p99:.0f} ms over {figures.end_to_end_frames} clouds of {figures.frames_played} "
+        f"frames in {figures.window_s:.1f} s"
+    )
+    if figures.processes:
+        lines.append(
+            "CPU (% of one core) / peak RSS: "
+            + ", ".join(f"{p.name} {p.cpu_percent:.0f} % / {p.rss_mb:.0f} MB"
+                        for p in figures.processes)
+            + f"; load average {figures.load:.1f} on {os.cpu_count()} cores"
+        )
+    return lines
+
+
+def planned_graph(
+    bag: Path, photometric: Path, handeye: Path, out_dir: Path, settings: GraphSettings
+) -> list[GraphProcess]:
+    """The table :func:`~endo_bringup.graph.run_live_graph` runs with the same arguments.
+
+    A monitor subscribes before the graph starts, so it needs the table first.
+    """
+    with BagReader(bag) as reader:
+        played = [t for t in PLAYED_TOPICS if t in reader.topics]
+    return graph_processes(bag, played, photometric, handeye, out_dir / "graph.mcap", settings)

@@ -1,0 +1,123 @@
+"""endo_bringup.graph_monitor: the figures bench_graph and endo-demo report, from known arrivals.
+
+No DDS here: the monitor's arrivals and /diagnostics are filled by hand with
+a run whose every latency and count is known, and the figures must say
+exactly that. The /proc readers are checked on real child processes.
+"""
+
+from __future__ import annotations
+
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from endo_bringup.graph import GraphSettings, graph_processes
+from endo_bringup.graph_monitor import (
+    CLOUD_TOPIC,
+    GraphMonitor,
+    ProcessSampler,
+    _children,
+    _cpu_and_rss,
+    graph_figures,
+    node_name_of,
+    stage_lines,
+)
+from endo_io import topics
+
+PERIOD_NS = 33_333_333
+T0 = 1_800_000_000 * 1_000_000_000  # wall-clock ns of the first publish
+STAMP0 = 1_700_000_000 * 1_000_000_000
+MS = 1_000_000
+
+
+def _table(tmp_path: Path, settings: GraphSettings | None = None):
+    played = [topics.IMAGE_RAW, topics.CAMERA_INFO, topics.TRACKER_POSE]
+    return graph_processes(tmp_path / "bag.mcap", played, tmp_path / "p.yaml",
+                           tmp_path / "h.yaml", tmp_path / "graph.mcap",
+                           settings or GraphSettings())
+
+
+def test_node_parameters_of_a_configuration_are_added_to_their_rows(tmp_path: Path) -> None:
+    settings = GraphSettings(node_parameters={"endo-sfs": {"warm_start": "false"},
+                                              "endo-flow": {"newest_frame": "false"}})
+    rows = {p.name: p for p in _table(tmp_path, settings)}
+    assert rows["endo-sfs"].parameters["warm_start"] == "false"
+    assert rows["endo-sfs"].parameters["model"] == "near_light"  # the table's own stay
+    assert rows["endo-flow"].command()[1:] == ["--ros-args", "-p", "newest_frame:=false"]
+    assert "newest_frame" not in rows["endo-photometric-correction"].parameters
+
+
+def test_figures_of_a_known_run(tmp_path: Path) -> None:
+    processes = _table(tmp_path)
+    monitor = GraphMonitor(processes, {"ROS_DOMAIN_ID": "67"})
+    assert monitor.watched_topics()[0] == topics.IMAGE_RAW
+    assert [node_name_of(p) for p in processes[1:5]] == [
+        "photometric_correction", "sfs", "tracker_bridge", "flow"]
+    times = monitor.arrivals.times
+    frames = 30
+    for k in range(frames):
+        stamp, sent = STAMP0 + k * PERIOD_NS, T0 + k * PERIOD_NS
+        times[topics.IMAGE_RAW][stamp] = (sent, sent + 1 * MS)
+        times[topics.IMAGE_CORRECTED][stamp] = (sent + 9 * MS, sent + 10 * MS)
+        if k % 3 == 2:
+            continue  # sfs skipped every third frame
+        times[topics.DEPTH_RELATIVE][stamp] = (sent + 39 * MS, sent + 40 * MS)
+        times[topics.SCALE][stamp] = (sent + 59 * MS, sent + 60 * MS)
+        if k >= 6:  # clouds once the scale converged
+            times[CLOUD_TOPIC][stamp] = (sent + 69 * MS, sent + 70 * MS + k * MS)
+    monitor.arrivals.status = {
+        "sfs: image input": {"hardware_id": "/sfs", "received": "60", "processed": "20",
+                             f"received.{topics.IMAGE_CORRECTED}": "30",
+                             "skipped": "10", "dropped": "0", "lost": "0"},
+        "photometric_correction: image input": {"hardware_id": "/photometric_correction",
+                                                "skipped": "0", "dropped": "0", "lost": "0"},
+    }
+    figures = graph_figures(processes, monitor, None)
+    assert figures.frames_played == frames
+    assert figures.window_s == pytest.approx(frames * PERIOD_NS / 1e9)
+    correction = figures.stage("endo-photometric-correction")
+    assert (correction.frames_in, correction.frames_out, correction.skipped) == (30, 30, 0)
+    assert correction.latency_ms == (pytest.approx(10.0), pytest.approx(10.0))
+    sfs = figures.stage("endo-sfs")
+    assert (sfs.input_topic, sfs.frames_in, sfs.received, sfs.frames_out, sfs.skipped) == (
+        topics.IMAGE_CORRECTED, 30, 30, 20, 10)
+    assert sfs.rate_hz == pytest.approx(20 / figures.window_s)
+    assert sfs.latency_ms[0] == pytest.approx(40.0)
+    flow = figures.stage("endo-flow")
+    assert (flow.input_topic, flow.output_topic, flow.frames_out) == (
+        topics.DEPTH_RELATIVE, topics.SCALE, 20)
+    assert flow.skipped is None  # no /diagnostics from flow: unknown, not zero
+    bridge = figures.stage("endo-tracker-bridge")  # pose stamps are not the images'
+    assert bridge.output_topic == topics.CAMERA_POSE and math.isnan(bridge.latency_ms[0])
+    # clouds of frames 6..29 without the skipped ones: 16, at 70 + k ms
+    clouds = [70.0 + k for k in range(6, frames) if k % 3 != 2]
+    assert figures.end_to_end_frames == len(clouds) == 16
+    assert figures.end_to_end_ms[0] == pytest.approx((86.0 + 88.0) / 2)  # the middle two
+    assert not figures.every_frame_kept
+    document = figures.document()
+    assert document["end_to_end_ms"] == list(figures.end_to_end_ms)
+    assert document["stages"][1]["skipped"] == 10
+    text = "\n".join(stage_lines(figures))
+    assert "p50 87 ms, p99 98 ms over 16 clouds of 30 frames" in text
+    assert any(line.split()[:7] == ["endo-sfs", topics.DEPTH_RELATIVE, "30", "30", "20", "10",
+                                    "0"]
+               for line in stage_lines(figures))
+
+
+def test_cpu_and_memory_of_children_come_from_proc() -> None:
+    child = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(30)"])
+    try:
+        import os
+
+        assert child.pid in _children(os.getpid())
+        usage = _cpu_and_rss(child.pid)
+        assert usage is not None and usage[0] >= 0.0 and 1.0 < usage[1] < 500.0
+        sampler = ProcessSampler([], period_s=0.05)
+        assert sampler._name(child.pid) is None  # not a row of the table: not sampled
+    finally:
+        child.kill()
+        child.wait()
+    assert _cpu_and_rss(child.pid) is None
