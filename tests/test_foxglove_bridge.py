@@ -1,11 +1,17 @@
 """endo-foxglove against a real WebSocket client, fed over DDS by other processes.
 
 The client is the ``websockets`` package speaking the Foxglove WebSocket
-protocol (it offers ``foxglove.websocket.v1`` and its successor
-``foxglove.sdk.v1``, as the Foxglove app does; foxglove-sdk 0.30 accepts only
-the latter). Messages are decoded with a small protobuf wire-format reader
-driven by the schema (FileDescriptorSet) the server advertises, so nothing of
-the SDK's own encoder is trusted.
+protocol. It offers the subprotocols a current viewer offers: Lichtblick's
+player asks for ``foxglove.websocket.v1`` and ``foxglove.sdk.v1`` (that
+order), and the Foxglove app offers ``foxglove.sdk.v1`` too; every
+foxglove-sdk on PyPI (0.5.0 … 0.30.3, the newest) accepts only
+``foxglove.sdk.v1``, the same messages under a new name. Test 0 pins that
+negotiation down: a client offering both (either order) gets
+``foxglove.sdk.v1``, one offering only ``foxglove.websocket.v1`` or nothing
+gets HTTP 400 (docs/viewers.md, "Which viewers connect"). Messages are
+decoded with a small protobuf wire-format reader driven by the schema
+(FileDescriptorSet) the server advertises, so nothing of the SDK's own
+encoder is trusted.
 
 1. ``endo-replay`` plays a bag written here (images, depth, camera_info, a
    world cloud with NaN points, camera poses); the client must receive the
@@ -73,7 +79,10 @@ from endo_io.topics import (
 )
 
 BIN = Path(sys.executable).parent
-SUBPROTOCOLS = ["foxglove.websocket.v1", "foxglove.sdk.v1"]
+#: The protocol's old name and the one foxglove-sdk speaks (the same messages).
+WEBSOCKET_V1, SDK_V1 = "foxglove.websocket.v1", "foxglove.sdk.v1"
+#: What the test clients offer, in Lichtblick's order (a viewer offering both).
+SUBPROTOCOLS = [WEBSOCKET_V1, SDK_V1]
 T0 = 1_763_900_000_000_000_000
 PERIOD_NS = 50_000_000  # 20 Hz
 FRAMES = 10
@@ -349,7 +358,7 @@ def test_client_decodes_cloud_transform_and_image_from_a_replay(tmp_path, dds_en
         stop(bridge)
     log = "".join(iter_lines(output))
 
-    assert result["subprotocol"] in SUBPROTOCOLS
+    assert result["subprotocol"] == SDK_V1
     assert result["ops"][0] == "serverInfo"
     channels = result["channels"]
     assert channels[POINTS]["schemaName"] == "foxglove.PointCloud"
@@ -407,6 +416,33 @@ def test_client_decodes_cloud_transform_and_image_from_a_replay(tmp_path, dds_en
     assert depth["encoding"] == "32FC1" and depth["step"] == 4 * W
     values = np.frombuffer(depth["data"], dtype="<f4")
     np.testing.assert_allclose(values, 0.05 + 0.001 * index[stamp_ns(depth)], rtol=1e-7)
+
+
+def test_subprotocol_negotiation_of_the_viewers(dds_env):
+    """Both names offered (either order) → foxglove.sdk.v1; only the old name or none → 400."""
+
+    async def handshake(offer: list[str] | None) -> tuple[str | None, str]:
+        protocols = None if offer is None else [websockets.Subprotocol(p) for p in offer]
+        async with websockets.connect(f"ws://127.0.0.1:{port}", subprotocols=protocols) as ws:
+            return ws.subprotocol, json.loads(await ws.recv())["op"]
+
+    async def refused(offer: list[str] | None) -> int:
+        with pytest.raises(websockets.exceptions.InvalidStatus) as error:
+            await handshake(offer)
+        return error.value.response.status_code
+
+    bridge, port, _ = start_bridge(dds_env)
+    try:
+        assert asyncio.run(handshake([WEBSOCKET_V1, SDK_V1])) == (SDK_V1, "serverInfo")
+        assert asyncio.run(handshake([SDK_V1, WEBSOCKET_V1])) == (SDK_V1, "serverInfo")
+        assert asyncio.run(handshake([SDK_V1])) == (SDK_V1, "serverInfo")
+        # A viewer that knows only the old name (Lichtblick <= 1.21, Foxglove Studio 1.x)
+        assert asyncio.run(refused([WEBSOCKET_V1])) == 400
+        assert asyncio.run(refused(None)) == 400
+        assert bridge.poll() is None  # refused handshakes do not disturb the server
+        assert asyncio.run(handshake(SUBPROTOCOLS)) == (SDK_V1, "serverInfo")
+    finally:
+        stop(bridge)
 
 
 def test_a_scale_of_any_type_is_found_in_the_graph(tmp_path, dds_env):
