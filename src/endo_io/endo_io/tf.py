@@ -42,6 +42,9 @@ from endo_io.stamp import NS_PER_S
 from endo_io.topics import MARKER_FRAME, OPTICAL_FRAME, TF_STATIC, TRACKER_FRAME, WORLD_FRAME
 
 if TYPE_CHECKING:
+    from geometry_msgs.msg import TransformStamped
+    from rclpy.qos import QoSProfile
+
     from endo_io.bag.msgdef import MessageDefinition
     from endo_io.bag.writer import BagWriter
 
@@ -129,9 +132,42 @@ class StampedTransform:
             raise TransformError(f"transform {name}: rotation is not a unit quaternion")
 
 
-def camera_transform(T_world_camera: np.ndarray, stamp_ns: int) -> StampedTransform:
-    """``world → endoscope_optical_frame`` at ``stamp_ns``, the per-frame edge of ``/tf``."""
-    return StampedTransform.from_matrix(T_world_camera, stamp_ns, WORLD_FRAME, OPTICAL_FRAME)
+@dataclass(frozen=True)
+class FrameNames:
+    """The names of the frame tree's four frames (module docstring).
+
+    The defaults are :mod:`endo_io.topics`' REP 103 frames; a node whose
+    frame ids are parameters (the tracker bridge's ``world_frame``,
+    ``tracker_frame``, ``camera_frame``) passes its own, and the tree's
+    shape stays the one defined here.
+
+    Attributes:
+        world: root of the tree, the frame of ``/endoscope/pose``.
+        tracker: the optical tracker's frame.
+        camera: the camera's optical frame, the images' ``frame_id``.
+        marker: the marker (rigid body) on the endoscope.
+    """
+
+    world: str = WORLD_FRAME
+    tracker: str = TRACKER_FRAME
+    camera: str = OPTICAL_FRAME
+    marker: str = MARKER_FRAME
+
+
+def camera_transform(
+    T_world_camera: np.ndarray, stamp_ns: int, *, frames: FrameNames = FrameNames()
+) -> StampedTransform:
+    """``world → endoscope_optical_frame`` at ``stamp_ns``, the per-frame edge of ``/tf``.
+
+    Args:
+        T_world_camera: (4, 4) float64 camera optical frame → world, metres.
+        stamp_ns: integer nanoseconds, the camera pose's stamp.
+        frames: the frame names (``frames.world → frames.camera``).
+
+    Raises:
+        TransformError: see :meth:`StampedTransform.from_matrix`.
+    """
+    return StampedTransform.from_matrix(T_world_camera, stamp_ns, frames.world, frames.camera)
 
 
 def static_transforms(
@@ -139,6 +175,7 @@ def static_transforms(
     T_world_tracker: np.ndarray | None,
     T_marker_camera: np.ndarray | None,
     stamp_ns: int = 0,
+    frames: FrameNames = FrameNames(),
 ) -> list[StampedTransform]:
     """The static edges of ``/tf_static`` that are known.
 
@@ -149,6 +186,7 @@ def static_transforms(
             calibration), or None if unknown. Recorded as the edge
             ``endoscope_optical_frame → endoscope_marker`` (module docstring).
         stamp_ns: stamp of the static transforms (tf ignores it; 0 is usual).
+        frames: the frame names (``world``, ``tracker``, ``camera``, ``marker``).
 
     Returns:
         ``world → tracker`` and ``endoscope_optical_frame → endoscope_marker``,
@@ -157,14 +195,15 @@ def static_transforms(
     edges = []
     if T_world_tracker is not None:
         edges.append(
-            StampedTransform.from_matrix(T_world_tracker, stamp_ns, WORLD_FRAME, TRACKER_FRAME)
+            StampedTransform.from_matrix(T_world_tracker, stamp_ns, frames.world, frames.tracker)
         )
     if T_marker_camera is not None:
         T = np.asarray(T_marker_camera, dtype=np.float64)
         if T.shape != (4, 4) or not np.all(np.isfinite(T)):
             raise TransformError("T_marker_camera must be a finite (4, 4) matrix")
+        T_camera_marker = invert_transform(T)
         edges.append(
-            StampedTransform.from_matrix(invert_transform(T), stamp_ns, OPTICAL_FRAME, MARKER_FRAME)
+            StampedTransform.from_matrix(T_camera_marker, stamp_ns, frames.camera, frames.marker)
         )
     return edges
 
@@ -226,17 +265,49 @@ def serialize_tf_message(transforms: Sequence[StampedTransform]) -> bytes:
     return _CDR_LITTLE_ENDIAN_HEADER + bytes(body)
 
 
-def tf_qos_yaml(*, static: bool) -> str:
-    """Offered-QoS YAML of a tf publisher, as rosbag2 records it.
+def tf_qos(*, static: bool) -> QoSProfile:
+    """The QoS of tf2_ros's broadcasters, for a live ``/tf`` or ``/tf_static`` publisher.
 
-    tf2_ros's broadcasters: ``/tf`` reliable keep-last 100 volatile,
-    ``/tf_static`` reliable keep-last 1 transient-local (so a replay latches it).
+    ``/tf`` reliable keep-last 100 volatile, ``/tf_static`` reliable
+    keep-last 1 transient-local (a late listener still gets the static tree).
+    """
+    from endo_io.qos import reliable_qos  # rclpy: only where a profile is wanted
+
+    return reliable_qos(1, latched=True) if static else reliable_qos(100)
+
+
+def tf_qos_yaml(*, static: bool) -> str:
+    """Offered-QoS YAML of a tf publisher (:func:`tf_qos`), as rosbag2 records it.
+
+    ``/tf_static``'s transient-local durability makes a replay latch it.
     """
     from endo_io.bag.qos_yaml import qos_profiles_to_yaml  # rclpy QoS types
-    from endo_io.qos import reliable_qos
 
-    profile = reliable_qos(1, latched=True) if static else reliable_qos(100)
-    return qos_profiles_to_yaml([profile])
+    return qos_profiles_to_yaml([tf_qos(static=static)])
+
+
+def transform_stamped(edge: StampedTransform) -> TransformStamped:
+    """The ``geometry_msgs/msg/TransformStamped`` of one edge, as a tf broadcaster sends it.
+
+    ``header.frame_id`` is the parent, ``child_frame_id`` the child; the
+    stamp is ``edge.stamp_ns`` (sec, nanosec), translation in metres,
+    rotation the unit quaternion x, y, z, w. The values are copied as
+    float64, unchanged.
+
+    Raises:
+        TransformError: the edge fails :meth:`StampedTransform.check`.
+    """
+    from geometry_msgs.msg import TransformStamped  # the ROS message, only where one is built
+
+    edge.check()
+    msg = TransformStamped()
+    msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(edge.stamp_ns, NS_PER_S)
+    msg.header.frame_id = edge.parent_frame
+    msg.child_frame_id = edge.child_frame
+    t, q = msg.transform.translation, msg.transform.rotation
+    t.x, t.y, t.z = (float(v) for v in np.ravel(edge.translation))
+    q.x, q.y, q.z, q.w = (float(v) for v in np.ravel(edge.rotation))
+    return msg
 
 
 def add_tf_topic(writer: BagWriter, topic: str) -> None:
@@ -279,6 +350,7 @@ def write_tf(
 __all__ = [
     "TF_MESSAGE_MSG_TEXT",
     "TF_MESSAGE_TYPE",
+    "FrameNames",
     "StampedTransform",
     "TransformError",
     "add_tf_topic",
@@ -286,6 +358,8 @@ __all__ = [
     "serialize_tf_message",
     "static_transforms",
     "tf_message_definition",
+    "tf_qos",
     "tf_qos_yaml",
+    "transform_stamped",
     "write_tf",
 ]

@@ -12,6 +12,14 @@ twice (names from :mod:`endo_io.topics`):
   T_marker_camera, frame ``world``, stamped at the tracker stamp minus the
   calibrated time offset (camera clock).
 
+With ``publish_tf`` (default on) and where ``tf2_msgs`` is importable (a full
+ROS install), the same transforms go out as tf2 does (:mod:`endo_io.tf_broadcast`,
+the frame tree of :mod:`endo_io.tf`): ``/tf`` world → ``camera_frame`` at
+each camera pose's stamp, ``/tf_static`` (transient local) world → tracker
+and ``camera_frame`` → marker, sent at start and after each change of the
+transform, the hand–eye file or a frame name. Pip-only, one info line says
+where the transforms are served instead.
+
 An input topic equal to one of these outputs is refused at start-up (one
 line, exit code 2) and as a run-time change: the bridge would read its own
 poses. Every parameter can be changed at run time and the change takes
@@ -51,6 +59,8 @@ from endo_io.parameters import NodeParameters, ParameterSpec
 from endo_io.pose import matrix_to_pose
 from endo_io.process import run_node
 from endo_io.qos import SENSOR_DATA_QOS, create_reliable_publisher
+from endo_io.tf import FrameNames, StampedTransform, camera_transform, static_transforms
+from endo_io.tf_broadcast import TfBroadcaster
 from endo_tracker_bridge.chain import CameraPoseChain
 from endo_tracker_bridge.conventions import LengthUnit
 from endo_tracker_bridge.errors import TrackerSourceError
@@ -84,6 +94,16 @@ PARAMETERS: tuple[ParameterSpec, ...] = (
     ),
     ParameterSpec("world_frame", topics.WORLD_FRAME, f"frame_id of {topics.CAMERA_POSE}"),
     ParameterSpec("tracker_frame", topics.TRACKER_FRAME, f"frame_id of {topics.MARKER_POSE}"),
+    ParameterSpec(
+        "publish_tf", True,
+        f"broadcast {topics.TF} (world → camera_frame at each camera pose) and "
+        f"{topics.TF_STATIC} (world → tracker, camera_frame → marker) as tf2_msgs/TFMessage; "
+        "needs tf2_msgs (a full ROS install), else one info line and nothing is sent",
+    ),
+    ParameterSpec(
+        "camera_frame", topics.OPTICAL_FRAME,
+        f"child frame of the camera's {topics.TF} transform: the images' frame_id",
+    ),
     ParameterSpec(
         "max_speed_m_s", 2.0, "reject a marker moving faster than this (m/s)",
         range=(0.001, 1000.0),
@@ -154,6 +174,12 @@ PARAMETERS: tuple[ParameterSpec, ...] = (
     *HEALTH_PARAMETERS,
 )
 
+#: Parameters whose change re-sends /tf_static (or starts/stops the broadcaster).
+TF_PARAMETERS = frozenset(
+    {"publish_tf", "T_world_tracker", "handeye_file", "world_frame", "tracker_frame",
+     "camera_frame"}
+)
+
 #: Parameters whose change restarts the source with the new values.
 SOURCE_PARAMETERS = frozenset(
     {"source", "tool_id", "rotation_tolerance"}
@@ -176,6 +202,13 @@ def _speed_limits(values: Mapping[str, Any]) -> SpeedLimits:
     return SpeedLimits(values["max_speed_m_s"], values["max_angular_speed_deg_s"])
 
 
+def _frame_names(values: Mapping[str, Any]) -> FrameNames:
+    """The frame tree's names from the parameters (the marker keeps its REP 103 name)."""
+    return FrameNames(
+        world=values["world_frame"], tracker=values["tracker_frame"], camera=values["camera_frame"]
+    )
+
+
 class TrackerBridgeNode(Node):
     """Reads one tracker source and publishes the marker and camera poses."""
 
@@ -194,12 +227,16 @@ class TrackerBridgeNode(Node):
         self._input_name = ""
         self._marker_publisher = create_reliable_publisher(self, PoseStamped, topics.MARKER_POSE)
         self._camera_publisher = create_reliable_publisher(self, PoseStamped, topics.CAMERA_POSE)
+        self._tf: TfBroadcaster | None = None
+        self._frames = _frame_names(p)
         self._source: BackgroundSource | None = None
         self._subscription: Subscription | None = None
         self._wake: GuardCondition | None = None
         self._guarded_item = self._health.guard(self._process_item)
         source = self._build_source(p)  # refuses a configuration that cannot work first
         self._report_handeye(p["handeye_file"])
+        self._apply_tf(p["publish_tf"], self._static_edges(p, self._chain.T_world_tracker,
+                                                           self._chain.calibration))
         self._run_source(p, source)
         self.parameters.on_change(self._apply_parameters)
 
@@ -226,12 +263,17 @@ class TrackerBridgeNode(Node):
         if "handeye_file" in changes:
             calibration = self._load_handeye(values["handeye_file"])
         restart = bool(changes.keys() & SOURCE_PARAMETERS)
+        tf_change = bool(changes.keys() & TF_PARAMETERS)
+        static = self._static_edges(values, T_world_tracker, calibration) if tf_change else []
         source = self._build_source(values) if restart else None
         chain.T_world_tracker = T_world_tracker
         chain.gate.limits = _speed_limits(values)
         if calibration is not chain.calibration:
             chain.calibration = calibration
             self._report_handeye(values["handeye_file"])
+        if tf_change:
+            self._frames = _frame_names(values)
+            self._apply_tf(values["publish_tf"], static)
         if restart:
             self._stop_source()
             chain.reset()  # the new source's stamps start their own history
@@ -258,6 +300,55 @@ class TrackerBridgeNode(Node):
                 f"no handeye_file: {topics.CAMERA_POSE} is the marker pose "
                 "(T_marker_camera = identity, no time offset)"
             )
+
+    # -- transforms ---------------------------------------------------------------
+
+    def _static_edges(
+        self,
+        values: Mapping[str, Any],
+        T_world_tracker: np.ndarray,
+        calibration: HandEyeCalibration,
+    ) -> list[StampedTransform]:
+        """The /tf_static edges for these values; checks the frame names too.
+
+        Returns an empty list when ``publish_tf`` is off.
+
+        Raises:
+            TransformError: an empty frame name, or a frame that would be its
+                own parent (e.g. ``camera_frame`` equal to ``world_frame``).
+        """
+        if not values["publish_tf"]:
+            return []
+        frames = _frame_names(values)
+        camera_transform(np.eye(4), 0, frames=frames)  # world → camera must be a valid edge
+        return static_transforms(
+            T_world_tracker=T_world_tracker,
+            T_marker_camera=calibration.T_marker_camera,
+            stamp_ns=self.get_clock().now().nanoseconds,
+            frames=frames,
+        )
+
+    def _apply_tf(self, publish: bool, static: list[StampedTransform]) -> None:
+        """Start or stop the broadcaster and send the static edges."""
+        if publish and self._tf is None:
+            self._tf = TfBroadcaster(self)
+        elif not publish and self._tf is not None:
+            self._tf.close()
+            self._tf = None
+        if self._tf is None:
+            state = "off"
+        elif self._tf.available:
+            state = f"{topics.TF} and {topics.TF_STATIC}"
+        else:
+            state = "not published (no tf2_msgs)"
+        self._health.set_value("tf", state)
+        if self._tf is not None:
+            self._tf.send_static(static)
+
+    @property
+    def tf_broadcaster(self) -> TfBroadcaster | None:
+        """The /tf broadcaster (None when ``publish_tf`` is off)."""
+        return self._tf
 
     def _check_input_topic(self, topic: str) -> str:
         """The resolved input topic; refused when it is one of the bridge's own outputs.
@@ -408,6 +499,11 @@ class TrackerBridgeNode(Node):
                 f"{pose.clock_jump.describe(f'tool {sample.tool_id!r} time')}; its history "
                 "was reset"
             )
+        tf = self._tf if self._tf is not None and self._tf.available else None
+        # Built first: an edge tf cannot carry drops the sample before anything is published.
+        camera_edge = None
+        if tf is not None:
+            camera_edge = camera_transform(pose.T_world_camera, pose.stamp_ns, frames=self._frames)
         tracker_frame = self.parameters["tracker_frame"]
         self._marker_publisher.publish(
             matrix_to_pose(sample.T_tracker_marker, sample.stamp_ns, tracker_frame)
@@ -415,10 +511,15 @@ class TrackerBridgeNode(Node):
         self._camera_publisher.publish(
             matrix_to_pose(pose.T_world_camera, pose.stamp_ns, self.parameters["world_frame"])
         )
+        if tf is not None and camera_edge is not None:
+            tf.send([camera_edge])
 
     def close(self) -> None:
         """Stop the source's thread (called by run_node on shutdown)."""
         self._stop_source()
+        if self._tf is not None:
+            self._tf.close()
+            self._tf = None
 
 
 def main(args: Sequence[str] | None = None) -> int:
