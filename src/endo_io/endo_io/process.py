@@ -3,8 +3,10 @@
 Every console script of a node calls :func:`run_node`. It logs the DDS
 settings the process actually got (domain, discovery range, RMW), warns when
 discovery is not restricted (the default Fast DDS discovery multicasts on
-every interface), and turns SIGINT and SIGTERM into an orderly shutdown so
-that nodes holding files (the recorder) can finalise them.
+every interface), gives the process Fast DDS's large-frame transport before
+``rclpy.init`` unless the user chose one (:mod:`endo_io.dds_transport`), and
+turns SIGINT and SIGTERM into an orderly shutdown so that nodes holding
+files (the recorder) can finalise them.
 """
 
 from __future__ import annotations
@@ -22,6 +24,7 @@ from rclpy.node import Node
 from rclpy.utilities import get_rmw_implementation_identifier
 
 from endo_io.cli import report_error
+from endo_io.dds_transport import TransportChoice, configure_large_frames
 from endo_io.errors import Endo3dError, ParameterValidationError
 
 
@@ -33,11 +36,28 @@ class DdsEnvironment:
     discovery_range: str
     static_peers: str
     rmw_implementation: str
+    transport: str = ""
 
     @property
     def loopback_only(self) -> bool:
         """True when discovery cannot leave this machine."""
         return self.discovery_range in ("LOCALHOST", "OFF")
+
+
+#: What :func:`prepare_transport` chose for this process (None before it ran).
+_transport: TransportChoice | None = None
+
+
+def prepare_transport() -> TransportChoice:
+    """Configure this process's Fast DDS transport; call before ``rclpy.init``.
+
+    The first call decides (see :func:`endo_io.dds_transport.configure_large_frames`);
+    later calls return that choice.
+    """
+    global _transport
+    if _transport is None:
+        _transport = configure_large_frames()
+    return _transport
 
 
 def dds_environment(node: Node) -> DdsEnvironment:
@@ -47,6 +67,7 @@ def dds_environment(node: Node) -> DdsEnvironment:
         discovery_range=os.environ.get("ROS_AUTOMATIC_DISCOVERY_RANGE", "SYSTEM_DEFAULT"),
         static_peers=os.environ.get("ROS_STATIC_PEERS", ""),
         rmw_implementation=get_rmw_implementation_identifier(),
+        transport=_transport.description if _transport is not None else "",
     )
 
 
@@ -56,6 +77,7 @@ def log_dds_environment(node: Node) -> DdsEnvironment:
     text = (
         f"DDS: domain {env.domain_id}, discovery range {env.discovery_range}, "
         f"rmw {env.rmw_implementation}"
+        + (f"; {env.transport}" if env.transport else "")
     )
     if env.loopback_only:
         node.get_logger().info(text)
@@ -111,6 +133,7 @@ def describing_only() -> bool:
 def print_node_help(factory: Callable[[], Node], argv: Sequence[str]) -> int:
     """``--help`` of a node executable: create the node once, print its parameters."""
     program = Path(argv[0]).name if argv else "node"
+    prepare_transport()
     rclpy.init(args=[program])
     try:
         token = _describing.set(True)
@@ -151,6 +174,7 @@ def run_node(factory: Callable[[], Node], args: Sequence[str] | None = None) -> 
     program = Path(argv[0]).name if argv else "node"
     # rclpy's default signal handlers cover SIGINT and SIGTERM: both shut the
     # context down, spin() returns, and the node's close() still runs below.
+    prepare_transport()
     rclpy.init(args=argv)
     node: Node | None = None
     try:
