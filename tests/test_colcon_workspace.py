@@ -101,3 +101,7 @@ def test_colcon_builds_every_package_with_its_console_scripts(tmp_path):
         assert (prefix / "share" / name / "package.xml").is_file()
         for script in _console_scripts(ROOT / "src" / name / "setup.py"):
             assert (prefix / "lib" / name / script).is_file(), f"{name}: ros2 run needs {script}"
+    # `ros2 launch endo_bringup endo3d.launch.py` and its default parameter file
+    share = tmp_path / "install" / "endo_bringup" / "share" / "endo_bringup"
+    assert (share / "launch" / "endo3d.launch.py").is_file()
+    assert (share / "config" / "endo3d.yaml").is_file()

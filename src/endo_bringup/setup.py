@@ -9,6 +9,9 @@ setup(
     data_files=[
         ("share/ament_index/resource_index/packages", ["resource/" + PACKAGE]),
         ("share/" + PACKAGE, ["package.xml"]),
+        # `ros2 launch endo_bringup endo3d.launch.py` and its default parameter file
+        ("share/" + PACKAGE + "/launch", ["launch/endo3d.launch.py"]),
+        ("share/" + PACKAGE + "/config", ["config/endo3d.yaml"]),
     ],
     install_requires=["setuptools"],
     zip_safe=True,
@@ -21,6 +24,7 @@ setup(
         "console_scripts": [
             "endo-doctor = endo_bringup.doctor:main",
             "endo-demo = endo_bringup.demo:main",
+            "endo-launch = endo_bringup.launcher:main",
         ],
     },
 )

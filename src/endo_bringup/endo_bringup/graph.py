@@ -144,7 +144,10 @@ class GraphProcess:
     topic is the one whose every message gives one output message).
     per_frame: the published topics that carry one message per message of
     the first input (None: all of them); the others (flow's depth and cloud
-    before the scale converged, its periodic map) carry fewer.
+    before the scale converged, its periodic map) carry fewer. package and
+    node_name: the ROS package of the executable and the ROS node it runs
+    (the key of its section in a parameter file; empty for the tools);
+    params_file: a ROS parameter file given before the ``-p`` overrides.
     """
 
     name: str
@@ -155,6 +158,9 @@ class GraphProcess:
     subscribes: tuple[str, ...] = ()
     publishes: tuple[str, ...] = ()
     per_frame: tuple[str, ...] | None = None
+    package: str = ""
+    node_name: str = ""
+    params_file: str = ""
 
     @property
     def per_frame_outputs(self) -> tuple[str, ...]:
@@ -164,13 +170,87 @@ class GraphProcess:
     def command(self) -> list[str]:
         """The command line: executable, arguments, then the ``--ros-args`` block."""
         argv = [console_script(self.executable), *self.arguments]
-        if self.parameters or self.remaps:
+        if self.parameters or self.remaps or self.params_file:
             argv.append("--ros-args")
+            if self.params_file:
+                argv += ["--params-file", self.params_file]
             for name, value in self.parameters.items():
                 argv += ["-p", f"{name}:={value}"]
             for source, target in self.remaps.items():
                 argv += ["-r", f"{source}:={target}"]
         return argv
+
+
+#: The graph's nodes, upstream first: process name, ROS package, ROS node
+#: name, the topics each reads (the first one paces its outputs) and writes.
+NODES: tuple[GraphProcess, ...] = (
+    GraphProcess(
+        "endo-photometric-correction",
+        "endo-photometric-correction",
+        package="endo_calib",
+        node_name="photometric_correction",
+        subscribes=(IMAGE_RAW,),
+        publishes=(IMAGE_CORRECTED,),
+    ),
+    GraphProcess(
+        "endo-sfs",
+        "endo-sfs",
+        package="endo_sfs",
+        node_name="sfs",
+        subscribes=(IMAGE_CORRECTED, CAMERA_INFO),
+        publishes=(DEPTH_RELATIVE,),
+    ),
+    GraphProcess(
+        "endo-tracker-bridge",
+        "endo-tracker-bridge",
+        package="endo_tracker_bridge",
+        node_name="tracker_bridge",
+        subscribes=(TRACKER_POSE,),
+        publishes=(CAMERA_POSE, MARKER_POSE),
+    ),
+    GraphProcess(
+        "endo-flow",
+        "endo-flow",
+        package="endo_flow",
+        node_name="flow",
+        subscribes=(DEPTH_RELATIVE, IMAGE_CORRECTED, CAMERA_INFO, CAMERA_POSE),
+        publishes=(SCALE, DEPTH, POINTS, MAP),
+        per_frame=(SCALE,),
+    ),
+)
+
+
+def graph_nodes(
+    parameters: Mapping[str, Mapping[str, str]] | None = None,
+    *,
+    params_file: str = "",
+    remaps: Mapping[str, str] | None = None,
+) -> list[GraphProcess]:
+    """The rows of :data:`NODES` with their settings.
+
+    Args:
+        parameters: process name -> ROS parameters (``-p NAME:=VALUE``, values
+            as typed) of that node.
+        params_file: a ROS parameter file every node gets (``--params-file``).
+        remaps: ROS remappings every node gets; a remapped topic is also
+            renamed in the row's subscribes and publishes.
+    """
+    given = parameters or {}
+    rules = dict(remaps or {})
+    return [
+        replace(
+            node,
+            parameters=dict(given.get(node.name, {})),
+            params_file=params_file,
+            remaps=rules,
+            subscribes=tuple(rules.get(t, t) for t in node.subscribes),
+            publishes=tuple(rules.get(t, t) for t in node.publishes),
+            per_frame=None
+            if node.per_frame is None
+            else tuple(rules.get(t, t) for t in node.per_frame),
+        )
+        for node in NODES
+    ]
 
 
 def recorder_process(topics: Sequence[str], output: Path) -> GraphProcess:
@@ -243,55 +323,23 @@ def graph_processes(
         recording: where the recorder writes the nodes' outputs and the truth.
         settings: the nodes' parameters and the playback rate.
     """
-    nodes = [
-        GraphProcess(
-            "endo-photometric-correction",
-            "endo-photometric-correction",
-            parameters={"calibration_file": str(photometric)},
-            remaps={"image_raw": IMAGE_RAW, "image_corrected": IMAGE_CORRECTED},
-            subscribes=(IMAGE_RAW,),
-            publishes=(IMAGE_CORRECTED,),
-        ),
-        GraphProcess(
-            "endo-sfs",
-            "endo-sfs",
-            parameters={
-                "model": settings.model,
-                "roughness": repr(float(settings.roughness)),
-                "solve_scale": repr(float(settings.solve_scale)),
-            },
-            remaps={
-                "image_corrected": IMAGE_CORRECTED,
-                "camera_info": CAMERA_INFO,
-                "depth_relative": DEPTH_RELATIVE,
-            },
-            subscribes=(IMAGE_CORRECTED, CAMERA_INFO),
-            publishes=(DEPTH_RELATIVE,),
-        ),
-        GraphProcess(
-            "endo-tracker-bridge",
-            "endo-tracker-bridge",
-            parameters={
-                "source": "ros",
-                "handeye_file": str(handeye),
-                "T_world_tracker": _float_list(settings.T_world_tracker),
-            },
-            subscribes=(TRACKER_POSE,),
-            publishes=(CAMERA_POSE, MARKER_POSE),
-        ),
-        GraphProcess(
-            "endo-flow",
-            "endo-flow",
-            subscribes=(DEPTH_RELATIVE, IMAGE_CORRECTED, CAMERA_INFO, CAMERA_POSE),
-            publishes=(SCALE, DEPTH, POINTS, MAP),
-            per_frame=(SCALE,),
-        ),
-    ]
-    nodes = [
-        replace(node, parameters={**node.parameters, **settings.node_parameters[node.name]})
-        if node.name in settings.node_parameters else node
-        for node in nodes
-    ]
+    rows: dict[str, Mapping[str, str]] = {
+        "endo-photometric-correction": {"calibration_file": str(photometric)},
+        "endo-sfs": {
+            "model": settings.model,
+            "roughness": repr(float(settings.roughness)),
+            "solve_scale": repr(float(settings.solve_scale)),
+        },
+        "endo-tracker-bridge": {
+            "source": "ros",
+            "handeye_file": str(handeye),
+            "T_world_tracker": _float_list(settings.T_world_tracker),
+        },
+    }
+    nodes = graph_nodes({
+        name: {**rows.get(name, {}), **settings.node_parameters.get(name, {})}
+        for name in {*rows, *settings.node_parameters}
+    })
     recorded = [*node_outputs(nodes), CAMERA_INFO, TRUE_DEPTH, TRUE_CAMERA_POSE]
     return [
         recorder_process(recorded, recording),

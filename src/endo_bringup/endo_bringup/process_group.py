@@ -1,9 +1,10 @@
-"""The demo's child processes: each with its own log file, all stopped in the end.
+"""The graph's child processes: each with its own log file, all stopped in the end.
 
-:class:`ProcessGroup` is a context manager. Leaving it, by any path
-(success, an exception, Ctrl-C), sends SIGINT to every child that still runs,
-waits for them together, and kills (SIGKILL) those that have not exited
-after the grace period, so no node outlives the demo.
+Used by ``endo-demo`` and ``endo-launch``. :class:`ProcessGroup` is a
+context manager. Leaving it, by any path (success, an exception, Ctrl-C),
+sends SIGINT to every child that still runs, waits for them together, and
+kills (SIGKILL) those that have not exited after the grace period, so no
+node outlives the run.
 """
 
 from __future__ import annotations
@@ -12,9 +13,15 @@ import shutil
 import signal
 import subprocess
 import sys
+import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
 from types import TracebackType
+from typing import IO
+
+#: ``echo(name, line)``: called with each line a child writes (newline stripped).
+Echo = Callable[[str, str], None]
 
 
 class ProcessGroup:
@@ -30,6 +37,7 @@ class ProcessGroup:
         self.grace_s = grace_s
         self.processes: dict[str, subprocess.Popen[bytes]] = {}
         self.return_codes: dict[str, int | None] = {}
+        self._readers: dict[str, threading.Thread] = {}
         log_dir.mkdir(parents=True, exist_ok=True)
 
     def log_path(self, name: str) -> Path:
@@ -41,14 +49,59 @@ class ProcessGroup:
         path = self.log_path(name)
         return path.read_text(errors="replace") if path.exists() else ""
 
-    def start(self, name: str, argv: list[str]) -> subprocess.Popen[bytes]:
-        """Start ``argv`` as child ``name``."""
-        with self.log_path(name).open("wb") as log:
-            log.write(("$ " + " ".join(argv) + "\n").encode())
-            log.flush()
-            process = subprocess.Popen(argv, env=self.env, stdout=log, stderr=subprocess.STDOUT)
+    def start(
+        self,
+        name: str,
+        argv: list[str],
+        *,
+        echo: Echo | None = None,
+        new_session: bool = False,
+    ) -> subprocess.Popen[bytes]:
+        """Start ``argv`` as child ``name`` (again, when a child of that name has exited).
+
+        Args:
+            name: the child's name (its log file, its return code).
+            argv: the command line.
+            echo: also hand every line of its output to ``echo`` (from a
+                reader thread), besides writing it to the log file. A restart
+                appends to the log.
+            new_session: start it in a session of its own, so that a terminal's
+                Ctrl-C reaches only this process, which forwards it.
+        """
+        previous = self.processes.get(name)
+        if previous is not None and previous.poll() is None:
+            raise RuntimeError(f"{name} is still running")
+        self.return_codes.pop(name, None)
+        mode = "ab" if previous is not None else "wb"
+        log = self.log_path(name).open(mode)
+        log.write(("$ " + " ".join(argv) + "\n").encode())
+        log.flush()
+        if echo is None:
+            with log:
+                process = subprocess.Popen(
+                    argv, env=self.env, stdout=log, stderr=subprocess.STDOUT,
+                    start_new_session=new_session,
+                )  # fmt: skip
+        else:
+            process = subprocess.Popen(
+                argv, env=self.env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                start_new_session=new_session,
+            )  # fmt: skip
+            thread = threading.Thread(
+                target=_copy_lines, args=(process, log, name, echo), daemon=True,
+                name=f"log {name}",
+            )  # fmt: skip
+            thread.start()
+            self._readers[name] = thread
         self.processes[name] = process
         return process
+
+    def tail(self, name: str, lines: int = 10) -> list[str]:
+        """The last ``lines`` lines child ``name`` wrote (its log file's end)."""
+        reader = self._readers.get(name)
+        if reader is not None:
+            reader.join(timeout=1.0)  # the output of a child that exited, to its end
+        return self.log(name).splitlines()[-lines:]
 
     def running(self, name: str) -> bool:
         """True while child ``name`` has not exited."""
@@ -94,6 +147,16 @@ class ProcessGroup:
                 if process.poll() is None:
                     process.kill()
                     process.wait()
+
+
+def _copy_lines(process: subprocess.Popen[bytes], log: IO[bytes], name: str, echo: Echo) -> None:
+    """Copy a child's output to its log file and to ``echo``, line by line, until it closes."""
+    assert process.stdout is not None
+    with log:
+        for raw in process.stdout:
+            log.write(raw)
+            log.flush()
+            echo(name, raw.decode(errors="replace").rstrip("\n"))
 
 
 def console_script(name: str) -> str:

@@ -1,0 +1,1 @@
+../src/endo_bringup/launch/endo3d.launch.py
