@@ -62,10 +62,11 @@ def build_parser() -> argparse.ArgumentParser:
                         help="camera YAML (camera_calibration format) instead of the topic")
     parser.add_argument("--ply", type=Path, help="write the fused map as PLY")
     parser.add_argument("--jobs", type=int, default=2,
-                        help="worker processes for correction + SFS (default 2; 1: one chain "
-                        "in this process)")
+                        help="processes (default 2: correction + SFS in a second process, "
+                        "pipelined with flow and writing in this one; 1: all in this process; "
+                        "N > 2: N-1 SFS workers on chunks of --chunk-frames)")
     parser.add_argument("--chunk-frames", type=int, default=32,
-                        help="consecutive frames per worker chunk with --jobs > 1")
+                        help="consecutive frames per worker chunk with --jobs > 2")
     parser.add_argument("--compression", choices=("zstd", "lz4", "none"), default="lz4",
                         help="output chunk compression (default lz4: fast)")
     parser.add_argument("--report", type=Path,

@@ -2,8 +2,15 @@
 
 A real rig records the camera driver's ``/endoscope/image_raw`` with its
 ``/endoscope/camera_info`` and the tracker driver's PoseStamped marker poses
-on ``/tracker/pose``; endo_sim's bags add ``/ground_truth/*``. Images are
-streamed (one at a time), everything else is small and read up front.
+on ``/tracker/pose``; endo_sim's bags add ``/ground_truth/*``. Every stream
+is read lazily, each by a reader of its own, as far as the frame being
+processed needs: memory does not grow with the recording's length (an hour
+of tracker poses and camera_infos held as messages took ~1 GB;
+docs/benchmarks.md, "endo-process").
+
+An image pairs with the newest camera_info stamped at or before it
+(:class:`CameraInfoPairing`): the same message when the driver stamps both
+alike, and a driver that stamps its camera_info on its own clock works too.
 
 A truncated or damaged bag yields every intact message, then
 :class:`endo_io.bag.BagCorruptError`; each reader here stops at the damage
@@ -14,8 +21,9 @@ the run processes everything up to the cut and says so.
 from __future__ import annotations
 
 from collections.abc import Iterator
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 from geometry_msgs.msg import PoseStamped
 from sensor_msgs.msg import CameraInfo, Image
@@ -46,24 +54,21 @@ class RecordingInputs:
 
     Attributes:
         path: the bag.
+        topics: the input topic names.
         frame_count: messages on the image topic (the intact part).
-        camera_infos: header stamp (ns) -> CameraInfo, empty with ``--camera-info``.
         fixed_camera: the ``--camera-info`` model, used for every frame, or None.
-        tracker_poses: the tracker topic's PoseStamped messages in log order.
         ground_truth: the ``/ground_truth/*`` topics (name -> type).
         time_range_ns: (first, last) log time of the bag.
         damage: one-line description of the first damage met, or None.
     """
 
     path: Path
+    topics: InputTopics
     frame_count: int
-    camera_infos: dict[int, CameraInfo]
     fixed_camera: CameraModel | None
-    tracker_poses: list[PoseStamped]
     ground_truth: dict[str, str]
     time_range_ns: tuple[int, int]
     damage: str | None = None
-    _models: dict[int, CameraModel] = field(default_factory=dict, repr=False)
 
 
 def _read(
@@ -80,7 +85,7 @@ def _read(
 def open_recording(
     path: Path, names: InputTopics, camera_info_yaml: Path | None = None
 ) -> RecordingInputs:
-    """Check that the recording has what the run needs and read its small streams.
+    """Check that the recording has what the run needs (its streams are read later, lazily).
 
     Raises:
         MissingTopicError: no image or no tracker message (naming the topic
@@ -106,12 +111,11 @@ def open_recording(
                 f"{path}: no messages on {names.camera_info} and no --camera-info YAML given"
             )
         span = reader.time_range_ns or (0, 0)
-        inputs = RecordingInputs(
+        return RecordingInputs(
             path=Path(path),
+            topics=names,
             frame_count=available[names.image],
-            camera_infos={},
             fixed_camera=fixed,
-            tracker_poses=[],
             ground_truth={
                 name: info.msgtype
                 for name, info in reader.topics.items()
@@ -120,45 +124,84 @@ def open_recording(
             time_range_ns=span,
             damage=reader.damage,
         )
-        wanted = [names.tracker] + ([names.camera_info] if fixed is None else [])
-        for message in _read(reader, wanted, inputs):
-            msg = deserialize(message)
-            if message.topic == names.tracker:
-                inputs.tracker_poses.append(msg)
-            else:
-                inputs.camera_infos[stamp_to_ns(msg.header.stamp)] = msg
-    return inputs
 
 
-def camera_at(inputs: RecordingInputs, stamp_ns: int) -> CameraModel | None:
-    """The camera model of the frame at ``stamp_ns`` (the SFS node pairs by exact stamp).
-
-    Returns the ``--camera-info`` model, else the model of the camera_info
-    with this stamp, else None. Models are cached per distinct CameraInfo.
-    Raises CameraModelError for a camera_info that gives no model.
-    """
-    if inputs.fixed_camera is not None:
-        return inputs.fixed_camera
-    info = inputs.camera_infos.get(stamp_ns)
-    if info is None:
-        return None
-    key = id(info)
-    model = inputs._models.get(key)
-    if model is None:
-        model = CameraModel.from_camera_info(info)
-        for known in inputs._models.values():
-            if known == model:
-                model = known  # one model (and one ray table) per distinct camera
-                break
-        inputs._models[key] = model
-    return model
-
-
-def iter_images(inputs: RecordingInputs, topic: str) -> Iterator[Image]:
-    """The image topic's messages in log order, decoded one at a time."""
+def _iter_decoded(inputs: RecordingInputs, topic: str) -> Iterator[Any]:
     with BagReader(inputs.path) as reader:
         for message in _read(reader, [topic], inputs):
             yield deserialize(message)
+
+
+def iter_tracker_poses(inputs: RecordingInputs) -> Iterator[PoseStamped]:
+    """The tracker topic's PoseStamped messages in log (arrival) order, one at a time."""
+    return _iter_decoded(inputs, inputs.topics.tracker)
+
+
+def _camera_key(info: CameraInfo) -> tuple[Any, ...]:
+    """What makes two camera_infos the same camera (everything but the header)."""
+    roi = info.roi
+    return (info.width, info.height, info.distortion_model, tuple(info.d), tuple(info.k),
+            tuple(info.r), tuple(info.p), info.binning_x, info.binning_y,
+            roi.x_offset, roi.y_offset, roi.width, roi.height, roi.do_rectify)  # fmt: skip
+
+
+class CameraInfoPairing:
+    """The camera of each image: the newest camera_info stamped at or before it.
+
+    The camera_info stream is read by a reader of its own, only as far as
+    the image being paired (a camera_info logged after its image is found
+    too). With ``--camera-info`` the one model serves every frame. Models
+    are built once per distinct camera (header aside), so every frame of
+    one camera shares one model and its ray tables.
+
+    Args:
+        inputs: the recording.
+    """
+
+    def __init__(self, inputs: RecordingInputs) -> None:
+        self._fixed = inputs.fixed_camera
+        self._stream: Iterator[CameraInfo] = (
+            iter(()) if self._fixed is not None
+            else _iter_decoded(inputs, inputs.topics.camera_info)
+        )  # fmt: skip
+        self._next: CameraInfo | None = None
+        self._current: CameraInfo | None = None
+        self._model: CameraModel | None = None
+        self._key: tuple[Any, ...] | None = None
+
+    def _peek(self) -> CameraInfo | None:
+        if self._next is None:
+            self._next = next(self._stream, None)
+        return self._next
+
+    def at(self, stamp_ns: int) -> tuple[CameraModel, CameraInfo | None] | None:
+        """(model, camera_info) of the image at ``stamp_ns``; None if none is at or before it.
+
+        The camera_info is None with ``--camera-info``. Stamps are expected
+        in order, as images come.
+
+        Raises:
+            CameraModelError: the camera_info gives no usable model.
+        """
+        if self._fixed is not None:
+            return self._fixed, None
+        while (candidate := self._peek()) is not None and stamp_to_ns(
+            candidate.header.stamp
+        ) <= stamp_ns:
+            self._current, self._next = candidate, None
+        current = self._current
+        if current is None or stamp_to_ns(current.header.stamp) > stamp_ns:
+            return None
+        key = _camera_key(current)
+        if key != self._key or self._model is None:
+            self._model = CameraModel.from_camera_info(current)  # may raise: nothing changes
+            self._key = key
+        return self._model, current
+
+
+def iter_images(inputs: RecordingInputs) -> Iterator[Image]:
+    """The image topic's messages in log order, decoded one at a time."""
+    return _iter_decoded(inputs, inputs.topics.image)
 
 
 def iter_ground_truth(inputs: RecordingInputs) -> Iterator[BagMessage]:

@@ -20,10 +20,15 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from endo_io.bag import BagMessage, BagWriter, TopicInfo
 from endo_io.bag.serde import msgtype_of, serialize
+from endo_io.image import array_to_image_cdr
 from endo_io.tf import StampedTransform, TransformError, add_tf_topic, serialize_tf_message
 
+#: The ROS type of the image topics.
+IMAGE_TYPE = "sensor_msgs/msg/Image"
 #: Flush the writer (close the current chunk) every this many frames.
 DEFAULT_FLUSH_EVERY = 30
 
@@ -103,6 +108,21 @@ class OutputBag:
         """Write one frame output now, after every held message that is not later."""
         self.release(log_time_ns)
         self.writer.write_message(topic, message, log_time_ns)
+        self.counts[topic] += 1
+
+    def write_image(
+        self, topic: str, array: np.ndarray, encoding: str, stamp_ns: int, frame_id: str
+    ) -> None:
+        """Write one ``sensor_msgs/Image`` now, encoded straight from ``array``.
+
+        The bytes are those of ``array_to_image`` serialised
+        (:func:`endo_io.image.array_to_image_cdr`), built with one copy of
+        the pixels instead of five.
+        """
+        if topic not in self.counts:
+            self.writer.add_topic(topic, IMAGE_TYPE)
+        self.release(stamp_ns)
+        self.writer.write(topic, array_to_image_cdr(array, encoding, stamp_ns, frame_id), stamp_ns)
         self.counts[topic] += 1
 
     def flush(self) -> None:

@@ -2,19 +2,30 @@
 
 Shape from shading is the cost of a run, and each frame's solve is seeded by
 the previous frame's solution, so frames cannot simply be handed out one by
-one. With ``jobs`` > 1 the recording is cut into chunks of ``chunk_frames``
-consecutive frames; chunk ``c`` goes to worker process ``c mod jobs``, which
-solves its frames in order, warm-started within the chunk and cold at the
-chunk's first frame. Results come back in frame order. The warm start only
-changes where the solver starts, not what it converges to, so the depth
-agrees with a single chain to the solver's tolerance (tested).
+one. ``jobs`` counts processes, the calling one included:
 
-With ``jobs`` == 1 everything runs in the calling process, as one chain (the
-SFS node's own ``threads`` parameter then decides how many threads a solve
-uses). With ``jobs`` > 1 each worker solves with one thread: the cores are
-taken by the workers.
+* ``jobs`` == 1: everything runs in the calling process, as one chain (the
+  SFS node's own ``threads`` parameter decides how many threads a solve uses).
+* ``jobs`` == 2: one worker process corrects and solves every frame in order,
+  one unbroken warm-started chain as with 1, while the calling process reads,
+  runs the flow step and writes: a two-stage pipeline, one stage per core,
+  and the same chain of solves as ``jobs`` == 1.
+* ``jobs`` == N > 2: N − 1 workers; the recording is cut into chunks of
+  ``chunk_frames`` consecutive frames, chunk ``c`` goes to worker
+  ``c mod (N − 1)``, which solves its frames in order, warm-started within the
+  chunk and cold at the chunk's first frame. The warm start only changes where
+  the solver starts, not what it converges to, so the depth agrees with a
+  single chain to the solver's tolerance (tested). For machines with more
+  cores than two.
 
-Memory is bounded: at most ``jobs × chunk_frames + jobs`` frames are in flight.
+Workers solve with one thread each. Results come back in frame order.
+Memory is bounded: at most ``workers × chunk_frames + workers`` frames are in
+flight (:data:`PIPELINE_DEPTH` with one worker).
+
+Why not two chunked workers on two cores: each worker pays its own start-up
+(imports, loading the compiled kernels: about 1.5 s of CPU) and every chunk
+starts cold, while the calling process needs a core of its own for the flow
+step and the writing anyway (docs/benchmarks.md, "endo-process").
 """
 
 from __future__ import annotations
@@ -37,6 +48,8 @@ from endo_process.shading import RawFrame, ShadedFrame, ShadingStage
 
 #: Frames per chunk when the recording is split over worker processes.
 DEFAULT_CHUNK_FRAMES = 32
+#: Frames in flight with one worker (enough to even out the two stages' jitter).
+PIPELINE_DEPTH = 8
 #: Seconds between checks that a worker is still alive while waiting for it.
 _POLL_S = 0.5
 
@@ -87,6 +100,8 @@ class ShadingPool:
             raise ValueError("jobs and chunk_frames must be >= 1")
         self.jobs = jobs
         self.chunk_frames = chunk_frames
+        #: Worker processes (0: in this process); with one, the chain is never cut.
+        self.worker_count = jobs - 1
         self._stage: ShadingStage | None = None
         self._workers: list[SpawnProcess] = []
         self._inboxes: list[Any] = []
@@ -99,7 +114,7 @@ class ShadingPool:
         worker_config = StageConfig(
             config.calibration_path, config.channel, dict(config.sfs_parameters, threads=1)
         )
-        for _ in range(jobs):
+        for _ in range(self.worker_count):
             inbox, outbox = context.Queue(), context.Queue()
             process = context.Process(
                 target=_worker, args=(worker_config, inbox, outbox), daemon=True
@@ -109,8 +124,13 @@ class ShadingPool:
             self._inboxes.append(inbox)
             self._outboxes.append(outbox)
 
+    @property
+    def chunked(self) -> bool:
+        """Whether the recording is cut into chunks (more than one worker)."""
+        return self.worker_count > 1
+
     def _worker_of(self, index: int) -> int:
-        return (index // self.chunk_frames) % self.jobs
+        return (index // self.chunk_frames) % self.worker_count if self.chunked else 0
 
     def _receive(self, worker: int) -> ShadedFrame:
         while True:
@@ -137,7 +157,10 @@ class ShadingPool:
             for frame in frames:
                 yield self._stage.process(frame)
             return
-        limit = self.jobs * self.chunk_frames + self.jobs
+        if self.chunked:
+            limit = self.worker_count * self.chunk_frames + self.worker_count
+        else:
+            limit = PIPELINE_DEPTH
         pending: deque[int] = deque()
         source = iter(frames)
         exhausted = False
@@ -148,7 +171,7 @@ class ShadingPool:
                     exhausted = True
                     break
                 frame = next_frame
-                start = frame.index % self.chunk_frames == 0
+                start = self.chunked and frame.index % self.chunk_frames == 0
                 if start != frame.chunk_start:
                     frame = RawFrame(frame.index, frame.stamp_ns, frame.frame_id, frame.raw,
                                      frame.encoding, frame.camera, start)  # fmt: skip

@@ -26,6 +26,8 @@ SIGTERM) ends the run after the current frame and the output is finalised.
 
 from __future__ import annotations
 
+import copy
+import itertools
 import statistics
 import threading
 import time
@@ -36,27 +38,27 @@ from pathlib import Path
 
 import numpy as np
 from geometry_msgs.msg import PoseStamped
-from sensor_msgs.msg import Image
+from sensor_msgs.msg import CameraInfo, Image
 
 from endo_calib.calibration import PhotometricCalibration
 from endo_calib.errors import CalibrationError
 from endo_io import topics
 from endo_io.bag import BagMessage, BagReader
 from endo_io.errors import Endo3dError, PoseLookupError
-from endo_io.image import array_to_image, image_to_array
+from endo_io.image import image_to_array
 from endo_io.pose import matrix_to_pose, pose_to_matrix
 from endo_io.pose_buffer import PoseBuffer
 from endo_io.progress import Progress
-from endo_io.stamp import NS_PER_S, stamp_to_ns
+from endo_io.stamp import NS_PER_S, ns_to_stamp, stamp_to_ns
 from endo_io.tf import StampedTransform, static_transforms
 from endo_process.errors import ProcessInputError
 from endo_process.flow_stage import FlowStage, flow_options, grey_cloud, scale_message
 from endo_process.inputs import (
+    CameraInfoPairing,
     InputTopics,
-    RecordingInputs,
-    camera_at,
     iter_ground_truth,
     iter_images,
+    iter_tracker_poses,
     open_recording,
 )
 from endo_process.output import DEFAULT_FLUSH_EVERY, OutputBag
@@ -110,6 +112,7 @@ class ProcessReport:
     dropped: Counter[str] = field(default_factory=Counter)
     without_pose: Counter[str] = field(default_factory=Counter)
     tracker_rejected: Counter[str] = field(default_factory=Counter)
+    pose_buffer_events: Counter[str] = field(default_factory=Counter)
     tracker_samples: int = 0
     poses_written: int = 0
     written: Counter[str] = field(default_factory=Counter)
@@ -151,62 +154,101 @@ def _load_calibrations(
     return photometric, handeye
 
 
-def camera_poses(
-    inputs: RecordingInputs,
+def iter_camera_poses(
+    messages: Iterator[PoseStamped],
     settings: ProcessSettings,
     handeye: HandEyeCalibration,
     report: ProcessReport,
-) -> list[CameraPose]:
-    """Every recorded marker pose through the bridge's chain, as the ``ros`` source does."""
+) -> Iterator[CameraPose]:
+    """The recorded marker poses through the bridge's chain, lazily, as the ``ros`` source does."""
     chain = CameraPoseChain(handeye, settings.T_world_tracker, settings.speed_limits)
     unit = settings.tracker_unit
     bridge = settings.bridge
-    poses: list[CameraPose] = []
-    for msg in inputs.tracker_poses:
+    for msg in messages:
         report.tracker_samples += 1
         try:
             sample = sample_from_pose_stamped(
                 msg, unit, str(bridge["ros_frame_id"]), str(bridge["tool_id"]),
                 float(bridge["rotation_tolerance"]),
             )  # fmt: skip
-            poses.append(chain.accept(sample))
+            pose = chain.accept(sample)
         except Endo3dError as error:
             report.tracker_rejected[type(error).__name__] += 1
-    return poses
+            continue
+        yield pose
 
 
 class _PoseFeed:
-    """Feeds a PoseBuffer in stamp order up to just past each query, as poses arrive live.
+    """Camera poses, read lazily in arrival order, into a PoseBuffer up to just past each query.
 
-    It takes the ``/endoscope/pose`` messages themselves through
-    ``pose_to_matrix``, as the flow node does, into a buffer made as the flow
-    node makes it (capacity 6000, its ``pose_max_gap_s``).
+    Each pose taken from the stream is queued for the output as
+    ``/endoscope/pose`` (camera time) and ``/tracker/marker_pose`` (tracker
+    time), and goes into the buffer through the ``/endoscope/pose`` message
+    and ``pose_to_matrix``, as the flow node takes it, into a buffer made as
+    the flow node makes it (capacity 6000, its ``pose_max_gap_s``). A pose
+    the buffer refuses (out of order, a far-future stamp) or that resets it
+    (a clock jump) is counted by cause, as the node's diagnostics count it.
+    Only the poses read ahead of the current frame are held in memory.
     """
 
-    def __init__(self, messages: list[PoseStamped], max_gap_ns: int) -> None:
-        poses = [pose_to_matrix(m) for m in messages]
-        self._poses = sorted(((stamp, T) for T, stamp in poses), key=lambda p: p[0])
-        self._next = 0
+    def __init__(
+        self,
+        poses: Iterator[CameraPose],
+        output: OutputBag,
+        frames: tuple[str, str],
+        max_gap_ns: int,
+        report: ProcessReport,
+    ) -> None:
+        self._poses = poses
+        self._output = output
+        self._pose_frame, self._tracker_frame = frames
+        self._report = report
         self.buffer = PoseBuffer(capacity=6000, max_gap_ns=max_gap_ns)
+
+    def _take(self) -> bool:
+        """Take the next pose from the stream into the output queue and the buffer."""
+        pose = next(self._poses, None)
+        if pose is None:
+            return False
+        message = matrix_to_pose(pose.T_world_camera, pose.stamp_ns, self._pose_frame)
+        self._output.hold(topics.CAMERA_POSE, message, pose.stamp_ns)
+        self._output.hold(topics.MARKER_POSE,
+                          matrix_to_pose(pose.sample.T_tracker_marker, pose.sample.stamp_ns,
+                                         self._tracker_frame),
+                          pose.sample.stamp_ns)  # fmt: skip
+        T, stamp = pose_to_matrix(message)
+        try:
+            self.buffer.insert(stamp, T)
+        except Endo3dError as error:
+            self._report.pose_buffer_events[type(error).__name__] += 1
+        return True
 
     def at(self, stamp_ns: int) -> np.ndarray:
         """T_world_camera at ``stamp_ns``; raises PoseLookupError when there is none."""
-        while self._next < len(self._poses):
-            if self.buffer.newest_ns is not None and self.buffer.newest_ns > stamp_ns:
+        while self.buffer.newest_ns is None or self.buffer.newest_ns <= stamp_ns:
+            if not self._take():
                 break
-            self.buffer.insert(*self._poses[self._next])
-            self._next += 1
         return self.buffer.query(stamp_ns)
+
+    def drain(self) -> None:
+        """Queue every pose left in the stream for the output (the end of a complete run)."""
+        while self._take():
+            pass
 
 
 def _raw_frames(
-    inputs: RecordingInputs,
+    pairing: CameraInfoPairing,
     images: Iterator[Image],
+    infos: dict[int, CameraInfo | None],
     report: ProcessReport,
     stop: threading.Event,
     max_frames: int | None,
 ) -> Iterator[RawFrame]:
-    """Decoded images paired with their camera; unusable ones are counted and skipped."""
+    """Decoded images paired with their camera; unusable ones are counted and skipped.
+
+    ``infos`` receives each yielded frame's camera_info (by frame index) for
+    the output; the frame loop takes it back out.
+    """
     index = 0
     for msg in images:
         if stop.is_set() or (max_frames is not None and report.frames_in >= max_frames):
@@ -214,40 +256,43 @@ def _raw_frames(
         report.frames_in += 1
         stamp_ns = stamp_to_ns(msg.header.stamp)
         try:
-            camera = camera_at(inputs, stamp_ns)
-            if camera is None:
+            paired = pairing.at(stamp_ns)
+            if paired is None:
                 report.dropped["NoCameraInfoError"] += 1
                 continue
             raw = image_to_array(msg)
         except Endo3dError as error:
             report.dropped[type(error).__name__] += 1
             continue
+        camera, infos[index] = paired
         yield RawFrame(index, stamp_ns, msg.header.frame_id, raw, msg.encoding, camera)
         index += 1
 
 
 def _write_frame(
-    output: OutputBag, inputs: RecordingInputs, shaded: ShadedFrame, report: ProcessReport
+    output: OutputBag, info: CameraInfo | None, shaded: ShadedFrame, report: ProcessReport
 ) -> None:
+    """Camera_info, corrected image and relative depth of one frame.
+
+    The camera_info is the recorded one, restamped to the image when the
+    driver stamped it on its own clock (the live graph publishes one beside
+    every image, at the image's stamp), or built from ``--camera-info``.
+    """
     stamp = shaded.stamp_ns
-    info = inputs.camera_infos.get(stamp) if inputs.fixed_camera is None else None
     if info is None:
         info = shaded.camera.to_camera_info(stamp)
         info.header.frame_id = shaded.frame_id or shaded.camera.frame_id
+    elif stamp_to_ns(info.header.stamp) != stamp:
+        info = copy.deepcopy(info)
+        info.header.stamp = ns_to_stamp(stamp)
     output.write(topics.CAMERA_INFO, info, stamp)
     if shaded.irradiance is not None:
         encoding = "32FC3" if shaded.irradiance.ndim == 3 else "32FC1"
-        output.write(
-            topics.IMAGE_CORRECTED,
-            array_to_image(shaded.irradiance, encoding, stamp, shaded.frame_id),
-            stamp,
-        )
+        output.write_image(topics.IMAGE_CORRECTED, shaded.irradiance, encoding, stamp,
+                           shaded.frame_id)  # fmt: skip
     if shaded.depth_relative is not None:
-        output.write(
-            topics.DEPTH_RELATIVE,
-            array_to_image(shaded.depth_relative, "32FC1", stamp, shaded.frame_id),
-            stamp,
-        )
+        output.write_image(topics.DEPTH_RELATIVE, shaded.depth_relative, "32FC1", stamp,
+                           shaded.frame_id)  # fmt: skip
         report.frames_shaded += 1
     if shaded.dropped is not None:
         report.dropped[shaded.dropped[0]] += 1
@@ -274,8 +319,7 @@ def _flow_frame(
         return
     report.frames_flow += 1
     if result.depth is not None:
-        output.write(topics.DEPTH, array_to_image(result.depth, "32FC1", stamp, shaded.frame_id),
-                     stamp)  # fmt: skip
+        output.write_image(topics.DEPTH, result.depth, "32FC1", stamp, shaded.frame_id)
         report.frames_metric += 1
     if len(result.points):
         output.write(topics.POINTS, grey_cloud(result.points, result.intensity, stamp,
@@ -324,22 +368,16 @@ def process_bag(options: ProcessOptions, stop: threading.Event | None = None) ->
     photometric, handeye = _load_calibrations(options)
     inputs = open_recording(options.bag, options.topics, options.camera_info)
     report = ProcessReport(frames_total=inputs.frame_count, output=options.output)
-    poses = camera_poses(inputs, settings, handeye, report)
     with BagReader(options.bag) as reader:
         copied = {name: reader.topics[name] for name in inputs.ground_truth}
     output = OutputBag(options.output, options.compression, copied)
-    pose_frame = str(settings.bridge["world_frame"])
-    tracker_frame = str(settings.bridge["tracker_frame"])
     world_frame = str(settings.flow["world_frame"])
-    pose_messages: list[PoseStamped] = []
-    for pose in poses:
-        pose_messages.append(matrix_to_pose(pose.T_world_camera, pose.stamp_ns, pose_frame))
-        output.hold(topics.CAMERA_POSE, pose_messages[-1], pose.stamp_ns)
-        output.hold(topics.MARKER_POSE,
-                    matrix_to_pose(pose.sample.T_tracker_marker, pose.sample.stamp_ns,
-                                   tracker_frame),
-                    pose.sample.stamp_ns)  # fmt: skip
-    static_ns = min([inputs.time_range_ns[0], *(pose.stamp_ns for pose in poses)])
+    poses = iter_camera_poses(iter_tracker_poses(inputs), settings, handeye, report)
+    first_pose = next(poses, None)
+    if first_pose is not None:
+        poses = itertools.chain([first_pose], poses)
+    static_ns = min(inputs.time_range_ns[0],
+                    first_pose.stamp_ns if first_pose is not None else inputs.time_range_ns[0])
     output.hold_tf(
         topics.TF_STATIC,
         static_transforms(
@@ -348,12 +386,15 @@ def process_bag(options: ProcessOptions, stop: threading.Event | None = None) ->
             stamp_ns=static_ns,
         ),
         static_ns,
-    )
+    )  # fmt: skip
     config = StageConfig(options.calibration, settings.channel, settings.sfs)
     stage = ShadingStage(photometric, settings.channel, settings.sfs) if options.jobs == 1 else None
     feed = _PoseFeed(
-        pose_messages,
+        poses,
+        output,
+        (str(settings.bridge["world_frame"]), str(settings.bridge["tracker_frame"])),
         round(float(settings.flow["pose_max_gap_s"]) * NS_PER_S),
+        report,
     )
     flow = FlowStage(flow_options(settings.flow), int(settings.flow["map_min_count"]))
     truth: Iterator[BagMessage] = iter_ground_truth(inputs)
@@ -368,23 +409,30 @@ def process_bag(options: ProcessOptions, stop: threading.Event | None = None) ->
     report.setup_seconds = time.perf_counter() - setup_start
     start = time.perf_counter()
     try:
+        infos: dict[int, CameraInfo | None] = {}
         frames = _raw_frames(
-            inputs, iter_images(inputs, options.topics.image), report, stop, options.max_frames
-        )
+            CameraInfoPairing(inputs), iter_images(inputs), infos, report, stop,
+            options.max_frames,
+        )  # fmt: skip
         for count, shaded in enumerate(pool.map(frames), start=1):
-            output.copy_until(truth, truth_pending, shaded.stamp_ns)
-            _write_frame(output, inputs, shaded, report)
+            # The poses up to this frame first: the output stays in log-time order.
             T_world_camera: np.ndarray | None = None
+            lookup: PoseLookupError | None = None
             try:
                 T_world_camera = feed.at(shaded.stamp_ns)
+            except PoseLookupError as error:
+                lookup = error
+            output.copy_until(truth, truth_pending, shaded.stamp_ns)
+            _write_frame(output, infos.pop(shaded.index), shaded, report)
+            if lookup is not None:
+                report.without_pose[type(lookup).__name__] += 1
+            if T_world_camera is not None:
                 report.frames_with_pose += 1
                 edge = StampedTransform.from_matrix(
                     T_world_camera, shaded.stamp_ns, world_frame,
                     shaded.frame_id or topics.OPTICAL_FRAME,
                 )  # fmt: skip
                 output.hold_tf(topics.TF, [edge], shaded.stamp_ns)
-            except PoseLookupError as error:
-                report.without_pose[type(error).__name__] += 1
             _flow_frame(output, flow, shaded, T_world_camera, world_frame, report)
             first_stamp = shaded.stamp_ns if first_stamp is None else first_stamp
             last_stamp = shaded.stamp_ns
@@ -405,6 +453,8 @@ def process_bag(options: ProcessOptions, stop: threading.Event | None = None) ->
             options.max_frames is not None and report.frames_in < inputs.frame_count
         )
         end = last_stamp if partial and last_stamp is not None else np.iinfo(np.int64).max
+        if not partial:
+            feed.drain()
         output.copy_until(truth, truth_pending, end)
         if last_stamp is not None:
             _write_map(output, flow, options, last_stamp, world_frame, report)

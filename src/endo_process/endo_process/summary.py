@@ -30,6 +30,7 @@ def _rows(report: ProcessReport) -> list[tuple[str, str]]:
         ("map points (last state)", f"{report.map_points}"),
         ("tracker samples", f"{report.tracker_samples}"),
         ("tracker samples rejected", _causes(report.tracker_rejected)),
+        ("poses refused or reset by the pose buffer", _causes(report.pose_buffer_events)),
         ("camera poses written", f"{report.poses_written}"),
         ("wall time (frames)", f"{report.seconds:.2f} s (setup {report.setup_seconds:.2f} s)"),
         ("speed", f"{report.frames_per_second:.1f} frames/s, "
@@ -152,6 +153,7 @@ def summary_document(report: ProcessReport, accuracy: Accuracy | None) -> dict[s
         },
         "tracker": {
             "samples": report.tracker_samples, "rejected": dict(report.tracker_rejected),
+            "pose_buffer_events": dict(report.pose_buffer_events),
             "camera_poses": report.poses_written,
         },
         "map_points": report.map_points,
@@ -196,7 +198,19 @@ def accuracy_document(accuracy: Accuracy | None) -> dict[str, Any] | None:
     }
     if accuracy.scale is not None:
         track = accuracy.scale
+        usable = np.flatnonzero(np.isfinite(track.relative_error))
+        summary: dict[str, Any] = {"usable_frames": len(usable)}
+        if len(usable):  # the printed row: first, median of the last half, final
+            error = track.relative_error
+            summary.update(
+                first_relative_error=float(error[usable[0]]),
+                median_last_half_relative_error=float(
+                    np.median(error[usable[len(usable) // 2 :]])
+                ),
+                final_relative_error=float(error[usable[-1]]),
+            )
         scored["scale"] = {
+            **summary,
             "stamps_ns": track.stamps_ns.tolist(),
             "value": [None if not np.isfinite(v) else float(v) for v in track.scale],
             "relative_error": [None if not np.isfinite(v) else float(v)

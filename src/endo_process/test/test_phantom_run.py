@@ -26,6 +26,7 @@ from endo_io.bag.streams import read_depth_frames
 from endo_process.accuracy import read_scale_stream, score_recording
 from endo_process.report import write_report_figure
 from endo_process.runner import ProcessOptions, ProcessReport, process_bag
+from endo_process.simulated import write_simulated_parameters
 from endo_process.summary import summary_document
 
 from .conftest import PHANTOM
@@ -35,11 +36,11 @@ from .conftest import PHANTOM
 def full_run(
     calibrations: tuple[Path, Path], phantom_params: Path, tmp_path_factory: pytest.TempPathFactory
 ) -> tuple[ProcessReport, Path]:
-    """All 90 frames at solve_scale 0.5 on two worker processes, chunks of 8 frames."""
+    """All 90 frames at solve_scale 0.5 on two chunked worker processes (jobs 3), chunks of 8."""
     output = tmp_path_factory.mktemp("full") / "phantom.mcap"
     report = process_bag(ProcessOptions(
         bag=PHANTOM, output=output, calibration=calibrations[0], handeye=calibrations[1],
-        params=phantom_params, solve_scale=0.5, jobs=2, chunk_frames=8, progress=False,
+        params=phantom_params, solve_scale=0.5, jobs=3, chunk_frames=8, progress=False,
     ))  # fmt: skip
     return report, output
 
@@ -93,6 +94,10 @@ def test_accuracy_against_the_ground_truth(full_run: tuple[ProcessReport, Path])
     assert document["accuracy"]["metric_abs_rel_mean"] == pytest.approx(metric)
     assert document["accuracy"]["pose"]["compared"] == 89
     assert len(document["accuracy"]["scale"]["value"]) == 90
+    scale = document["accuracy"]["scale"]
+    assert scale["final_relative_error"] == pytest.approx(error[np.isfinite(error)][-1])
+    assert scale["usable_frames"] == np.isfinite(error).sum()
+    assert document["tracker"]["pose_buffer_events"] == {}
 
 
 def test_report_figure(
@@ -105,11 +110,11 @@ def test_report_figure(
     assert image[..., :3].std() > 0.1  # drawn, not blank
 
 
-def test_one_and_two_jobs_agree_to_the_solver_tolerance(
+def test_one_and_three_jobs_agree_to_the_solver_tolerance(
     full_run: tuple[ProcessReport, Path], calibrations: tuple[Path, Path], phantom_params: Path,
     tmp_path: Path,
 ) -> None:
-    frames = 18  # crosses two chunk boundaries of the two-job run (frames 8 and 16)
+    frames = 18  # crosses two chunk boundaries of the chunked run (frames 8 and 16)
     report = process_bag(ProcessOptions(
         bag=PHANTOM, output=tmp_path / "one.mcap", calibration=calibrations[0],
         handeye=calibrations[1], params=phantom_params, solve_scale=0.5, jobs=1,
@@ -134,3 +139,30 @@ def test_one_and_two_jobs_agree_to_the_solver_tolerance(
     both = np.isfinite(scale_one[1]) & np.isfinite(scale_two[1][:frames])
     np.testing.assert_array_equal(scale_one[0], scale_two[0][:frames])
     np.testing.assert_allclose(scale_one[1][both], scale_two[1][:frames][both], rtol=1e-3)
+
+
+def test_the_two_job_pipeline_is_the_one_job_chain(
+    calibrations: tuple[Path, Path], phantom_params: Path, tmp_path: Path
+) -> None:
+    """--jobs 2 solves the same unbroken chain in a second process: bit-identical outputs."""
+    single_thread = write_simulated_parameters(PHANTOM, tmp_path / "threads1.yaml", threads=1)
+    frames = 24  # the flow step observes the scale and publishes metric depth by then
+    outputs = {}
+    for jobs, params in ((1, single_thread), (2, phantom_params)):
+        outputs[jobs] = tmp_path / f"jobs{jobs}.mcap"
+        report = process_bag(ProcessOptions(
+            bag=PHANTOM, output=outputs[jobs], calibration=calibrations[0],
+            handeye=calibrations[1], params=params, solve_scale=0.5, jobs=jobs,
+            max_frames=frames, progress=False,
+        ))  # fmt: skip
+        assert report.frames_shaded == frames
+    for topic in (topics.IMAGE_CORRECTED, topics.DEPTH_RELATIVE, topics.DEPTH):
+        one = read_depth_frames(outputs[1], topic)
+        two = read_depth_frames(outputs[2], topic)
+        assert sorted(one) == sorted(two) and len(one) >= (frames if topic != topics.DEPTH else 1)
+        for stamp in one:
+            np.testing.assert_array_equal(one[stamp], two[stamp])
+    scale_one, scale_two = read_scale_stream(outputs[1]), read_scale_stream(outputs[2])
+    assert np.isfinite(scale_one[1]).any()
+    for a, b in zip(scale_one, scale_two, strict=True):
+        np.testing.assert_array_equal(a, b)
