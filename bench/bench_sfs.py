@@ -40,6 +40,7 @@ import numpy as np
 import skfmm
 
 from endo_io.camera import CameraModel
+from endo_io.pose import pose_to_matrix, rigid_transform
 from endo_sfs.evaluation import depth_error
 from endo_sfs.options import SfsOptions
 from endo_sfs.orthographic import eikonal_speed, solve_orthographic
@@ -50,11 +51,13 @@ from endo_sfs.synthetic import (
     TubeInterior,
     near_light_surface,
     orthographic_scene,
+    posed_tube_sequence,
     quantise_8bit,
     render_near_light,
     render_orthographic,
     scene_camera,
 )
+from endo_sfs.warm_start import WarmStartChain
 
 
 def machine() -> str:
@@ -122,6 +125,151 @@ def bench_near_light(frames: int) -> list[str]:
             )
             print(rows[-1], flush=True)
     return rows
+
+
+# ------------------------------------------------------------------ warm starts
+
+
+def _noisy(pose: np.ndarray, rng: np.random.Generator, metres: float, degrees: float):
+    """A pose with tracker-like noise (per-axis RMS ``metres`` and ``degrees``)."""
+    noise = rigid_transform(rng.normal(0.0, np.radians(degrees), 3), rng.normal(0.0, metres, 3))
+    return pose @ noise
+
+
+def _warm_start_modes(true_scale: float | None) -> dict[str, dict]:
+    modes: dict[str, dict] = {"previous frame as is": {"predict": False}}
+    modes["pose-predicted, scale fitted"] = {"predict": True}
+    if true_scale is not None:
+        modes["pose-predicted, true scale"] = {"predict": True, "scale": true_scale}
+    modes["pose-predicted, rotation only"] = {"predict": True, "rotation_only": True}
+    return modes
+
+
+def compare_warm_starts(
+    frames: list[tuple[np.ndarray, np.ndarray, np.ndarray | None]],
+    camera: CameraModel,
+    options: SfsOptions,
+    mask: np.ndarray | None,
+    true_scale: float | None,
+    lag: int,
+    label: str,
+    scaling: str = "least_squares",
+) -> list[str]:
+    """Each warm start on one sequence, interleaved frame by frame (so load hits all alike).
+
+    frames: (irradiance, T_world_camera, true depth or None). lag: the warm
+    start is the frame ``lag`` before (2: two SFS workers taking every other
+    frame). Returns table rows.
+    """
+    modes = _warm_start_modes(true_scale)
+    chains = {name: WarmStartChain(predict=mode["predict"], keep=lag + 1)
+              for name, mode in modes.items()}
+    for name, mode in modes.items():
+        if "scale" in mode:
+            chains[name].set_scale(mode["scale"])
+    poses = {k: frame[1] for k, frame in enumerate(frames)}
+    stats: dict[str, list[tuple[float, float, float]]] = {name: [] for name in modes}
+    errors: dict[str, list[float]] = {name: [] for name in modes}
+    rotation_only = {k: np.block([[p[:3, :3], np.zeros((3, 1))], [np.zeros((1, 3)), 1.0]])
+                     for k, p in poses.items()}
+    solve(frames[0][0], camera, options, mask=mask)  # kernels and grid loaded
+    for k, (irradiance, _, truth) in enumerate(frames):
+        for name, mode in modes.items():
+            table = rotation_only if mode.get("rotation_only") else poses
+            chain = chains[name]
+            start, start_cpu = time.perf_counter(), time.process_time()
+            # The frame `lag` back is the newest one solved before this one.
+            warm = chain.warm_start(k, lambda stamp, table=table: table.get(stamp))
+            solution = solve(irradiance, camera, options, mask=mask, warm_start=warm)
+            wall, cpu = time.perf_counter() - start, time.process_time() - start_cpu
+            chain.add(k, solution)
+            if k >= lag:
+                nodes = np.isfinite(solution.node_solution).sum()
+                stats[name].append((wall, cpu, solution.info.updates / nodes))
+            if truth is not None:
+                errors[name].append(depth_error(solution.depth, truth, mask,
+                                                scaling=scaling).abs_rel)
+            if lag > 1:
+                # Another worker solved the frames in between: this chain
+                # only ever starts from its own frame `lag` back.
+                chain._frames = {s: f for s, f in chain._frames.items() if (k - s) % lag == 0}
+    rows = []
+    for name in modes:
+        r = np.array(stats[name])
+        rows.append(f"| {label} | {lag} | {name} | {1e3 * np.median(r[:, 0]):.1f} | "
+                    f"{1e3 * np.median(r[:, 1]):.1f} | {np.mean(r[:, 2]):.2f} | "
+                    f"{np.mean(errors[name]):.4f} |")
+        print(rows[-1], flush=True)
+    return rows
+
+
+def bench_warm_starts(frames: int, phantom_bag: str | None, calibration: str | None,
+                      threads: int) -> None:
+    """Warm starts compared on the posed tube and, given a bag and calibration, the phantom."""
+    print("\nwarm starts (ms per frame, wall and process CPU; node solves per node; AbsRel)")
+    print("| sequence | lag | warm start | wall median | CPU median | solves/node | AbsRel |")
+    print("|---|---|---|---|---|---|---|")
+    rng = np.random.default_rng(3)
+    camera = CameraModel.pinhole(640, 480, 320.0, 320.0, 319.5, 239.5)
+    mask = camera.fov_mask(240.0)
+    # The phantom's motion per frame: ~1 % of the wall distance, 0.2°.
+    tube = posed_tube_sequence(camera, frames, 0.3, turn_deg=0.2, approach=0.01, advance=0.02)
+    for scale in (1.0, 0.5):
+        options = SfsOptions(roughness=0.3, solve_scale=scale, threads=threads)
+        sequence = [(r.irradiance, _noisy(pose, rng, 0.25e-3 / 0.02, 0.1), r.depth)
+                    for r, pose in tube]
+        for lag in (1, 2):
+            compare_warm_starts(sequence, camera, options, mask, 1.0, lag,
+                                f"tube 640×480, solve_scale {scale:g}")
+    if not (phantom_bag and calibration):
+        return
+    sequence, camera, true_scale = phantom_sequence(phantom_bag, calibration, rng)
+    mask = camera.fov_mask(240.0)
+    for scale in (1.0, 0.5):
+        options = SfsOptions(roughness=0.3, solve_scale=scale, mask_highlights=True,
+                             threads=threads)
+        for lag in (1, 2):
+            compare_warm_starts(sequence, camera, options, mask, true_scale, lag,
+                                f"phantom, solve_scale {scale:g}", scaling="median")
+
+
+def phantom_sequence(bag: str, calibration: str, rng: np.random.Generator):
+    """(irradiance, noisy true T_world_camera, true depth or None) per frame, camera, scale.
+
+    The poses are the simulator's true camera poses with the bag's tracker
+    noise (0.25 mm, 0.1° RMS) added, standing in for the tracker bridge's;
+    the true scale (metres per depth_relative unit) is the median ratio of
+    the true to the solved depth on the first frame.
+    """
+    from endo_calib.calibration import PhotometricCalibration
+    from endo_calib.raw_image import to_raw_frame
+    from endo_io.bag import BagReader, deserialize
+    from endo_io.image import image_to_array
+    from endo_io.stamp import stamp_to_ns
+
+    wanted = ("/endoscope/image_raw", "/endoscope/camera_info", "/ground_truth/depth",
+              "/ground_truth/camera_pose")
+    topics: dict[str, dict[int, object]] = {name: {} for name in wanted}
+    with BagReader(bag) as reader:
+        for message in reader.messages(list(wanted)):
+            msg = deserialize(message)
+            topics[message.topic][stamp_to_ns(msg.header.stamp)] = msg
+    images, infos, depths, poses = topics.values()
+    stamps = sorted(set(images) & set(infos) & set(poses))
+    correction = PhotometricCalibration.load(calibration)
+    camera = CameraModel.from_camera_info(infos[stamps[0]])
+    sequence = []
+    for stamp in stamps:
+        raw = to_raw_frame(image_to_array(images[stamp]), images[stamp].encoding)
+        irradiance = correction.luminance(correction.correct(raw))
+        pose = _noisy(pose_to_matrix(poses[stamp])[0], rng, 0.25e-3, 0.1)
+        truth = image_to_array(depths[stamp]) if stamp in depths else None
+        sequence.append((irradiance, pose, truth))
+    first = solve(sequence[0][0], camera, SfsOptions(roughness=0.3, mask_highlights=True),
+                  mask=camera.fov_mask(240.0))
+    truth = sequence[0][2]
+    both = np.isfinite(truth) & np.isfinite(first.depth)
+    return sequence, camera, float(np.median(truth[both] / first.depth[both]))
 
 
 # ------------------------------------------------------------------ orthographic
@@ -359,8 +507,16 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=1, help="phantom: solver threads")
     parser.add_argument("--fov-radius", type=float, default=240.0,
                         help="phantom: field-of-view radius in pixels")
+    parser.add_argument("--warm-starts", action="store_true",
+                        help="only compare warm starts (previous frame, pose-predicted) on the "
+                        "posed tube and, with --phantom-bag/--calibration, the phantom")
+    parser.add_argument("--phantom-bag", metavar="BAG", help="--warm-starts: the phantom bag")
     args = parser.parse_args()
     print(f"machine: {machine()}")
+    if args.warm_starts:
+        bench_warm_starts(args.frames, args.phantom_bag, args.calibration, args.threads)
+        print(f"machine after: {machine()}")
+        return
     if args.phantom:
         if not args.calibration:
             parser.error("--phantom needs --calibration")

@@ -30,7 +30,14 @@ second and counted on ``/diagnostics``; a frame refused for its values
 still gets an all-NaN depth image, so consumers stay in step. ``processed``
 counts the depth images solved and published, one per frame (not the
 camera_info callbacks); frames missing from the image stream's stamps are
-counted as ``lost``. Time that jumps (a looped bag, a restarted camera:
+counted as ``lost``.
+
+Workers: ``worker_count`` > 1 processes (``worker_index`` 0 … N − 1) share
+the frames, each solving those :func:`endo_sfs.warm_start.frame_owner`
+gives it by stamp and publishing on the same depth topic, so consumers get
+every frame once, merged by stamp. Each worker also listens to that topic
+and warm-starts from the newest solved frame of any worker
+(:class:`endo_sfs.warm_start.WarmStartChain`). Time that jumps (a looped bag, a restarted camera:
 :mod:`endo_io.clock_jump`) drops the warm start and the unmatched messages
 with one log line, counted as ``clock_jumps``; one frame stamped far in the
 future is dropped (``FutureStampError``).
@@ -55,7 +62,12 @@ from endo_io.errors import ParameterValidationError
 from endo_io.image import array_to_image, image_to_array
 from endo_io.parameters import NodeParameters, ParameterSpec
 from endo_io.process import describing_only, run_node
-from endo_io.qos import NEWEST_FRAME_QOS, SENSOR_DATA_QOS, create_reliable_publisher
+from endo_io.qos import (
+    NEWEST_FRAME_QOS,
+    SENSOR_DATA_QOS,
+    create_reliable_publisher,
+    reliable_qos,
+)
 from endo_io.stamp import NS_PER_S, stamp_to_ns
 from endo_io.stamp_matching import StampMatcher
 from endo_sfs.errors import (
@@ -73,7 +85,8 @@ from endo_sfs.options import (
     MODELS,
     SfsOptions,
 )
-from endo_sfs.relative_depth import SfsSolution, solve, surface_normals
+from endo_sfs.relative_depth import solve, surface_normals
+from endo_sfs.warm_start import FrameDealer, WarmStartChain
 from endo_sfs.warm_up import warm_up_kernels
 
 #: Side of the synthetic image solved at start-up to load the kernels.
@@ -161,6 +174,22 @@ PARAMETERS: tuple[ParameterSpec, ...] = (
         "queue_size", 10, "unmatched images and camera_infos kept while waiting for a partner",
         range=(1, 100), read_only=True,
     ),
+    ParameterSpec(
+        "worker_count", 1,
+        "SFS processes sharing the frames (each solves every worker_count-th frame by stamp, "
+        "all publish on the depth topic); 1: this node solves every frame",
+        range=(1, 64), read_only=True,
+    ),
+    ParameterSpec(
+        "worker_index", 0, "this worker's index, 0 to worker_count - 1", range=(0, 63),
+        read_only=True,
+    ),
+    ParameterSpec(
+        "frame_period_s", 1.0 / 30.0,
+        "the camera's frame period, seconds: frames are dealt to workers by their stamp "
+        "rounded to it (every worker must use the same value)",
+        range=(1e-4, 10.0), read_only=True,
+    ),
     *HEALTH_PARAMETERS,
 )
 
@@ -195,6 +224,13 @@ class SfsNode(Node):
             self._options = _solver_options(self.parameters.values())
         except SfsError as error:
             raise ParameterValidationError(str(error)) from None
+        self._worker_count = int(self.parameters["worker_count"])
+        self._worker_index = int(self.parameters["worker_index"])
+        if self._worker_index >= self._worker_count:
+            raise ParameterValidationError(
+                f"parameter worker_index: {self._worker_index} is not below worker_count "
+                f"{self._worker_count}"
+            )
         if not describing_only():  # --help lists parameters and must not compile
             seconds = warm_up_kernels(announce=self.get_logger().info)
             self.get_logger().info(f"shape-from-shading kernels ready in {seconds:.2f} s")
@@ -203,7 +239,14 @@ class SfsNode(Node):
         self._frame_time = ClockJumpDetector()
         self._camera: CameraModel | None = None
         self._fov_mask: tuple[float, np.ndarray] | None = None
-        self._previous: SfsSolution | None = None
+        self._chain = WarmStartChain(predict=False, keep=self._worker_count)
+        self._dealer = FrameDealer(
+            self._worker_count, max(1, round(self.parameters["frame_period_s"] * NS_PER_S))
+        )
+        #: Recent inputs of the other workers' frames (stamp -> irradiance), for
+        #: rebuilding their solutions as warm starts.
+        self._peer_inputs: dict[int, np.ndarray] = {}
+        self._peer_frames = 0
         self._matcher: StampMatcher[Image, CameraInfo] = StampMatcher(
             self.parameters["queue_size"], _tolerance_ns(self.parameters["stamp_tolerance"])
         )
@@ -212,12 +255,23 @@ class SfsNode(Node):
         # "processed" counts published depth images (_process), not callbacks.
         self.health.subscribe(
             Image, topics.IMAGE_CORRECTED, self._on_image, NEWEST_FRAME_QOS,
-            processed=False, gaps=True, newest=True,
+            # A worker must not skip its own frame for another worker's newer
+            # one: workers take every frame in arrival order (the others'
+            # return at once).
+            processed=False, gaps=True, newest=self._worker_count == 1,
         )
         self.health.subscribe(
             CameraInfo, topics.CAMERA_INFO, self._on_camera_info, SENSOR_DATA_QOS,
             processed=False,
         )
+        if self._worker_count > 1:
+            # The other workers' output: the newest solved frame of any worker
+            # warm-starts this one's next frame.
+            self.health.subscribe(
+                Image, topics.DEPTH_RELATIVE, self._on_peer_depth,
+                reliable_qos(self._worker_count), processed=False,
+            )
+            self.health.set_value("worker", f"{self._worker_index} of {self._worker_count}")
         self.parameters.on_change(self._apply_parameters)
 
     # ------------------------------------------------------------------ parameters
@@ -232,7 +286,7 @@ class SfsNode(Node):
         if changes.keys() & _OPTION_PARAMETERS:
             self._options = _solver_options(values)
         if changes.keys() & {"model", "roughness", "solve_scale"}:
-            self._previous = None  # the old solution no longer seeds this problem
+            self._chain.reset()  # the old solutions no longer seed this problem
         if "stamp_tolerance" in changes:
             self._matcher.tolerance_ns = _tolerance_ns(changes["stamp_tolerance"])
 
@@ -253,8 +307,25 @@ class SfsNode(Node):
         camera = CameraModel.from_camera_info(info)
         if self._camera is None or camera != self._camera:
             self._camera = camera
-            self._previous = None
+            self._chain.reset()
         return self._camera
+
+    def _owns(self, stamp_ns: int, *, observe: bool = False) -> bool:
+        """Whether this worker solves the frame stamped ``stamp_ns`` (observe: a new input)."""
+        return self._dealer.owner(stamp_ns, observe=observe) == self._worker_index
+
+    def _on_peer_depth(self, msg: Image) -> None:
+        """Another worker's depth: keep it as a possible warm start."""
+        stamp_ns = stamp_to_ns(msg.header.stamp)
+        if self._owns(stamp_ns) or self._camera is None or msg.encoding != "32FC1":
+            return  # this worker's own output, or nothing to rebuild it on yet
+        depth = image_to_array(msg)
+        if depth.shape != (self._camera.height, self._camera.width):
+            return
+        self._chain.add_depth(
+            stamp_ns, depth, self._camera, self._options,
+            irradiance=self._peer_inputs.pop(stamp_ns, None),
+        )
 
     def _mask(self, camera: CameraModel) -> np.ndarray | None:
         radius = float(self.parameters["fov_radius"])
@@ -277,9 +348,20 @@ class SfsNode(Node):
         frame_id = image_msg.header.frame_id
         jump = self._frame_time.check(stamp_ns, time.monotonic_ns())  # raises for a wild stamp
         if jump is not None:
-            self._previous = None
+            self._chain.reset()
+            self._peer_inputs.clear()
+            self._dealer.reset()
             self.health.clock_jump(f"{jump.describe('frame time')}; warm start dropped")
-        warm = self._previous if self.parameters["warm_start"] else None
+        if not self._owns(stamp_ns, observe=True):
+            # Another worker's frame: keep its input for rebuilding that
+            # worker's solution when it arrives.
+            self._peer_inputs[stamp_ns] = irradiance
+            while len(self._peer_inputs) > 2 * self._worker_count:
+                del self._peer_inputs[min(self._peer_inputs)]
+            self._peer_frames += 1
+            self.health.set_value("frames_for_other_workers", self._peer_frames)
+            return
+        warm = self._chain.warm_start(stamp_ns) if self.parameters["warm_start"] else None
         start = time.perf_counter()
         try:
             solution = solve(
@@ -290,10 +372,10 @@ class SfsNode(Node):
             # then let the guard log and count the cause.
             empty = np.full(irradiance.shape, np.nan, dtype=np.float32)
             self.depth_publisher.publish(array_to_image(empty, "32FC1", stamp_ns, frame_id))
-            self._previous = None
+            self._chain.reset()
             raise
         elapsed_ms = (time.perf_counter() - start) * 1e3
-        self._previous = solution
+        self._chain.add(stamp_ns, solution)
         self.depth_publisher.publish(array_to_image(solution.depth, "32FC1", stamp_ns, frame_id))
         if self.parameters["publish_normals"]:
             normals = surface_normals(solution.depth, camera)

@@ -39,6 +39,7 @@ from endo_sfs.highlights import detect_highlights
 from endo_sfs.near_light import solve_near_light
 from endo_sfs.options import SfsOptions
 from endo_sfs.orthographic import SolveInfo, solve_orthographic
+from endo_sfs.pose_prediction import PredictedStart
 
 #: The settings a solve uses when none are given.
 DEFAULT_OPTIONS = SfsOptions()
@@ -166,17 +167,36 @@ def _check_solution(depth: np.ndarray, model: str) -> None:
         )
 
 
+WarmStart = SfsSolution | PredictedStart | np.ndarray
+
+
 def _warm_nodes(
-    warm_start: SfsSolution | np.ndarray | None, grid: SolveGrid
+    warm_start: WarmStart | None, grid: SolveGrid
 ) -> tuple[np.ndarray | None, np.ndarray | None, np.ndarray | None]:
     """The previous ln r on ``grid`` (NaN where unknown); its data and slopes if known."""
     if warm_start is None:
         return None, None, None
+    if isinstance(warm_start, PredictedStart):
+        if warm_start.grid is grid:
+            return warm_start.node_solution, warm_start.node_irradiance, warm_start.node_slope
+        return None, None, None  # another camera or solve_scale: nothing to predict from
     if isinstance(warm_start, SfsSolution):
         if warm_start.grid is grid and warm_start.model == "near_light":
             return warm_start.node_solution, warm_start.node_irradiance, warm_start.node_slope
         warm_start = warm_start.depth
-    depth = np.asarray(warm_start, dtype=np.float64)
+    return log_distance_nodes(warm_start, grid), None, None
+
+
+def log_distance_nodes(depth: np.ndarray, grid: SolveGrid) -> np.ndarray:
+    """ln r on the nodes of a stereographic ``grid`` from an (H, W) depth image.
+
+    depth: (H, W) float depth along the optical axis, NaN invalid. Returns
+    (ny, nx) float64, NaN where a node's four pixels are not all finite.
+
+    Raises:
+        SfsInputError: the depth is not the grid's camera's size.
+    """
+    depth = np.asarray(depth, dtype=np.float64)
     if depth.shape != grid.pixel_rays.shape[:2]:
         raise SfsInputError(
             f"warm_start depth has shape {depth.shape}, expected {grid.pixel_rays.shape[:2]}"
@@ -184,7 +204,7 @@ def _warm_nodes(
     with np.errstate(invalid="ignore", divide="ignore"):
         log_r = np.log(depth / grid.pixel_rays[..., 2])
     log_r_nodes, ok = grid.to_nodes(np.nan_to_num(log_r), np.isfinite(log_r))
-    return np.where(ok, log_r_nodes, np.nan), None, None
+    return np.where(ok, log_r_nodes, np.nan)
 
 
 #: A warm-start chain keeps the value-ordered first pass while it costs at
@@ -196,7 +216,7 @@ FIRST_PASS_WORK_LIMIT = 2.5
 RETRY_FIRST_PASS = 10
 
 
-def _use_first_pass(warm_start: SfsSolution | np.ndarray | None) -> bool:
+def _use_first_pass(warm_start: WarmStart | None) -> bool:
     """Whether to solve this frame with the value-ordered first pass.
 
     On the synthetic tube sequence the previous frame's order is nearly the
@@ -204,7 +224,9 @@ def _use_first_pass(warm_start: SfsSolution | np.ndarray | None) -> bool:
     phantom video it is not (3.7-4.4, against 3.8 for sweeps alone, which
     visit memory in order and cost less per solve).
     """
-    if not isinstance(warm_start, SfsSolution) or warm_start.ordered_work is None:
+    if not isinstance(warm_start, SfsSolution | PredictedStart):
+        return True
+    if warm_start.ordered_work is None:
         return True
     if warm_start.ordered_work <= FIRST_PASS_WORK_LIMIT:
         return True
@@ -230,7 +252,7 @@ def solve(
     options: SfsOptions = DEFAULT_OPTIONS,
     *,
     mask: np.ndarray | None = None,
-    warm_start: SfsSolution | np.ndarray | None = None,
+    warm_start: WarmStart | None = None,
     boundary_depth: np.ndarray | None = None,
 ) -> SfsSolution:
     """Shape from shading of one frame; see :func:`reconstruct` for the arguments.
@@ -274,7 +296,7 @@ def solve(
             )
             if first_pass:
                 ordered_work = info.updates / max(1, int(node_valid.sum()))
-            elif isinstance(warm_start, SfsSolution):
+            elif isinstance(warm_start, SfsSolution | PredictedStart):
                 ordered_work = warm_start.ordered_work
                 frames_since_ordered = warm_start.frames_since_ordered + 1
             with np.errstate(invalid="ignore"):
@@ -320,7 +342,7 @@ def reconstruct(
     options: SfsOptions = DEFAULT_OPTIONS,
     *,
     mask: np.ndarray | None = None,
-    warm_start: SfsSolution | np.ndarray | None = None,
+    warm_start: WarmStart | None = None,
     boundary_depth: np.ndarray | None = None,
 ) -> np.ndarray:
     """Relative depth from one linear irradiance image by shape from shading.

@@ -187,6 +187,35 @@ def render_near_light(
 # ---------------------------------------------------------------- orthographic
 
 
+def posed_tube_sequence(
+    camera: CameraModel,
+    frames: int,
+    roughness: float = 0.3,
+    *,
+    turn_deg: float = 1.0,
+    approach: float = 0.05,
+    advance: float = 0.03,
+) -> list[tuple[Rendering, np.ndarray]]:
+    """A camera moving inside a world-fixed tube (axis z, radius 1), with its poses.
+
+    The camera starts 0.6 off the axis looking 63° off it; per frame it
+    advances ``advance`` along the axis, moves ``approach`` towards the wall
+    and turns ``turn_deg`` (along the axis alone the view would not change).
+    Returns (rendering, (4, 4) T_world_camera in the rendering's unit) per
+    frame.
+    """
+    from endo_io.pose import rigid_transform
+
+    out = []
+    for k in range(frames):
+        beta = 1.1 + np.radians(turn_deg) * k
+        pose = rigid_transform((-beta, 0.0, 0.0), (0.0, 0.6 - approach * k, advance * k))
+        rotation, centre = pose[:3, :3], pose[:3, 3]
+        tube = TubeInterior(tuple(rotation.T @ -centre), tuple(rotation.T[:, 2]), 1.0)
+        out.append((render_near_light(camera, tube, roughness), pose))
+    return out
+
+
 def normalised_coordinates(camera: CameraModel) -> tuple[np.ndarray, np.ndarray]:
     """(x, y) normalised image coordinates (H, W) of an undistorted camera's pixels."""
     v, u = np.mgrid[0 : camera.height, 0 : camera.width].astype(np.float64)
