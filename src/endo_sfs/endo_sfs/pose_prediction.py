@@ -34,38 +34,16 @@ irradiance, so it corrects whatever distance change the prediction misses.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 from numba import njit, prange
 
 from endo_io.pose import invert_transform
 from endo_sfs.errors import SfsInputError
 from endo_sfs.grid import SolveGrid
+from endo_sfs.relative_depth import PredictedStart, SfsSolution
 
 #: Fixed-point steps of the inverse warp (each is one bilinear lookup per node).
 WARP_STEPS = 3
-
-
-@dataclass(frozen=True)
-class PredictedStart:
-    """A warm start predicted for the current frame, on the previous frame's solve grid.
-
-    node_solution: (ny, nx) float64 predicted ln r (NaN where the previous
-    surface is not seen). node_irradiance: (ny, nx) float64 the previous
-    irradiance moved with it (and scaled by the distance change), for the
-    solver's global shift. node_slope: (ny, nx) float64 the previous tan θ
-    moved with it (Newton seeds), or None. grid: the solve grid.
-    ordered_work, frames_since_ordered: the warm-start chain's bookkeeping,
-    carried over from the previous :class:`endo_sfs.relative_depth.SfsSolution`.
-    """
-
-    node_solution: np.ndarray
-    node_irradiance: np.ndarray | None
-    node_slope: np.ndarray | None
-    grid: SolveGrid
-    ordered_work: float | None = None
-    frames_since_ordered: int = 0
 
 
 def relative_motion(T_world_previous: np.ndarray, T_world_current: np.ndarray) -> np.ndarray:
@@ -218,7 +196,7 @@ def _warp(
 
 
 def predict_warm_start(
-    previous: object,
+    previous: SfsSolution,
     T_current_previous: np.ndarray,
     *,
     metres_per_unit: float | None,
@@ -237,8 +215,6 @@ def predict_warm_start(
     Raises:
         SfsInputError: not a near-light solution, or a bad transform or scale.
     """
-    from endo_sfs.relative_depth import SfsSolution
-
     if not isinstance(previous, SfsSolution) or previous.model != "near_light":
         raise SfsInputError("a pose-predicted warm start needs a near-light SfsSolution")
     rotation, translation = _motion_in_units(T_current_previous, metres_per_unit)
@@ -271,8 +247,8 @@ _FIT_STEPS = 3
 
 
 def estimate_metres_per_unit(
-    previous: object,
-    current: object,
+    previous: SfsSolution,
+    current: SfsSolution,
     T_current_previous: np.ndarray,
     *,
     initial: float | None = None,
@@ -286,8 +262,6 @@ def estimate_metres_per_unit(
     node, Gauss–Newton from ``initial`` or 0). Returns s, or None when
     the motion has no translation to measure it by (or the fit fails).
     """
-    from endo_sfs.relative_depth import SfsSolution
-
     if not (isinstance(previous, SfsSolution) and isinstance(current, SfsSolution)):
         return None
     if previous.grid is not current.grid:

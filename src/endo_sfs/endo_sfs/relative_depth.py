@@ -39,7 +39,6 @@ from endo_sfs.highlights import detect_highlights
 from endo_sfs.near_light import solve_near_light
 from endo_sfs.options import SfsOptions
 from endo_sfs.orthographic import SolveInfo, solve_orthographic
-from endo_sfs.pose_prediction import PredictedStart
 
 #: The settings a solve uses when none are given.
 DEFAULT_OPTIONS = SfsOptions()
@@ -72,6 +71,29 @@ class SfsSolution:
     info: SolveInfo
     model: str
     node_slope: np.ndarray | None = None
+    ordered_work: float | None = None
+    frames_since_ordered: int = 0
+
+
+@dataclass(frozen=True)
+class PredictedStart:
+    """A warm start predicted for the current frame, on the previous frame's solve grid.
+
+    Made by :func:`endo_sfs.pose_prediction.predict_warm_start`.
+
+    node_solution: (ny, nx) float64 predicted ln r (NaN where the previous
+    surface is not seen). node_irradiance: (ny, nx) float64 the previous
+    irradiance moved with it (and scaled by the distance change), for the
+    solver's global shift. node_slope: (ny, nx) float64 the previous tan θ
+    moved with it (Newton seeds), or None. grid: the solve grid.
+    ordered_work, frames_since_ordered: the warm-start chain's bookkeeping,
+    carried over from the previous :class:`SfsSolution`.
+    """
+
+    node_solution: np.ndarray
+    node_irradiance: np.ndarray | None
+    node_slope: np.ndarray | None
+    grid: SolveGrid
     ordered_work: float | None = None
     frames_since_ordered: int = 0
 

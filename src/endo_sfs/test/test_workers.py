@@ -153,3 +153,19 @@ def test_two_worker_processes_give_the_frames_and_depth_of_one(sequence, listene
         assert valid.mean() > 0.5
         assert np.array_equal(valid, np.isfinite(two[stamp]))
         assert np.max(np.abs(two[stamp][valid] / one[stamp][valid] - 1.0)) < 1e-4
+
+
+def test_a_worker_index_outside_the_worker_count_is_refused() -> None:
+    from rclpy.parameter import Parameter
+
+    from endo_io.errors import ParameterValidationError
+    from endo_sfs.node import SfsNode
+
+    context = rclpy.Context()
+    rclpy.init(context=context)
+    try:
+        with pytest.raises(ParameterValidationError, match="worker_index: 2 is not below"):
+            SfsNode(context=context, parameter_overrides=[
+                Parameter("worker_count", value=2), Parameter("worker_index", value=2)])
+    finally:
+        rclpy.shutdown(context=context)
