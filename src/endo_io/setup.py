@@ -25,6 +25,7 @@ setup(
             "endo-replay = endo_io.replay_node:main",
             "endo-record = endo_io.record_node:main",
             "endo-bag = endo_io.bag_cli:main",
+            "endo-camera = endo_io.camera_node:main",
         ],
     },
 )
