@@ -18,6 +18,7 @@ calibrations store a 3-channel PNG).
 
 from __future__ import annotations
 
+import logging
 import math
 from dataclasses import dataclass
 from datetime import UTC, datetime
@@ -32,10 +33,12 @@ from numpy.typing import NDArray
 from endo_calib.errors import CalibrationError, CalibrationFileError, CalibrationMismatchError
 from endo_calib.light_map import LightModel, resample_map
 from endo_calib.response import InverseResponse
+from endo_io.provenance import provenance_summary
 
 if TYPE_CHECKING:
     from endo_calib.fit import FitReport
 
+_LOG = logging.getLogger(__name__)
 FILE_FORMAT = "endo3d.photometric_calibration"
 FILE_VERSION = 1
 #: Scale of the 16-bit light-map PNG: stored value = round(L · PNG_SCALE).
@@ -84,6 +87,11 @@ class PhotometricCalibration:
     light_source: "model" (divide by the smooth light model inside the field of
         view) or "pixels" (divide by the per-pixel map).
     fit_summary: diagnostics of the fit, stored in the YAML (free-form mapping).
+    response_ranges: per channel name, which raw values the fit observed and
+        which are extrapolated (``ResponseExtent.as_dict``; empty for files
+        written before it was recorded, and for DSO imports).
+    provenance: the input and run that produced the calibration
+        (:mod:`endo_io.provenance`; empty when unknown).
     """
 
     def __init__(
@@ -93,6 +101,9 @@ class PhotometricCalibration:
         saturation_value: int | None = None,
         light_source: str = "model",
         fit_summary: dict[str, Any] | None = None,
+        *,
+        response_ranges: dict[str, dict[str, Any]] | None = None,
+        provenance: dict[str, Any] | None = None,
     ) -> None:
         if not channels:
             raise CalibrationError("a calibration needs at least one channel")
@@ -118,7 +129,9 @@ class PhotometricCalibration:
         self.saturation_value = top if saturation_value is None else int(saturation_value)
         self.light_source = light_source
         self.fit_summary = dict(fit_summary or {})
-        self._correctors: dict[tuple[int, int], _Corrector] = {}
+        self.response_ranges = {str(k): dict(v) for k, v in (response_ranges or {}).items()}
+        self.provenance = dict(provenance or {})
+        self._correctors: dict[tuple[int, int, bool], _Corrector] = {}
         self._check_light_maps()
 
     def _check_light_maps(self) -> None:
@@ -200,9 +213,18 @@ class PhotometricCalibration:
                 maps.append(resample_map(ch.light_pixels, self.fov_mask, width, height)[0])
         return maps[0] if len(maps) == 1 else np.stack(maps, axis=-1)
 
+    def observed_top(self, channel: str) -> int | None:
+        """The highest raw value of ``channel`` the fit observed unsaturated (None: unknown).
+
+        Values above it have an extrapolated inverse response.
+        """
+        extent = self.response_ranges.get(channel) or {}
+        observed = extent.get("observed")
+        return int(observed[1]) if observed else None
+
     # ------------------------------------------------------------ correction
-    def _corrector(self, width: int, height: int) -> _Corrector:
-        key = (width, height)
+    def _corrector(self, width: int, height: int, mask_extrapolated: bool = False) -> _Corrector:
+        key = (width, height, mask_extrapolated)
         cached = self._correctors.get(key)
         if cached is not None:
             return cached
@@ -218,6 +240,11 @@ class PhotometricCalibration:
         for c, ch in enumerate(self.channels):
             luts[c, :size] = ch.inverse_response.lut.astype(np.float32)
         luts[:, min(self.saturation_value, length) :] = np.nan
+        if mask_extrapolated:
+            for c, ch in enumerate(self.channels):
+                top = self.observed_top(ch.name)
+                if top is not None:
+                    luts[c, top + 1 :] = np.nan
         lut_cv: NDArray[np.float32] | None = None
         if self.bit_depth == 8:
             lut_cv = (
@@ -232,7 +259,11 @@ class PhotometricCalibration:
         return corrector
 
     def correct(
-        self, raw: NDArray[np.integer], out: NDArray[np.float32] | None = None
+        self,
+        raw: NDArray[np.integer],
+        out: NDArray[np.float32] | None = None,
+        *,
+        mask_extrapolated: bool = False,
     ) -> NDArray[np.float32]:
         """Linear, light-corrected irradiance of a raw frame.
 
@@ -241,6 +272,9 @@ class PhotometricCalibration:
             0..2^bits − 1). Any resolution with the calibration's aspect ratio
             (binned or scaled streams); the light map is resampled once per size.
         out: optional float32 output array of the result's shape.
+        mask_extrapolated: NaN also where the raw value is above the highest
+            value the calibration observed (its inverse response is
+            extrapolated there; see ``response_ranges``).
         Returns (H, W) or (H, W, 3) float32: g(v)/L(x), NaN where v is saturated
         or out of range and outside the field of view.
         Raises CalibrationMismatchError when the frame does not fit the calibration.
@@ -264,7 +298,7 @@ class PhotometricCalibration:
         else:
             raise CalibrationMismatchError(f"raw frame must be uint8 or uint16, got {image.dtype}")
         height, width = image.shape[:2]
-        tables = self._corrector(width, height)
+        tables = self._corrector(width, height, mask_extrapolated)
         result: NDArray[np.float32]
         if tables.lut_cv is not None:
             result = np.asarray(cv2.LUT(image, tables.lut_cv, dst=out), dtype=np.float32)
@@ -319,7 +353,20 @@ class PhotometricCalibration:
                 for name, fit in report.channels.items()
             },
         }
-        return cls(channels, report.fov_mask, report.saturation_value, light_source, summary)
+        top = (1 << report.bit_depth) - 1
+        ranges = {
+            name: fit.extent.as_dict(top)
+            for name, fit in report.channels.items()
+            if fit.extent is not None
+        }
+        return cls(
+            channels,
+            report.fov_mask,
+            report.saturation_value,
+            light_source,
+            summary,
+            response_ranges=ranges,
+        )
 
     # ----------------------------------------------------------------- files
     def save(self, path: str | Path) -> Path:
@@ -358,6 +405,10 @@ class PhotometricCalibration:
             },
             "fit": self.fit_summary,
         }
+        if self.response_ranges:
+            document["response_range"] = self.response_ranges
+        if self.provenance:
+            document["provenance"] = self.provenance
         text = yaml.safe_dump(document, sort_keys=False, default_flow_style=None, width=100)
         yaml_path.write_text(text, encoding="utf-8")
         return yaml_path
@@ -385,7 +436,13 @@ class PhotometricCalibration:
                 f"cannot read calibration file {yaml_path}: {error}"
             ) from error
         try:
-            return cls._from_document(document, yaml_path)
+            calibration = cls._from_document(document, yaml_path)
+            _LOG.info(
+                "photometric calibration %s: %s",
+                yaml_path,
+                provenance_summary(calibration.provenance),
+            )
+            return calibration
         except CalibrationFileError:
             raise
         except (CalibrationError, KeyError, TypeError, ValueError, AttributeError) as error:
@@ -449,6 +506,8 @@ class PhotometricCalibration:
             int(document.get("saturation_value", (1 << bits) - 1)),
             str(light.get("source", "model" if model_doc else "pixels")),
             document.get("fit") or {},
+            response_ranges=_mapping(document.get("response_range"), "response_range"),
+            provenance=_mapping(document.get("provenance"), "provenance"),
         )
 
 
@@ -479,6 +538,15 @@ def select_channel(
     if channel not in names:
         raise CalibrationError(f"channel {channel!r} is not in the calibration's channels {names}")
     return np.ascontiguousarray(corrected[:, :, names.index(channel)])
+
+
+def _mapping(value: Any, key: str) -> dict[str, Any]:
+    """An optional mapping of the YAML ({} when absent); ValueError when it is not one."""
+    if value is None:
+        return {}
+    if not isinstance(value, dict):
+        raise ValueError(f"{key} must be a mapping, got {type(value).__name__}")
+    return value
 
 
 def _model_document(channels: list[ChannelCalibration]) -> dict[str, Any] | None:

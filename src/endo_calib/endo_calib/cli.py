@@ -42,9 +42,28 @@ from endo_calib.raw_image import to_raw_frame
 from endo_io import topics
 from endo_io.camera import CameraModel
 from endo_io.cli import exit_on_error
+from endo_io.provenance import file_record, tool_record
 
 #: A level message logged this long after an image still applies to it (ns).
 LEVEL_TOLERANCE_NS = 5_000_000
+
+
+def truth_beside(source: Path | None) -> NDArray[np.float64] | None:
+    """endo_sim's ``<stem>.inverse_response.npy`` beside a bag or manifest, when present.
+
+    Simulated recordings carry their ground truth beside them; the report
+    overlays it. Returns the (2^bits,) table or None.
+    """
+    if source is None:
+        return None
+    path = source.with_name(source.stem + ".inverse_response.npy")
+    if not path.is_file():
+        return None
+    try:
+        table = np.load(path)
+    except (OSError, ValueError):
+        return None
+    return np.asarray(table, dtype=np.float64).ravel()
 
 
 def read_raw_image(path: Path) -> NDArray[np.integer]:
@@ -175,6 +194,43 @@ def accumulate_bag(
     return camera
 
 
+def camera_record(camera: CameraModel, source: str) -> dict[str, Any]:
+    """The camera_info a calibration used, as plain YAML values (for the provenance)."""
+    return {
+        "source": source,
+        "width": int(camera.width),
+        "height": int(camera.height),
+        "distortion_model": camera.distortion_model,
+        "K": [float(x) for x in np.asarray(camera.K).ravel()],
+        "D": [float(x) for x in np.asarray(camera.D).ravel()],
+    }
+
+
+def fit_provenance(
+    args: argparse.Namespace,
+    camera_source: str,
+    camera: CameraModel,
+    argv: Sequence[str] | None,
+) -> dict[str, Any]:
+    """The ``provenance`` of a fitted photometric.yaml: input, topics, camera, card, run."""
+    source = args.bag if args.bag is not None else args.manifest
+    document: dict[str, Any] = {"input": file_record(source)}
+    if args.bag is not None:
+        document["topics"] = {
+            "image": args.image_topic,
+            "gray_level": args.gray_level_topic,
+            "camera_info": args.camera_info_topic,
+        }
+    document["camera_info"] = camera_record(camera, camera_source)
+    document["card"] = {
+        "distance_m": float(args.card_distance),
+        "normal": [float(x) for x in args.card_normal],
+        "note": "the default for levels without their own card pose (a manifest may set them)",
+    }
+    document["tool"] = tool_record("endo-calibrate", argv)
+    return document
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The command-line interface of ``endo-calibrate``."""
     parser = argparse.ArgumentParser(
@@ -233,8 +289,12 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def run(args: argparse.Namespace) -> PhotometricCalibration:
-    """Execute a parsed command line; returns the calibration written."""
+def run(args: argparse.Namespace, argv: Sequence[str] | None = None) -> PhotometricCalibration:
+    """Execute a parsed command line; returns the calibration written.
+
+    argv: the arguments it was parsed from (recorded in the provenance;
+    default ``sys.argv[1:]``).
+    """
     report: FitReport | None = None
     if args.import_dso is not None:
         calibration = import_dso(args.import_dso)
@@ -242,6 +302,7 @@ def run(args: argparse.Namespace) -> PhotometricCalibration:
         pose = CardPose(tuple(args.card_normal), args.card_distance)
         pose = card_pose({}, pose)
         camera = CameraModel.load_yaml(args.camera_info) if args.camera_info else None
+        camera_source = f"file {args.camera_info}" if args.camera_info else ""
         if args.manifest is not None:
             manifest = load_manifest(args.manifest)
             bit_depth = args.bit_depth or manifest.get("bit_depth")
@@ -251,6 +312,7 @@ def run(args: argparse.Namespace) -> PhotometricCalibration:
             accumulate_manifest(manifest, args.manifest.parent, accumulator, pose)
             if camera is None and manifest.get("camera_info"):
                 camera = CameraModel.load_yaml(args.manifest.parent / str(manifest["camera_info"]))
+                camera_source = f"file {args.manifest.parent / str(manifest['camera_info'])}"
         else:
             accumulator = GrayCardAccumulator(args.bit_depth, args.saturation_value)
             bag_camera = accumulate_bag(
@@ -262,7 +324,8 @@ def run(args: argparse.Namespace) -> PhotometricCalibration:
                 args.camera_info_topic,
                 args.settle_frames,
             )
-            camera = camera or bag_camera
+            if camera is None and bag_camera is not None:
+                camera, camera_source = bag_camera, f"bag topic {args.camera_info_topic}"
         if camera is None:
             raise ManifestError(
                 "no camera model: pass --camera-info (or record camera_info in the bag)"
@@ -275,6 +338,7 @@ def run(args: argparse.Namespace) -> PhotometricCalibration:
             light_model_degree=args.light_degree,
         )
         calibration = PhotometricCalibration.from_fit(report, args.light_source)
+        calibration.provenance = fit_provenance(args, camera_source, camera, argv)
         for level in report.levels:
             print(
                 f"level {level['reflectance']:.3g}: {level['frames']} frames, "
@@ -286,6 +350,18 @@ def run(args: argparse.Namespace) -> PhotometricCalibration:
                 f"{fit.iterations} iterations"
                 f"{'' if fit.converged else ' (not converged)'}"
             )
+            if fit.extent is not None:
+                top = (1 << report.bit_depth) - 1
+                extrapolated = (
+                    f"; {fit.extent.observed_high + 1}..{top} extrapolated"
+                    if fit.extent.observed_high < top - 1
+                    else ""
+                )
+                print(
+                    f"channel {name}: raw values {fit.extent.observed_low}.."
+                    f"{fit.extent.observed_high} observed{extrapolated} "
+                    f"(top: {fit.extent.top_model})"
+                )
         print(f"fit took {time.monotonic() - started:.1f} s")
     written = calibration.save(args.output)
     print(f"wrote {written}")
@@ -294,7 +370,15 @@ def run(args: argparse.Namespace) -> PhotometricCalibration:
             raise CalibrationError("--report needs a gray-card fit; a DSO import has none")
         from endo_calib.report import write_report
 
-        print(f"wrote {write_report(report, args.report, light_source=args.light_source)}")
+        truth = truth_beside(args.bag if args.bag is not None else args.manifest)
+        written_report = write_report(
+            report,
+            args.report,
+            light_source=args.light_source,
+            truth_inverse_response=truth,
+            inputs=calibration.provenance,
+        )
+        print(f"wrote {written_report}")
     if args.export_dso is not None:
         pcalib, vignette = export_dso(calibration, args.export_dso, args.dso_channel)
         print(f"wrote {pcalib} and {vignette}")
@@ -304,7 +388,7 @@ def run(args: argparse.Namespace) -> PhotometricCalibration:
 @exit_on_error("endo-calibrate")
 def main(argv: Sequence[str] | None = None) -> int:
     """Console entry point; exit code 0 on success, 2 on bad input."""
-    run(build_parser().parse_args(argv))
+    run(build_parser().parse_args(argv), argv)
     return 0
 
 

@@ -50,6 +50,7 @@ from endo_calib.response import (
     PiecewiseLinearResponse,
     fit_forward_response,
     fit_shoulder,
+    fit_tail,
 )
 
 if TYPE_CHECKING:
@@ -60,6 +61,44 @@ RGB_CHANNELS = ("red", "green", "blue")
 MONO_CHANNELS = ("mono",)
 
 
+#: Alternations each start of the response/light alternation gets before the best goes on.
+START_TRIAL_ITERATIONS = 6
+#: Where the tail takes over from the free curve: this fraction of its window below its top.
+TAIL_JOIN_FRACTION = 0.6
+#: Partly saturated samples confirm a tail when it reaches the last code's
+#: threshold within this many raw values of their onset.
+TAIL_ONSET_TOLERANCE_DN = 0.5
+#: The top tail is used when its RMS residual in its window is at most this
+#: multiple (+ 0.05 DN) of the free piecewise-linear curve's there.
+TAIL_MAX_RMS_RATIO = 1.5
+
+
+@dataclass(frozen=True)
+class ResponseExtent:
+    """Which raw values the fitted response saw, and how the rest was found.
+
+    observed_low, observed_high: the lowest and highest raw values covered by
+    unsaturated, unclipped data. Above ``observed_high`` (and below
+    ``observed_low``) g is extrapolated. top_model: how the top was found (one
+    line). saturation_observed: partly saturated samples pinned the top code.
+    """
+
+    observed_low: int
+    observed_high: int
+    top_model: str
+    saturation_observed: bool
+
+    def as_dict(self, top_code: int) -> dict[str, object]:
+        """The plain mapping saved in photometric.yaml (``response_range``)."""
+        return {
+            "observed": [self.observed_low, self.observed_high],
+            "extrapolated_below": self.observed_low,
+            "extrapolated_above": self.observed_high if self.observed_high < top_code else None,
+            "top_model": self.top_model,
+            "saturation_observed": self.saturation_observed,
+        }
+
+
 @dataclass
 class ChannelFit:
     """Fit of one colour channel.
@@ -67,7 +106,8 @@ class ChannelFit:
     inverse_response: the fitted g. forward: the fitted forward curve (raw value vs
     irradiance, in the fit's irradiance scale). light_map: (H, W) per-pixel L, max
     of the model 1, 0 outside the field of view. light_model: the smooth fit of L.
-    light_weight: (H, W) inverse variance of each per-pixel L. irradiance_scale: the
+    light_weight: (H, W) inverse variance of each per-pixel L. extent: the raw
+    values observed and how the rest was extrapolated. irradiance_scale: the
     forward curve's irradiance of level k at x is coefficient_k(x)·L(x)·scale, with
     coefficient_k = ρ_k·e_k·G_k/max G (``FitReport.coefficients``). residual_rms: RMS of
     v̄ − f(a·M) over the used groups in DN. iterations: alternations run.
@@ -80,6 +120,18 @@ class ChannelFit:
     light_weight: NDArray[np.float64]
     irradiance_scale: float
     residual_rms: float
+    iterations: int
+    converged: bool
+    extent: ResponseExtent | None = None
+
+
+@dataclass(frozen=True)
+class _Alternation:
+    """State of the response/light alternation on the pixel subset."""
+
+    light: NDArray[np.float64]
+    forward: PiecewiseLinearResponse
+    inverse: InverseResponse
     iterations: int
     converged: bool
 
@@ -312,11 +364,12 @@ def _fit_channel(
     float,
     int,
     bool,
+    ResponseExtent,
 ]:
     """Alternating fit on (K, P) arrays of one channel; see the module docstring.
 
     coeff: (K, P) ρ_k·e_k·G_k/max G. Returns (g, f, M (P,), inverse variance of
-    M (P,), residual RMS in DN, iterations, converged).
+    M (P,), residual RMS in DN, iterations, converged, the observed extent).
     """
     top = float((1 << bit_depth) - 1)
     means, weight, valid = groups.mean, groups.weight, groups.usable
@@ -332,34 +385,56 @@ def _fit_channel(
     s_valid, s_ok = valid[:, subset], pixel_ok[subset]
     if not s_valid.any():
         raise FitError("no usable gray-card samples")
-    # Start from a linear response: M is the weighted LS ratio of value to coefficient.
-    num = np.sum(s_weight * s_coeff * s_means / top, axis=0)
+    # Start from a power law g0(v) = (v/top)^γ0: M is the weighted LS ratio
+    # of g0(value) to coefficient. A start far from the truth leaves the light
+    # map bent by the response, which the alternation undoes only slowly (a
+    # linear start took more than 60 alternations on an S-shaped camera, a
+    # 2.2 start as many on a logistic one); so a few starts, γ0 = 1, 2.2 and
+    # the one the data suggest (_start_exponent), get START_TRIAL_ITERATIONS
+    # alternations each and the one that fits best goes on.
     den = np.sum(s_weight * s_coeff * s_coeff, axis=0)
-    m = np.divide(num, den, out=np.zeros_like(num), where=s_ok)
-    previous: NDArray[np.float64] | None = None
-    converged = False
-    forward: PiecewiseLinearResponse | None = None
-    g: InverseResponse | None = None
-    iteration = 0
-    for iteration in range(1, max_iterations + 1):  # noqa: B007 - reported below
-        # Gauge: irradiance scale with the brightest used groups at about 1
-        # (a high percentile, so one stray pixel cannot set the scale).
-        e = s_coeff * m[None, :]
-        scale = float(np.percentile(e[s_valid], 99.9))
-        if not np.isfinite(scale) or scale <= 0.0:
-            raise FitError("gray-card data give no positive irradiance")
-        m /= scale
-        e /= scale
-        knots = _knots(e[s_valid], knot_count)
-        forward = fit_forward_response(
-            e[s_valid], s_means[s_valid], s_weight[s_valid], knots, smoothness, top_code=top
-        )
-        m = _update_light(forward, s_means, s_weight, s_coeff, m, s_ok, steps=2)
-        g = forward.inverse_response(bit_depth)
-        if previous is not None and float(np.max(np.abs(g.lut - previous))) < tolerance:
-            converged = True
-            break
-        previous = g.lut.copy()
+
+    def start(exponent: float) -> NDArray[np.float64]:
+        num = np.sum(s_weight * s_coeff * (s_means / top) ** exponent, axis=0)
+        return np.divide(num, den, out=np.zeros_like(num), where=s_ok)
+
+    def alternate(m: NDArray[np.float64], iterations: int) -> _Alternation:
+        previous: NDArray[np.float64] | None = None
+        forward: PiecewiseLinearResponse | None = None
+        g: InverseResponse | None = None
+        for iteration in range(1, iterations + 1):
+            # Gauge: irradiance scale with the brightest used groups at about 1
+            # (a high percentile, so one stray pixel cannot set the scale).
+            e = s_coeff * m[None, :]
+            scale = float(np.percentile(e[s_valid], 99.9))
+            if not np.isfinite(scale) or scale <= 0.0:
+                raise FitError("gray-card data give no positive irradiance")
+            m = m / scale
+            e /= scale
+            knots = _knots(e[s_valid], knot_count)
+            forward = fit_forward_response(
+                e[s_valid], s_means[s_valid], s_weight[s_valid], knots, smoothness, top_code=top
+            )
+            m = _update_light(forward, s_means, s_weight, s_coeff, m, s_ok, steps=2)
+            g = forward.inverse_response(bit_depth)
+            if previous is not None and float(np.max(np.abs(g.lut - previous))) < tolerance:
+                return _Alternation(m, forward, g, iteration, True)
+            previous = g.lut.copy()
+        assert forward is not None and g is not None
+        return _Alternation(m, forward, g, iterations, False)
+
+    def misfit(state: _Alternation) -> float:
+        resid = (s_means - state.forward(s_coeff * state.light[None, :]))[s_valid]
+        return float(np.average(resid * resid, weights=s_weight[s_valid]))
+
+    exponents = sorted({1.0, 2.2, round(_start_exponent(s_means, s_coeff, s_valid, top), 3)})
+    trials = [alternate(start(x), START_TRIAL_ITERATIONS) for x in exponents]
+    best = min(trials, key=misfit)
+    iteration = best.iterations
+    if not best.converged:
+        more = alternate(best.light, max(1, max_iterations - START_TRIAL_ITERATIONS))
+        best = replace(more, iterations=iteration + more.iterations)
+    forward, g, iteration, converged = best.forward, best.inverse, best.iterations, best.converged
     assert forward is not None and g is not None
     # Every pixel: start from the inverse response, then Gauss–Newton on the forward curve.
     g_of_mean = g(np.clip(means, 0.0, top)) * float(forward.inverse(top))
@@ -368,22 +443,120 @@ def _fit_channel(
     m_all = np.divide(num, den, out=np.zeros_like(num), where=pixel_ok)
     m_all = _update_light(forward, means, weight, coeff, m_all, pixel_ok, steps=4)
     e = coeff * m_all[None, :]
+    observed_top = float(forward.values[-1])
     onset = _saturation_onset(
         e.ravel(), groups.n_high.ravel(), groups.n_total.ravel(), float(forward.knots[-1])
     )
-    anchor = None
+    # Above the brightest observed code the curve is extrapolated: along a
+    # smooth tail when it describes the brightest data as well as the free
+    # curve does (and, when partly saturated samples pin where the last code
+    # begins, agrees with that onset within TAIL_ONSET_TOLERANCE_DN); else
+    # through the onset with a shoulder; else straight on.
+    tailed = _with_tail(forward, e[valid], means[valid], weight[valid], top, observed_top)
     if onset is not None:
-        anchor = (onset, saturation_value - 0.5)
-        forward = forward.with_top_knot(*anchor)
-    shoulder = fit_shoulder(e[valid], means[valid], top, anchor)
-    if shoulder is not None:
-        forward = replace(forward, shoulder=shoulder)
+        threshold = saturation_value - 0.5
+        if tailed is not None and abs(_tail_value(tailed, onset) - threshold) <= (
+            TAIL_ONSET_TOLERANCE_DN
+        ):
+            forward = tailed
+            assert forward.tail is not None
+            top_model = forward.tail.describe() + "; agrees with the saturation onset"
+        else:
+            anchor = (onset, threshold)
+            forward = forward.with_top_knot(*anchor)
+            top_model = "saturation onset (probit on partly saturated samples)"
+            shoulder = fit_shoulder(e[valid], means[valid], top, anchor)
+            if shoulder is not None:
+                forward = replace(forward, shoulder=shoulder)
+                top_model += f" + shoulder (beta = {shoulder.exponent:.3g})"
+    elif tailed is not None:
+        forward = tailed
+        assert forward.tail is not None
+        top_model = forward.tail.describe()
+    else:
+        top_model = "straight continuation of the top slope"
     g = forward.inverse_response(bit_depth)
     resid = (means - forward(e))[valid]
     rms = float(np.sqrt(np.mean(resid * resid))) if resid.size else float("nan")
     jac = forward.slope(e) * coeff
     m_weight = np.sum(weight * jac * jac, axis=0)
-    return g, forward, m_all, m_weight, rms, iteration, converged
+    low_code = float(forward(forward.data_low)) if forward.data_low > 0.0 else 0.0
+    extent = ResponseExtent(
+        observed_low=int(np.ceil(low_code)),
+        observed_high=int(min(np.floor(observed_top), top)),
+        top_model=top_model,
+        saturation_observed=onset is not None,
+    )
+    return g, forward, m_all, m_weight, rms, iteration, converged, extent
+
+
+def _start_exponent(
+    means: NDArray[np.float64],
+    coeff: NDArray[np.float64],
+    valid: NDArray[np.bool_],
+    top: float,
+) -> float:
+    """Exponent γ0 of the power law g0(v) = (v/top)^γ0 that best fits the data.
+
+    With g0, every level of a pixel gives the same light value:
+    log c_k = γ0·log v_k − log M. Removing each pixel's mean over its usable
+    levels leaves one least-squares slope for all pixels.
+
+    means, coeff, valid: (K, P) mean raw values, ρ·e·G coefficients, usable groups.
+    Returns γ0 clipped to [0.8, 4] (2.2 when the data cannot tell).
+    """
+    use = valid & (means > 0.0) & (coeff > 0.0)
+    counts = use.sum(axis=0)
+    pixels = counts >= 2
+    if not pixels.any():
+        return 2.2
+    log_v = np.where(use, np.log(np.where(use, means, 1.0) / top), 0.0)[:, pixels]
+    log_c = np.where(use, np.log(np.where(use, coeff, 1.0)), 0.0)[:, pixels]
+    used = use[:, pixels]
+    n = counts[pixels]
+    dv = np.where(used, log_v - log_v.sum(axis=0) / n, 0.0)
+    dc = np.where(used, log_c - log_c.sum(axis=0) / n, 0.0)
+    denominator = float(np.sum(dv * dv))
+    if not denominator > 0.0:
+        return 2.2
+    return float(np.clip(np.sum(dv * dc) / denominator, 0.8, 4.0))
+
+
+def _with_tail(
+    forward: PiecewiseLinearResponse,
+    irradiance: NDArray[np.float64],
+    raw: NDArray[np.float64],
+    weight: NDArray[np.float64],
+    top: float,
+    observed_top: float,
+) -> PiecewiseLinearResponse | None:
+    """``forward`` with a fitted top tail, or None when the tail does not describe the data.
+
+    The tail is kept when its RMS residual in its window is at most
+    TAIL_MAX_RMS_RATIO times (+ 0.05 DN) the free curve's there.
+    irradiance, raw, weight: (N,) the usable samples.
+    """
+    tail = fit_tail(irradiance, raw, weight, top, observed_top)
+    if tail is None:
+        return None
+    low, high = tail.window
+    near = (raw >= low) & (raw <= high)
+    free = raw[near] - forward(irradiance[near])
+    free_rms = float(np.sqrt(np.average(free * free, weights=weight[near])))
+    if tail.rms_dn > TAIL_MAX_RMS_RATIO * free_rms + 0.05:
+        return None
+    join = high - TAIL_JOIN_FRACTION * (high - low)
+    return replace(forward, tail=tail.tail, tail_from=join)
+
+
+def _tail_value(forward: PiecewiseLinearResponse, irradiance: float) -> float:
+    """Raw value of ``forward``'s tail (as joined to the free curve) at ``irradiance``."""
+    tail = forward.tail
+    assert tail is not None
+    rising = np.concatenate([[True], np.diff(forward.values) > 0.0])
+    e_join = float(np.interp(forward.tail_from, forward.values[rising], forward.knots[rising]))
+    shift = float(tail.inverse(np.asarray(forward.tail_from), forward.top_code)) - e_join
+    return float(tail(irradiance + shift, forward.top_code))
 
 
 def _update_light(
@@ -446,7 +619,7 @@ def fit_gray_card(
     knot_count: int = 48,
     smoothness: float = 1e-6,
     max_iterations: int = 60,
-    tolerance: float = 2e-4,
+    tolerance: float = 5e-5,
     sample_pixels: int = 40000,
 ) -> FitReport:
     """Fit the inverse response and the light map of a camera from gray-card frames.
@@ -590,7 +763,7 @@ def fit_gray_card(
     for c, name in enumerate(names):
         groups = _group_estimates(levels, c, fov, bits, sat_value, acc.black_value)
         level_means[:, fov, c] = np.where(groups.usable, groups.mean, np.nan)
-        g, forward, m, m_weight, rms, iters, converged = _fit_channel(
+        g, forward, m, m_weight, rms, iters, converged, extent = _fit_channel(
             groups,
             coeff,
             bits,
@@ -620,6 +793,7 @@ def fit_gray_card(
             residual_rms=rms,
             iterations=iters,
             converged=converged,
+            extent=extent,
         )
     return FitReport(
         levels=level_info,

@@ -27,6 +27,7 @@ import sys
 from collections.abc import Mapping
 from typing import Any
 
+import numpy as np
 from rclpy.node import Node
 from sensor_msgs.msg import Image
 
@@ -39,6 +40,7 @@ from endo_io.errors import ParameterValidationError
 from endo_io.image import array_to_image, image_to_array
 from endo_io.parameters import NodeParameters, ParameterSpec
 from endo_io.process import run_node
+from endo_io.provenance import provenance_summary
 from endo_io.qos import NEWEST_FRAME_QOS, create_reliable_publisher
 from endo_io.stamp import stamp_to_ns
 
@@ -57,6 +59,12 @@ PARAMETERS: tuple[ParameterSpec, ...] = (
         "published channel: luminance, red, green, blue (32FC1) or rgb (32FC3); a colour "
         "channel needs a colour calibration",
         choices=OUTPUT_CHANNELS,
+    ),
+    ParameterSpec(
+        "mask_extrapolated", False,
+        "publish NaN where the raw value is above the highest value the calibration observed "
+        "unsaturated (its inverse response is extrapolated there); the share of such pixels "
+        "is on /diagnostics either way",
     ),
     *HEALTH_PARAMETERS,
 )
@@ -120,8 +128,25 @@ class PhotometricCorrectionNode(Node):
         self.health.set_value("calibration_error", "")
         self.get_logger().info(
             f"calibration {path}: {cal.width}x{cal.height}, {cal.bit_depth}-bit, "
-            f"channels {'/'.join(cal.channel_names)}"
+            f"channels {'/'.join(cal.channel_names)}; {provenance_summary(cal.provenance)}"
         )
+        for name, extent in cal.response_ranges.items():
+            self.get_logger().info(
+                f"calibration {name}: observed raw values {extent.get('observed')}, "
+                f"top: {extent.get('top_model')}"
+            )
+
+    def _count_extrapolated(self, calibration: PhotometricCalibration, frame: Any) -> None:
+        """Put the share of pixels above the observed range of the response on /diagnostics."""
+        tops = [calibration.observed_top(name) for name in calibration.channel_names]
+        if any(top is None for top in tops):
+            return
+        limit = min(t for t in tops if t is not None)
+        above = frame > limit
+        if above.ndim == 3:
+            above = above.any(axis=-1)
+        share = float(np.count_nonzero(above)) / max(above.size, 1)
+        self.health.set_value("extrapolated_pixel_share", f"{share:.4f}")
 
     def _apply_parameters(self, changes: Mapping[str, Any], values: Mapping[str, Any]) -> None:
         """Load a new calibration file and check the channel against it; refuse on failure.
@@ -148,7 +173,9 @@ class PhotometricCorrectionNode(Node):
         if calibration is None:
             raise CalibrationNotLoadedError(f"no calibration loaded ({self.load_error})")
         frame = to_raw_frame(image_to_array(msg), msg.encoding)
-        corrected = calibration.correct(frame)
+        mask = bool(self.parameters["mask_extrapolated"])
+        corrected = calibration.correct(frame, mask_extrapolated=mask)
+        self._count_extrapolated(calibration, frame)
         output = select_channel(calibration, corrected, self.channel)
         encoding = "32FC3" if output.ndim == 3 else "32FC1"
         self.publisher.publish(

@@ -30,6 +30,8 @@ from endo_calib.errors import CalibrationError, FitError
 LOW_DATA_QUANTILE = 0.001
 #: Windows below the top raw value (fractions of the range) tried for the shoulder fit.
 SHOULDER_WINDOWS = (0.02, 0.03, 0.05)
+#: Window below the highest observed code (fraction of the full scale) the top tail is fitted to.
+TAIL_WINDOW_FRACTION = 0.3
 #: Bit depths a raw image may have (values stored in uint8 or uint16).
 SUPPORTED_BIT_DEPTHS = (8, 10, 12, 14, 16)
 
@@ -199,6 +201,121 @@ def fit_shoulder(
     return Shoulder(e_sat, float(np.exp(log_scale)), beta)
 
 
+@dataclass(frozen=True)
+class LogitPowerTail:
+    """A smooth monotone top of a response: v/T = x^c / (x^c + (1 − x)^c), x = (E/E_s)^(1/γ).
+
+    The family holds a pure power law (c = 1: a gamma camera, finite slope at
+    the top) and film-like S shoulders (c > 1: the curve flattens into full
+    scale, so the last codes span a large stretch of irradiance). It is fitted
+    to the brightest observed codes and carries the curve from the highest
+    code observed unsaturated up to the top code T, where it reaches E_s.
+
+    saturation_irradiance: E_s > 0, the irradiance at which the curve reaches T.
+    contrast: c in [0.5, 6]. exponent: γ in [0.3, 6].
+    """
+
+    saturation_irradiance: float
+    contrast: float
+    exponent: float
+
+    def __call__(self, irradiance: ArrayLike, top_code: float) -> NDArray[np.float64]:
+        """Raw value (float64, DN) at irradiance (clipped to [0, E_s])."""
+        y = np.clip(np.asarray(irradiance, dtype=np.float64) / self.saturation_irradiance, 0, 1)
+        x = y ** (1.0 / self.exponent)
+        xc = x**self.contrast
+        return top_code * xc / np.maximum(xc + (1.0 - x) ** self.contrast, 1e-300)
+
+    def inverse(self, raw: ArrayLike, top_code: float) -> NDArray[np.float64]:
+        """Irradiance at raw values (clipped to [0, top_code]); E_s at the top code."""
+        v = np.clip(np.asarray(raw, dtype=np.float64) / top_code, 0.0, 1.0)
+        with np.errstate(divide="ignore"):
+            ratio = ((1.0 - v) / np.maximum(v, 1e-300)) ** (1.0 / self.contrast)
+        x = np.where(v > 0.0, 1.0 / (1.0 + ratio), 0.0)
+        return self.saturation_irradiance * x**self.exponent
+
+    def describe(self) -> str:
+        """One line naming the family and its parameters (for the YAML and the report)."""
+        return (
+            f"logit-power tail: v/T = x^c/(x^c+(1-x)^c), x = (E/E_s)^(1/gamma), "
+            f"c = {self.contrast:.4g}, gamma = {self.exponent:.4g}"
+        )
+
+
+@dataclass(frozen=True)
+class TailFit:
+    """A fitted :class:`LogitPowerTail` and how well it describes its window.
+
+    tail: the fitted tail. rms_dn: weighted RMS raw-value residual in the window.
+    window: (low, high) raw values of the samples it was fitted to.
+    """
+
+    tail: LogitPowerTail
+    rms_dn: float
+    window: tuple[float, float]
+
+
+def fit_tail(
+    irradiance: NDArray[np.float64],
+    raw: NDArray[np.float64],
+    weight: NDArray[np.float64],
+    top_code: float,
+    observed_top: float,
+    *,
+    window_fraction: float = TAIL_WINDOW_FRACTION,
+    max_samples: int = 20000,
+    min_samples: int = 200,
+) -> TailFit | None:
+    """Fit :class:`LogitPowerTail` to the brightest observed samples.
+
+    The data stop at ``observed_top`` (the highest code observed unsaturated);
+    the curve above it cannot be measured and is extrapolated along this
+    family, fitted to the samples within ``window_fraction`` of the full scale
+    below ``observed_top`` (raw-value residuals, weights ``weight``).
+
+    irradiance, raw, weight: (N,) samples (fit's irradiance scale, DN, 1/DN²).
+    top_code: 2^bits − 1. Returns None when the window holds fewer than
+    ``min_samples`` samples or the least-squares fit fails.
+    """
+    e_all = np.asarray(irradiance, dtype=np.float64).ravel()
+    v_all = np.asarray(raw, dtype=np.float64).ravel()
+    w_all = np.asarray(weight, dtype=np.float64).ravel()
+    low = observed_top - window_fraction * top_code
+    near = np.flatnonzero((v_all >= low) & (v_all <= observed_top) & (w_all > 0.0))
+    if near.size < min_samples:
+        return None
+    if near.size > max_samples:
+        near = np.sort(np.random.default_rng(0).choice(near, max_samples, replace=False))
+    e, v = e_all[near], v_all[near]
+    root_w = np.sqrt(w_all[near] / np.mean(w_all[near]))
+    e_top = float(np.max(e))
+
+    def residuals(params: NDArray[np.float64]) -> NDArray[np.float64]:
+        tail = LogitPowerTail(float(params[0]), float(params[1]), float(params[2]))
+        return root_w * (tail(e, top_code) - v)
+
+    best = None
+    for contrast in (1.0, 1.6, 2.5):
+        for exponent in (1.5, 2.2, 3.0):
+            start = np.array([1.2 * e_top, contrast, exponent])
+            try:
+                result = scipy.optimize.least_squares(
+                    residuals,
+                    start,
+                    bounds=([e_top * (1 + 1e-6), 0.5, 0.3], [20.0 * e_top, 6.0, 6.0]),
+                    x_scale=np.array([e_top, 1.0, 1.0]),
+                )
+            except ValueError:
+                continue
+            if best is None or result.cost < best.cost:
+                best = result
+    if best is None or not np.all(np.isfinite(best.x)):
+        return None
+    tail = LogitPowerTail(float(best.x[0]), float(best.x[1]), float(best.x[2]))
+    rms = float(np.sqrt(2.0 * best.cost / e.size))
+    return TailFit(tail, rms, (float(np.min(v)), float(observed_top)))
+
+
 @dataclass(frozen=True, eq=False)
 class PiecewiseLinearResponse:
     """A monotone forward response ``f``: raw value (DN) against irradiance.
@@ -208,8 +325,13 @@ class PiecewiseLinearResponse:
     data_low: the lowest irradiance the curve was fitted to (0: unknown). Below
         it the inverse follows a power law (see :meth:`inverse`).
     top_code: the largest raw value, 2^bits − 1 (0: unknown).
-    shoulder: the fitted top of the curve, used between the last knot and
-        ``top_code`` (None: a straight continuation).
+    shoulder: the fitted top of the curve from partly saturated data, used
+        between the last knot and ``top_code``.
+    tail: without a shoulder, the smooth tail fitted to the brightest observed
+        codes that carries the curve above them (None and no shoulder: a
+        straight continuation of the top slope).
+    tail_from: the raw value above which the tail replaces the free curve
+        (joined continuously there); 0: the last knot's value.
     """
 
     knots: NDArray[np.float64]
@@ -217,6 +339,8 @@ class PiecewiseLinearResponse:
     data_low: float = 0.0
     top_code: float = 0.0
     shoulder: Shoulder | None = None
+    tail: LogitPowerTail | None = None
+    tail_from: float = 0.0
 
     def __call__(self, irradiance: ArrayLike) -> NDArray[np.float64]:
         """f(E): (...) irradiance (same units as the knots) to (...) float64 raw values."""
@@ -256,8 +380,18 @@ class PiecewiseLinearResponse:
         rising = np.concatenate([[True], np.diff(self.values) > 0.0])
         ys, es = self.values[rising], self.knots[rising]
         inside = np.interp(v, ys, es)
-        above = self._extrapolate_top(v)
-        result = np.where(v > ys[-1], above, inside)
+        if self.tail is not None and self.shoulder is None and 0.0 < self.tail_from < ys[-1]:
+            # The free curve's last few codes rest on few samples; the tail,
+            # fitted to the whole window, takes over inside it.
+            e_join = float(np.interp(self.tail_from, ys, es))
+            above = (
+                e_join
+                + self.tail.inverse(v, self.top_code)
+                - self.tail.inverse(np.asarray(self.tail_from), self.top_code)
+            )
+            result = np.where(v > self.tail_from, above, inside)
+        else:
+            result = np.where(v > ys[-1], self._extrapolate_top(v), inside)
         if self.data_low > 0.0:
             # Below the darkest data a straight chord to (0, 0) would misjudge
             # a curved toe (g ∝ v^2.2 for a gamma camera); continue with the
@@ -274,9 +408,9 @@ class PiecewiseLinearResponse:
     def _extrapolate_top(self, raw: NDArray[np.float64]) -> NDArray[np.float64]:
         """Irradiance above the last knot for raw values beyond its value.
 
-        With a fitted :class:`Shoulder` the curve continues along it (shifted to
-        join the last knot); otherwise along a straight line with the mean
-        slope of the top 15% of the irradiance range.
+        With a fitted :class:`Shoulder` or :class:`LogitPowerTail` the curve
+        continues along it (shifted to join the last knot); otherwise along a
+        straight line with the mean slope of the top 15% of the irradiance range.
         """
         k, y = self.knots, self.values
         e_top, v_top = float(k[-1]), float(y[-1])
@@ -285,6 +419,12 @@ class PiecewiseLinearResponse:
                 e_top
                 + self.shoulder.inverse(raw, self.top_code)
                 - self.shoulder.inverse(np.asarray(v_top), self.top_code)
+            )
+        if self.tail is not None and self.top_code > v_top:
+            return (
+                e_top
+                + self.tail.inverse(raw, self.top_code)
+                - self.tail.inverse(np.asarray(v_top), self.top_code)
             )
         sel = k >= 0.85 * e_top
         if sel.sum() < 4:
