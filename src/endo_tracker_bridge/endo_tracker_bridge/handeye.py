@@ -115,13 +115,7 @@ def detect_checkerboard(image: np.ndarray, board: Checkerboard) -> np.ndarray | 
     like :meth:`Checkerboard.object_points`, or None when the whole board is
     not found.
     """
-    gray = np.asarray(image)
-    if gray.ndim == 3:
-        gray = cv2.cvtColor(gray, cv2.COLOR_RGBA2GRAY if gray.shape[2] == 4 else cv2.COLOR_RGB2GRAY)
-    if gray.dtype != np.uint8:
-        low, high = float(np.min(gray)), float(np.max(gray))
-        stretched = (gray.astype(np.float64) - low) * (255.0 / max(high - low, 1e-12))
-        gray = np.clip(stretched, 0.0, 255.0).astype(np.uint8)
+    gray = _gray8(image)
     # The classic detector refined by cornerSubPix is ~8x faster than the
     # sector-based one and, on rendered boards, more accurate (0.06 px vs
     # 0.16 px RMS); the sector-based one is the fallback for hard images.
@@ -173,6 +167,54 @@ def _orient_corners(gray: np.ndarray, corners: np.ndarray, board: Checkerboard) 
             return corners
         levels.append(float(np.mean(gray[v - 1 : v + 2, u - 1 : u + 2])))
     return corners if levels[0] <= levels[1] else corners[::-1].copy()
+
+
+#: Inner-corner counts (columns, rows) of common calibration checkerboards,
+#: tried in this order when the board given is not found. Boards with
+#: columns + rows odd come first: they number their corners unambiguously.
+COMMON_BOARDS: tuple[tuple[int, int], ...] = (
+    (9, 6), (8, 5), (7, 6), (6, 5), (7, 4), (9, 4), (10, 7), (8, 7), (11, 8), (5, 4),
+    (8, 6), (7, 5), (9, 7), (6, 4), (10, 6), (5, 3), (4, 3),
+)
+
+
+def find_board_size(
+    images: list[np.ndarray], candidates: tuple[tuple[int, int], ...] = COMMON_BOARDS
+) -> tuple[tuple[int, int], int] | None:
+    """The checkerboard size (inner corners) the images show, among ``candidates``.
+
+    Each candidate is tried on every image with OpenCV's fast check; the one
+    found in the most images wins (ties: the earlier candidate).
+    images: (H, W) or (H, W, C) uint8/uint16 frames, a few spread over a recording.
+    Returns ((columns, rows), images it was found in), or None when no
+    candidate is found in any image.
+    """
+    best: tuple[tuple[int, int], int] | None = None
+    for columns, rows in candidates:
+        found = 0
+        for image in images:
+            gray = _gray8(image)
+            ok, _ = cv2.findChessboardCorners(
+                gray, (columns, rows), flags=cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_FAST_CHECK
+            )
+            found += int(ok)
+        if found and (best is None or found > best[1]):
+            best = ((columns, rows), found)
+            if found == len(images):
+                break
+    return best
+
+
+def _gray8(image: np.ndarray) -> np.ndarray:
+    """(H, W) uint8 of an (H, W) or (H, W, 3|4), uint8 or uint16 image (min-max stretched)."""
+    gray = np.asarray(image)
+    if gray.ndim == 3:
+        gray = cv2.cvtColor(gray, cv2.COLOR_RGBA2GRAY if gray.shape[2] == 4 else cv2.COLOR_RGB2GRAY)
+    if gray.dtype != np.uint8:
+        low, high = float(np.min(gray)), float(np.max(gray))
+        stretched = (gray.astype(np.float64) - low) * (255.0 / max(high - low, 1e-12))
+        gray = np.clip(stretched, 0.0, 255.0).astype(np.uint8)
+    return gray
 
 
 @dataclass(frozen=True)
@@ -468,7 +510,12 @@ class HandEyeResult:
     pose and the one the calibration predicts from the board view;
     ``reprojection_rms_px`` is the RMS corner error of the board projected
     through tracker and calibration. ``closed_form`` holds each closed-form
-    method's residuals before refinement.
+    method's residuals before refinement. Per view (N board views, in their
+    order): ``view_stamps_ns``, ``view_used`` (False: rejected as an outlier
+    or without tracker poses around it), ``view_reprojection_px`` (RMS corner
+    error), ``view_translation_mm`` and ``view_rotation_deg`` (tracker
+    residual), NaN without tracker poses; ``corner_residuals_px``: the
+    corner error magnitudes of the views used.
     """
 
     T_marker_camera: np.ndarray
@@ -483,6 +530,12 @@ class HandEyeResult:
     closed_form: dict[str, dict[str, float]]
     coarse_offsets_ms: list[float]
     coarse_costs: list[float]
+    view_stamps_ns: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    view_used: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
+    view_reprojection_px: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    view_translation_mm: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    view_rotation_deg: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    corner_residuals_px: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
 
 @dataclass(frozen=True)
@@ -677,6 +730,7 @@ def calibrate_hand_eye(
     residual = TrackerNoise.from_residuals(tracker_residuals(A, B, fit.X, fit.W))
     corners = np.stack([v.corners for v, keep in zip(views, mask, strict=True) if keep])
     pixels = reprojection_residuals(A, corners, board.object_points(), camera, fit.X, fit.W)
+    per_view = _per_view_residuals(views, fit.A, board, camera, fit.X, fit.W)
     return HandEyeResult(
         T_marker_camera=fit.X,
         T_tracker_target=fit.W,
@@ -693,7 +747,97 @@ def calibrate_hand_eye(
         },
         coarse_offsets_ms=[float(o) / MS for o in grid],
         coarse_costs=[float(c) for c in costs],
+        view_stamps_ns=np.array([v.stamp_ns for v in views], dtype=np.int64),
+        view_used=np.asarray(mask, dtype=bool),
+        view_reprojection_px=per_view[0],
+        view_translation_mm=per_view[1],
+        view_rotation_deg=per_view[2],
+        corner_residuals_px=np.linalg.norm(pixels, axis=-1).ravel(),
     )
+
+
+def _per_view_residuals(
+    views: list[BoardView],
+    T_tracker_marker: np.ndarray,
+    board: Checkerboard,
+    camera: CameraModel,
+    X: np.ndarray,
+    W: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(N,) RMS corner error (px), tracker translation (mm) and rotation (°) residual per view.
+
+    NaN for views without a tracker pose (``T_tracker_marker`` NaN there).
+    """
+    n = len(views)
+    reprojection, translation, rotation = np.full(n, np.nan), np.full(n, np.nan), np.full(n, np.nan)
+    valid = np.all(np.isfinite(T_tracker_marker.reshape(n, -1)), axis=1)
+    if valid.any():
+        A = T_tracker_marker[valid]
+        B = np.stack([v.T_camera_target for v, ok in zip(views, valid, strict=True) if ok])
+        corners = np.stack([v.corners for v, ok in zip(views, valid, strict=True) if ok])
+        pixels = reprojection_residuals(A, corners, board.object_points(), camera, X, W)
+        reprojection[valid] = np.sqrt(np.nanmean(np.sum(pixels**2, axis=-1), axis=-1))
+        residuals = tracker_residuals(A, B, X, W)
+        rotation[valid] = np.degrees(np.linalg.norm(residuals[:, :3], axis=-1))
+        translation[valid] = 1e3 * np.linalg.norm(residuals[:, 3:], axis=-1)
+    return reprojection, translation, rotation
+
+
+def scaled_views(views: list[BoardView], factor: float) -> list[BoardView]:
+    """The views of a board whose squares are ``factor`` times larger (PnP scales t only)."""
+    out = []
+    for view in views:
+        T = view.T_camera_target.copy()
+        T[:3, 3] *= factor
+        out.append(BoardView(view.stamp_ns, view.corners, T, view.reprojection_rms_px))
+    return out
+
+
+def estimate_square_size(
+    views: list[BoardView],
+    tracker_stamps_ns: np.ndarray,
+    tracker_poses: np.ndarray,
+    board: Checkerboard,
+    camera: CameraModel,
+    search: OffsetSearch | None = None,
+    *,
+    max_gap_ns: int = 60 * MS,
+    bounds_m: tuple[float, float] = (0.5e-3, 50e-3),
+) -> float:
+    """The board's square side (metres) that makes the tracker and the board views agree.
+
+    PnP with a wrong square size scales each board pose's translation by the
+    same factor, so ``A_i X B_i = W`` holds only at the right one: this
+    minimises the refined whitened tracker residual over the square size
+    (a log-spaced grid over ``bounds_m``, then bounded Brent), at the clock
+    offset found with ``board``'s size. ``views`` were solved with ``board``.
+    Raises HandEyeError when the calibration fails at every size.
+    """
+    first = calibrate_hand_eye(
+        views, tracker_stamps_ns, tracker_poses, board, camera, search, max_gap_ns=max_gap_ns
+    )
+    offset_ns = first.time_offset_ns
+    order = np.argsort(tracker_stamps_ns, kind="stable")
+    stamps = np.asarray(tracker_stamps_ns)[order]
+    poses = np.asarray(tracker_poses)[order]
+    noise = TrackerNoise()
+
+    def cost(log_square: float) -> float:
+        factor = math.exp(log_square) / board.square_m
+        problem = _Problem(scaled_views(views, factor), stamps, poses, max_gap_ns, 24)
+        try:
+            return problem.fit(offset_ns, noise).cost
+        except (HandEyeError, np.linalg.LinAlgError, ValueError):
+            return math.inf
+
+    grid = np.linspace(math.log(bounds_m[0]), math.log(bounds_m[1]), 41)
+    costs = np.array([cost(float(x)) for x in grid])
+    if not np.any(np.isfinite(costs)):
+        raise HandEyeError("no square size makes the board views agree with the tracker")
+    best = int(np.argmin(costs))
+    low, high = grid[max(best - 1, 0)], grid[min(best + 1, grid.size - 1)]
+    fine = minimize_scalar(cost, bounds=(low, high), method="bounded", options={"xatol": 1e-4})
+    return float(math.exp(fine.x))
 
 
 def _rotation_span_deg(T: np.ndarray) -> float:

@@ -8,6 +8,12 @@ corners are detected and its pose solved (PnP with the camera_info
 intrinsics and distortion); :func:`endo_tracker_bridge.handeye.calibrate_hand_eye`
 does the rest. The result goes to ``handeye.yaml``, which the bridge loads
 through its ``handeye_file`` parameter.
+
+Without ``--board`` the board's size is detected among
+:data:`~endo_tracker_bridge.handeye.COMMON_BOARDS`; a ``--board`` that is not
+found in the images stops with one line naming the size they show. Without
+``--square-mm`` the square side is estimated from the tracker
+(:func:`~endo_tracker_bridge.handeye.estimate_square_size`).
 """
 
 from __future__ import annotations
@@ -17,7 +23,7 @@ import datetime
 import sys
 from collections.abc import Iterator, Sequence
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -27,11 +33,13 @@ from endo_io.bag.streams import PoseStreamCollector
 from endo_io.camera import CameraModel
 from endo_io.cli import exit_on_error
 from endo_io.image import image_to_array
+from endo_io.provenance import file_record, tool_record
 from endo_io.stamp import stamp_to_ns
 from endo_io.topics import CAMERA_INFO, IMAGE_RAW, TRACKER_POSE
 from endo_tracker_bridge.conventions import LengthUnit
 from endo_tracker_bridge.errors import HandEyeError
 from endo_tracker_bridge.handeye import (
+    COMMON_BOARDS,
     MS,
     BoardView,
     Checkerboard,
@@ -40,8 +48,14 @@ from endo_tracker_bridge.handeye import (
     board_view,
     calibrate_hand_eye,
     detect_checkerboard,
+    estimate_square_size,
+    find_board_size,
+    scaled_views,
 )
 from endo_tracker_bridge.handeye_file import HandEyeCalibration
+
+#: Square side (mm) the views are solved with before the real one is estimated.
+NOMINAL_SQUARE_MM = 5.0
 
 
 @dataclass(frozen=True)
@@ -123,6 +137,57 @@ def read_observations(
     )
 
 
+#: Images sampled (evenly over the recording) to find the board's size.
+SIZE_SAMPLE_IMAGES = 6
+
+
+def sample_images(
+    path: str | Path, topic: str, count: int = SIZE_SAMPLE_IMAGES
+) -> list[np.ndarray]:
+    """``count`` images spread evenly over the bag's ``topic`` (fewer if it has fewer)."""
+    with BagReader(path) as bag:
+        if topic not in bag.topics:
+            raise HandEyeError(f"bag {path} has no topic {topic}")
+        total = bag.topics[topic].message_count
+        wanted = set(np.linspace(0, max(total - 1, 0), min(count, total)).round().astype(int))
+        images = []
+        for index, message in enumerate(bag.messages(topics=[topic])):
+            if index in wanted:
+                images.append(image_to_array(deserialize(message)))
+    return images
+
+
+def resolve_board(
+    path: str | Path, topic: str, given: str | None, square_mm: float
+) -> Checkerboard:
+    """The checkerboard of the recording: ``given`` ("9x6") if its images show it, else detected.
+
+    Raises:
+        HandEyeError: one line naming the size the images show (when ``given``
+            is not it) or saying that no common size was found.
+    """
+    images = sample_images(path, topic)
+    if given is not None:
+        board = parse_board(given, square_mm)
+        if any(detect_checkerboard(image, board) is not None for image in images):
+            return board
+    found = find_board_size(images)
+    if found is None:
+        sizes = ", ".join(f"{c}x{r}" for c, r in COMMON_BOARDS)
+        what = f"board {given} is not" if given else "no common checkerboard is"
+        raise HandEyeError(
+            f"{what} found in {len(images)} images sampled from {path} (tried {sizes}); "
+            "pass --board COLSxROWS (inner corners)"
+        )
+    (columns, rows), count = found
+    if given is not None:
+        raise HandEyeError(
+            f"board {given} is not found in {len(images)} images sampled from {path}, but "
+            f"{columns}x{rows} inner corners are (in {count}): pass --board {columns}x{rows}"
+        )
+    return Checkerboard(columns, rows, square_mm * 1e-3)
+
+
 def calibrate_observations(
     observations: BagObservations,
     board: Checkerboard,
@@ -153,10 +218,13 @@ def calibrate_observations(
 
 
 def result_to_calibration(
-    result: HandEyeResult, observations: BagObservations
+    result: HandEyeResult,
+    observations: BagObservations,
+    provenance: dict[str, object] | None = None,
 ) -> HandEyeCalibration:
-    """The handeye.yaml content of a solver result."""
+    """The handeye.yaml content of a solver result (``provenance``: see endo_io.provenance)."""
     return HandEyeCalibration(
+        provenance=dict(provenance or {}),
         T_marker_camera=result.T_marker_camera,
         time_offset_ns=result.time_offset_ns,
         residuals={
@@ -213,13 +281,17 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("-o", "--output", type=Path, default=Path("handeye.yaml"))
     parser.add_argument(
         "--board",
-        default="9x6",
+        default=None,
         metavar="COLSxROWS",
-        help="inner corners of the checkerboard (default 9x6)",
+        help="inner corners of the checkerboard (default: detected among common sizes)",
     )
     parser.add_argument(
-        "--square-mm", type=float, default=5.0, help="checkerboard square side in mm (default 5)"
+        "--square-mm",
+        type=float,
+        default=None,
+        help="checkerboard square side in mm (default: estimated from the tracker)",
     )
+    parser.add_argument("--report", type=Path, help="write the hand-eye report figure (PNG)")
     parser.add_argument("--image-topic", default=BagTopics.image)
     parser.add_argument("--camera-info-topic", default=BagTopics.camera_info)
     parser.add_argument("--pose-topic", default=BagTopics.pose)
@@ -258,25 +330,62 @@ def parse_board(text: str, square_mm: float) -> Checkerboard:
 def main(argv: Sequence[str] | None = None) -> int:
     """Console script ``endo-handeye``; exit code 0 on success, 2 on bad input."""
     options = build_parser().parse_args(argv)
-    board = parse_board(options.board, options.square_mm)
+    topics = BagTopics(options.image_topic, options.camera_info_topic, options.pose_topic)
+    nominal_mm = options.square_mm if options.square_mm is not None else NOMINAL_SQUARE_MM
+    board = resolve_board(options.bag, topics.image, options.board, nominal_mm)
+    if options.board is None:
+        print(f"board: {board.columns}x{board.rows} inner corners (detected)")
     observations = read_observations(
-        options.bag,
-        board,
-        BagTopics(options.image_topic, options.camera_info_topic, options.pose_topic),
-        LengthUnit.parse(options.pose_unit),
-        options.max_views,
+        options.bag, board, topics, LengthUnit.parse(options.pose_unit), options.max_views
     )
     low, high = (round(v * MS) for v in options.offset_range_ms)
-    result = calibrate_observations(
-        observations,
-        board,
-        OffsetSearch(low, high, round(options.offset_step_ms * MS)),
-        max_gap_ns=round(options.max_gap_ms * MS),
-    )
-    result_to_calibration(result, observations).save(options.output)
+    search = OffsetSearch(low, high, round(options.offset_step_ms * MS))
+    max_gap_ns = round(options.max_gap_ms * MS)
+    square_source = "given (--square-mm)"
+    if options.square_mm is None:
+        square_m = estimate_square_size(
+            observations.views,
+            observations.tracker_stamps_ns,
+            observations.tracker_poses,
+            board,
+            observations.camera,
+            search,
+            max_gap_ns=max_gap_ns,
+        )
+        factor = square_m / board.square_m
+        board = Checkerboard(board.columns, board.rows, square_m)
+        observations = replace(observations, views=scaled_views(observations.views, factor))
+        square_source = "estimated from the tracker (pass --square-mm to fix it)"
+        print(f"square: {square_m * 1e3:.3f} mm, {square_source}")
+    result = calibrate_observations(observations, board, search, max_gap_ns=max_gap_ns)
+    provenance = {
+        "input": file_record(options.bag),
+        "topics": {"image": topics.image, "camera_info": topics.camera_info, "pose": topics.pose},
+        "camera_info": {
+            "source": f"bag topic {topics.camera_info}",
+            "width": int(observations.camera.width),
+            "height": int(observations.camera.height),
+            "distortion_model": observations.camera.distortion_model,
+            "K": [float(x) for x in np.asarray(observations.camera.K).ravel()],
+            "D": [float(x) for x in np.asarray(observations.camera.D).ravel()],
+        },
+        "board": {
+            "inner_corners": f"{board.columns}x{board.rows}",
+            "size_source": "given (--board)" if options.board else "detected",
+            "square_mm": board.square_m * 1e3,
+            "square_source": square_source,
+        },
+        "pose_unit": options.pose_unit,
+        "tool": tool_record("endo-handeye", argv),
+    }
+    result_to_calibration(result, observations, provenance).save(options.output)
     for line in _summary_lines(result, observations):
         print(line)
     print(f"wrote {options.output}")
+    if options.report is not None:
+        from endo_tracker_bridge.handeye_report import write_handeye_report
+
+        print(f"wrote {write_handeye_report(result, options.report, provenance)}")
     return 0
 
 

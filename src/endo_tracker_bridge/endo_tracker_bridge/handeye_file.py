@@ -17,10 +17,17 @@ Layout (YAML, every length in metres unless the key says otherwise)::
     views_total: 120
     T_tracker_target: [...]     # optional, the board in the tracker frame
     details: {...}              # optional, free-form (per-method results)
+    provenance:                 # optional (endo_io.provenance): input bag (name, size,
+      input: {...}              #   sha256), topics, camera_info, board, tool (program,
+      ...                       #   endo3d version, date, command line)
+
+Files written before ``provenance`` existed load as before; loading logs the
+provenance (or its absence) at info level.
 """
 
 from __future__ import annotations
 
+import logging
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -29,9 +36,11 @@ from typing import Any
 import numpy as np
 import yaml
 
+from endo_io.provenance import provenance_summary
 from endo_tracker_bridge.errors import HandEyeFileError
 from endo_tracker_bridge.validation import check_rotation_matrix
 
+_LOG = logging.getLogger(__name__)
 TIME_OFFSET_CONVENTION = (
     "tracker_stamp = camera_time + time_offset_s; the bridge stamps /endoscope/pose "
     "at tracker_stamp - time_offset_s"
@@ -54,6 +63,7 @@ class HandEyeCalibration:
             with a detected board.
         T_tracker_target: (4,4) float64 board pose in the tracker frame, or None.
         details: Free-form extra results (per-method residuals, search range).
+        provenance: Where it came from (:mod:`endo_io.provenance`); empty when unknown.
     """
 
     T_marker_camera: np.ndarray
@@ -65,6 +75,7 @@ class HandEyeCalibration:
     views_total: int = 0
     T_tracker_target: np.ndarray | None = None
     details: dict[str, Any] = field(default_factory=dict)
+    provenance: dict[str, Any] = field(default_factory=dict)
 
     @classmethod
     def identity(cls) -> HandEyeCalibration:
@@ -87,6 +98,8 @@ class HandEyeCalibration:
             document["T_tracker_target"] = _matrix_to_rows(self.T_tracker_target)
         if self.details:
             document["details"] = _plain(self.details)
+        if self.provenance:
+            document["provenance"] = _plain(self.provenance)
         text = "# endo3d hand-eye and clock calibration (endo-handeye)\n"
         text += yaml.safe_dump(document, sort_keys=False, default_flow_style=None)
         Path(path).write_text(text)
@@ -110,6 +123,10 @@ class HandEyeCalibration:
         if not isinstance(residuals, dict):
             raise HandEyeFileError(f"{path}: residuals must be a mapping")
         target = document.get("T_tracker_target")
+        provenance = document.get("provenance") or {}
+        if not isinstance(provenance, dict):
+            raise HandEyeFileError(f"{path}: provenance must be a mapping")
+        _LOG.info("hand-eye calibration %s: %s", path, provenance_summary(provenance))
         return cls(
             T_marker_camera=T,
             time_offset_ns=round(float(offset_s) * 1e9),
@@ -122,6 +139,7 @@ class HandEyeCalibration:
             if target is None
             else _rows_to_matrix(target, path, "T_tracker_target"),
             details=dict(document.get("details") or {}),
+            provenance=provenance,
         )
 
 
