@@ -51,7 +51,8 @@ def bag(tmp_path_factory, bright_card, synth):
 def calibrated(bag, tmp_path_factory):
     out = tmp_path_factory.mktemp("out")
     yaml_path, png = out / "photometric.yaml", out / "calib.png"
-    argv = ["--bag", str(bag), "--card-distance", "0.05", "-o", str(yaml_path), "--report", str(png)]
+    argv = ["--bag", str(bag), "--card-distance", "0.05", "-o", str(yaml_path)]
+    argv += ["--report", str(png)]
     assert main(argv) == 0
     return yaml_path, png
 
