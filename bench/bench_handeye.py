@@ -12,6 +12,9 @@ into docs/benchmarks.md under "endo_tracker_bridge hand–eye".
    time per call and error of each method, for several numbers of views.
 3. bags/handeye.mcap when present: corner detection time per image, solver
    time, and the errors against <bag>.ground_truth.yaml.
+4. The same bag as ``endo-handeye bags/handeye.mcap`` runs it with no board
+   flags: board size detection, square size estimated from the tracker, then
+   the calibration; its time and errors (square size, hand–eye, offset).
 """
 
 from __future__ import annotations
@@ -33,10 +36,17 @@ from endo_tracker_bridge.handeye import (
     Checkerboard,
     OffsetSearch,
     calibrate_hand_eye,
+    estimate_square_size,
     marker_poses_at,
+    scaled_views,
     solve_hand_eye,
 )
-from endo_tracker_bridge.handeye_cli import calibrate_observations, read_observations
+from endo_tracker_bridge.handeye_cli import (
+    NOMINAL_SQUARE_MM,
+    calibrate_observations,
+    read_observations,
+    resolve_board,
+)
 from endo_tracker_bridge.synthetic import (
     BOARD,
     CAMERA,
@@ -123,6 +133,48 @@ def bench_bag(bag: Path):
     )
 
 
+def bench_bag_no_flags(bag: Path):
+    """``endo-handeye BAG`` without --board/--square-mm: detection, estimation, calibration."""
+    truth = yaml.safe_load(bag.with_name(bag.stem + ".ground_truth.yaml").read_text())
+    unit = LengthUnit.parse(truth["tracker"]["units"])
+    start = time.perf_counter()
+    board = resolve_board(bag, "/endoscope/image_raw", None, NOMINAL_SQUARE_MM)
+    detect_s = time.perf_counter() - start
+    observations = read_observations(bag, board, pose_unit=unit)
+    start = time.perf_counter()
+    square_m = estimate_square_size(
+        observations.views,
+        observations.tracker_stamps_ns,
+        observations.tracker_poses,
+        board,
+        observations.camera,
+    )
+    square_s = time.perf_counter() - start
+    views = scaled_views(observations.views, square_m / board.square_m)
+    board = Checkerboard(board.columns, board.rows, square_m)
+    start = time.perf_counter()
+    result = calibrate_hand_eye(
+        views, observations.tracker_stamps_ns, observations.tracker_poses, board,
+        observations.camera,
+    )
+    solve_s = time.perf_counter() - start
+    X_true = np.asarray(truth["tracker"]["T_marker_camera"], dtype=np.float64).reshape(4, 4)
+    t_err, r_err = transform_error(X_true, result.T_marker_camera)
+    true_square = float(truth["scene"]["checkerboard"]["square_m"])
+    print(f"## {bag.name}, no board flags")
+    print(
+        f"board {board.columns}x{board.rows} detected in {detect_s:.2f} s; square "
+        f"{square_m * 1e3:.3f} mm (truth {true_square * 1e3:g}, "
+        f"{100 * (square_m / true_square - 1):+.2f} %) in {square_s:.2f} s; solver {solve_s:.2f} s"
+    )
+    print(
+        f"translation error {t_err:.3f} mm, rotation error {r_err:.3f}°, offset error "
+        f"{result.time_offset_ns / MS - truth['tracker']['latency_s'] * 1e3:+.3f} ms; residuals "
+        f"{result.translation_rms_mm:.3f} mm, {result.rotation_rms_deg:.3f}°, "
+        f"{result.reprojection_rms_px:.2f} px"
+    )
+
+
 def main():
     print(
         f"machine: {cpu_model()}, Python {platform.python_version()}, numpy {np.__version__}, "
@@ -133,6 +185,7 @@ def main():
     bag = ROOT / "bags" / "handeye.mcap"
     if bag.exists():
         bench_bag(bag)
+        bench_bag_no_flags(bag)
 
 
 if __name__ == "__main__":
