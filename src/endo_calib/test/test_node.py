@@ -197,3 +197,36 @@ def test_a_zero_light_model_is_refused_and_nothing_is_counted_processed(ros, tmp
     assert _exchange(executor, publisher, received, msg, expect=False, timeout=1.5) is None
     assert node.health.dropped["CalibrationNotLoadedError"] >= 1
     assert node.health.processed == 0
+
+
+def test_extrapolated_values_are_counted_and_masked_on_request(ros, tmp_path):
+    """Raw values above the observed range: NaN with mask_extrapolated; their share is reported."""
+    _, executor = ros
+    calibration = synthetic_calibration(W, H, gamma=2.2)
+    calibration.response_ranges = {
+        "mono": {"observed": [10, 200], "extrapolated_above": 200, "top_model": "test"}
+    }
+    path = calibration.save(tmp_path / "ranged.yaml")
+    node, publisher, received = _start(
+        ros,
+        [
+            Parameter("calibration_file", value=str(path)),
+            Parameter("mask_extrapolated", value=True),
+        ],
+    )
+    raw = np.full((H, W), 150, np.uint8)
+    raw[: H // 4] = 230  # a quarter of the frame above the observed range
+    out = _exchange(executor, publisher, received, array_to_image(raw, "mono8", 7))
+    assert out is not None
+    image = image_to_array(out)
+    inside = PhotometricCalibration.load(path).fov_mask
+    assert np.all(np.isnan(image[: H // 4]))
+    assert np.all(np.isfinite(image[H // 4 :][inside[H // 4 :]]))
+    values = {kv.key: kv.value for kv in node.health.status().values}
+    assert values["extrapolated_pixel_share"] == "0.2500"
+    # off: the same frame corrected everywhere inside the field of view
+    assert node.set_parameters([Parameter("mask_extrapolated", value=False)])[0].successful
+    out = _exchange(executor, publisher, received, array_to_image(raw, "mono8", 8))
+    np.testing.assert_allclose(
+        image_to_array(out), PhotometricCalibration.load(path).correct(raw), rtol=1e-6
+    )
