@@ -191,6 +191,34 @@ def test_the_command_lines_carry_the_params_file_namespace_and_remaps(small_bag,
     assert topics.TRUE_DEPTH in recorded  # the ground truth, played unchanged
 
 
+def test_calibration_handeye_and_param_flags_override_the_file_for_their_node(
+    small_bag, tmp_path
+):
+    bag, params = small_bag
+    photometric = tmp_path / "photometric.yaml"
+    photometric.write_text("{}")
+    options = build_parser().parse_args([
+        "replay", str(bag), "--params", str(params), "--calibration", str(photometric),
+        "--param", "sfs.solve_scale:=0.5", "--param", "flow.max_tracks:=50",
+    ])  # fmt: skip
+    plan = plan_launch(options)
+    commands = {n.node_name: n.command() for n in plan.nodes}
+    correction = commands["photometric_correction"]
+    # the file first, the overrides after it (later wins in rcl)
+    assert correction.index("--params-file") < correction.index(
+        f"calibration_file:={photometric.resolve()}"
+    )
+    assert "solve_scale:=0.5" in commands["sfs"] and "max_tracks:=50" in commands["flow"]
+    assert plan.warnings == []  # the file names the hand-eye file
+    bare = plan_launch(build_parser().parse_args(["live"]))
+    assert [w.split(":")[0] for w in bare.warnings] == [
+        "no calibration_file for endo-photometric-correction",
+        "no handeye_file for endo-tracker-bridge",
+    ]
+    with pytest.raises(SystemExit):
+        build_parser().parse_args(["live", "--param", "nosuchnode.x:=1"])
+
+
 @pytest.mark.ros
 def test_replay_with_record_runs_the_whole_graph_and_records_every_output(small_bag, tmp_path):
     bag, params = small_bag

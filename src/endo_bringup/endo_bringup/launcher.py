@@ -3,6 +3,8 @@
 Pip-only (no ``ros2 launch`` needed): the nodes of :data:`endo_bringup.graph.NODES`
 started through :class:`~endo_bringup.process_group.ProcessGroup`, with
 
+* ``--calibration photometric.yaml`` and ``--handeye handeye.yaml``: the two
+  calibration files (a missing one is warned about at start);
 * a preset source: ``live`` (your camera driver and tracker publish the
   inputs), ``replay BAG`` (``endo-replay`` with ``/clock``, ``--rate``,
   ``--loop``) or ``sim`` (``endo-sim live``);
@@ -37,6 +39,8 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import TextIO
 
+import yaml
+
 from endo_bringup.graph import (
     PLAYED_TOPICS,
     GraphProcess,
@@ -61,6 +65,9 @@ NODE_UP = re.compile(r"DDS: domain \d+")
 #: Respawn backoff: first delay, factor, cap (seconds); a node that ran this
 #: long before dying starts again from the first delay.
 BACKOFF_FIRST_S, BACKOFF_FACTOR, BACKOFF_MAX_S, BACKOFF_RESET_S = 1.0, 2.0, 30.0, 60.0
+#: After a replay ends, the run ends once the recording has not grown for this
+#: long (a loaded SFS node may still be solving its last frame).
+DRAIN_QUIET_S = 6.0
 
 
 class LaunchError(Endo3dError):
@@ -79,6 +86,7 @@ class LaunchPlan:
     source: GraphProcess | None
     recorder: GraphProcess | None
     ends: bool  # the source ends by itself (a replay without --loop)
+    warnings: list[str] = field(default_factory=list)
 
     @property
     def processes(self) -> list[GraphProcess]:
@@ -95,6 +103,17 @@ def _remap_rule(text: str) -> tuple[str, str]:
     return source, target
 
 
+def _node_parameter(text: str) -> tuple[str, str, str]:
+    target, sep, value = text.partition(":=")
+    node, dot, name = target.partition(".")
+    nodes = {row.node_name for row in graph_nodes()}
+    if not sep or not dot or not name or node not in nodes:
+        raise argparse.ArgumentTypeError(
+            f"expected NODE.NAME:=VALUE with NODE one of {', '.join(sorted(nodes))}, got {text!r}"
+        )
+    return node, name, value
+
+
 def _namespace(text: str) -> str:
     name = "/" + text.strip("/")
     if not re.fullmatch(r"(/[A-Za-z_][A-Za-z0-9_]*)*|/", name):
@@ -108,6 +127,17 @@ def build_parser() -> argparse.ArgumentParser:
     g = common.add_argument_group("graph")
     g.add_argument("--params", type=Path, metavar="FILE",
                    help="ROS parameter file for every node (e.g. a copy of config/endo3d.yaml)")
+    g.add_argument("--calibration", type=Path, metavar="photometric.yaml",
+                   help="endo-calibrate's file for endo-photometric-correction "
+                   "(its calibration_file; overrides the parameter file)")
+    g.add_argument("--handeye", type=Path, metavar="handeye.yaml",
+                   help="endo-handeye's file for endo-tracker-bridge "
+                   "(its handeye_file; overrides the parameter file)")
+    g.add_argument("--param", type=_node_parameter, action="append", default=[],
+                   metavar="NODE.NAME:=VALUE",
+                   help="one parameter of one node, e.g. sfs.solve_scale:=0.5 (NODE: "
+                   "photometric_correction, sfs, tracker_bridge, flow; overrides the "
+                   "parameter file; repeatable)")
     g.add_argument("--namespace", type=_namespace, default="", metavar="NS",
                    help="put the nodes and every graph topic under NS (/rig1/endoscope/...)")
     g.add_argument("--remap", type=_remap_rule, action="append", default=[], metavar="FROM:=TO",
@@ -173,8 +203,19 @@ def plan_launch(options: argparse.Namespace) -> LaunchPlan:
     graph_topics = sorted({t for n in base for t in (*n.subscribes, *n.publishes)})
     rules = topic_rules(graph_topics, options.namespace, options.remap)
     user = dict(options.remap)
+    overrides: dict[str, dict[str, str]] = {}
+    process_of = {row.node_name: row.name for row in base}
+    for node_name, name, value in options.param:
+        overrides.setdefault(process_of[node_name], {})[name] = value
+    for flag, process, name in ((options.calibration, "endo-photometric-correction",
+                                 "calibration_file"),
+                                (options.handeye, "endo-tracker-bridge", "handeye_file")):
+        if flag is not None:
+            if not flag.is_file():
+                raise LaunchError(f"no file {flag}")
+            overrides.setdefault(process, {})[name] = str(flag.resolve())
     nodes = []
-    for node in graph_nodes(params_file=params, remaps=rules):
+    for node in graph_nodes(overrides, params_file=params, remaps=rules):
         # Each node gets the rules of its own topics (it would ignore the others) and the user's.
         own = set(next(b for b in base if b.name == node.name).subscribes) | set(
             next(b for b in base if b.name == node.name).publishes
@@ -216,7 +257,30 @@ def plan_launch(options: argparse.Namespace) -> LaunchPlan:
         recorder = GraphProcess(RECORDER, "endo-record", arguments=(
             "--topics", *recorded, "-o", str(options.record), "--flush-period", "0.5"),
             subscribes=tuple(recorded))  # fmt: skip
-    return LaunchPlan(nodes, source, recorder, ends)
+    return LaunchPlan(nodes, source, recorder, ends, _missing_calibrations(nodes))
+
+
+def _missing_calibrations(nodes: Sequence[GraphProcess]) -> list[str]:
+    """What the nodes will lack: a photometric or hand–eye calibration set nowhere."""
+    needed = {"endo-photometric-correction": ("calibration_file", "--calibration",
+                                              "drops every frame"),
+              "endo-tracker-bridge": ("handeye_file", "--handeye",
+                                      "publishes the marker pose as the camera pose")}
+    warnings = []
+    for node in nodes:
+        if node.name not in needed:
+            continue
+        name, flag, effect = needed[node.name]
+        if node.parameters.get(name):
+            continue
+        if node.params_file:
+            document = yaml.safe_load(Path(node.params_file).read_text()) or {}
+            section = document.get(f"/**/{node.node_name}", document.get(node.node_name, {}))
+            if (section or {}).get("ros__parameters", {}).get(name):
+                continue
+        warnings.append(f"no {name} for {node.name}: it {effect} (pass {flag} FILE, or "
+                        f"set {name} in --params)")
+    return warnings
 
 
 @dataclass
@@ -355,7 +419,7 @@ class Launch:
                 if size != last_size:
                     last_size, quiet_since = size, now
                 if now - source_end > drain_timeout_s or (
-                    now - quiet_since > 3.0 and now - source_end > 3.0
+                    now - quiet_since > DRAIN_QUIET_S and now - source_end > DRAIN_QUIET_S
                 ):
                     return 0
         return 0
@@ -391,6 +455,8 @@ def run(options: argparse.Namespace) -> int:
     width = max(len(p.name) for p in plan.processes)
     echo = _Echo(sys.stdout, options.quiet, width)
     echo.say(f"logs in {options.log_dir}")
+    for warning in plan.warnings:
+        echo.say("warning: " + warning)
     group = ProcessGroup(_child_environment(options.log_dir), options.log_dir, grace_s=15.0)
     launch = Launch(plan, group, echo, respawn=options.respawn)
 
