@@ -199,7 +199,8 @@ def report_figure(
         ax_level.annotate(
             f"ρ={rho[card]:g}: {SATURATED_NOTE}",
             xy=(rho[card], top),
-            xytext=(rho[card], 0.9 * top - 0.06 * top * (card % 3)),
+            # below the curve, clear of it and of the legend in the lower right
+            xytext=(rho[card], 0.55 * top - 0.07 * top * (card % 3)),
             ha="right",
             fontsize=8,
             arrowprops={"arrowstyle": "->", "color": "tab:red"},
