@@ -36,9 +36,7 @@ from endo_tracker_bridge.handeye import (
     Checkerboard,
     OffsetSearch,
     calibrate_hand_eye,
-    estimate_square_size,
     marker_poses_at,
-    scaled_views,
     solve_hand_eye,
 )
 from endo_tracker_bridge.handeye_cli import (
@@ -46,6 +44,7 @@ from endo_tracker_bridge.handeye_cli import (
     calibrate_observations,
     read_observations,
     resolve_board,
+    with_estimated_square,
 )
 from endo_tracker_bridge.synthetic import (
     BOARD,
@@ -142,21 +141,11 @@ def bench_bag_no_flags(bag: Path):
     detect_s = time.perf_counter() - start
     observations = read_observations(bag, board, pose_unit=unit)
     start = time.perf_counter()
-    square_m = estimate_square_size(
-        observations.views,
-        observations.tracker_stamps_ns,
-        observations.tracker_poses,
-        board,
-        observations.camera,
-    )
+    observations, board = with_estimated_square(observations, board)
+    square_m = board.square_m
     square_s = time.perf_counter() - start
-    views = scaled_views(observations.views, square_m / board.square_m)
-    board = Checkerboard(board.columns, board.rows, square_m)
     start = time.perf_counter()
-    result = calibrate_hand_eye(
-        views, observations.tracker_stamps_ns, observations.tracker_poses, board,
-        observations.camera,
-    )
+    result = calibrate_observations(observations, board)
     solve_s = time.perf_counter() - start
     X_true = np.asarray(truth["tracker"]["T_marker_camera"], dtype=np.float64).reshape(4, 4)
     t_err, r_err = transform_error(X_true, result.T_marker_camera)

@@ -42,7 +42,7 @@ from endo_calib.raw_image import to_raw_frame
 from endo_io import topics
 from endo_io.camera import CameraModel
 from endo_io.cli import exit_on_error
-from endo_io.provenance import file_record, tool_record
+from endo_io.provenance import camera_record, file_record, tool_record
 
 #: A level message logged this long after an image still applies to it (ns).
 LEVEL_TOLERANCE_NS = 5_000_000
@@ -192,18 +192,6 @@ def accumulate_bag(
             frame = to_raw_frame(image_to_array(msg), msg.encoding)
             accumulator.add(frame, level, pose)
     return camera
-
-
-def camera_record(camera: CameraModel, source: str) -> dict[str, Any]:
-    """The camera_info a calibration used, as plain YAML values (for the provenance)."""
-    return {
-        "source": source,
-        "width": int(camera.width),
-        "height": int(camera.height),
-        "distortion_model": camera.distortion_model,
-        "K": [float(x) for x in np.asarray(camera.K).ravel()],
-        "D": [float(x) for x in np.asarray(camera.D).ravel()],
-    }
 
 
 def fit_provenance(

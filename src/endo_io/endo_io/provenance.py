@@ -24,7 +24,10 @@ from collections.abc import Sequence
 from datetime import UTC, datetime
 from importlib import metadata
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from endo_io.camera import CameraModel
 
 #: The distribution whose version names the endo3d release (all packages share it).
 VERSION_DISTRIBUTION = "endo_io"
@@ -87,6 +90,26 @@ def tool_record(program: str, argv: Sequence[str] | None = None) -> dict[str, An
         "endo3d_version": endo3d_version(),
         "date": datetime.now(UTC).strftime("%Y-%m-%dT%H:%M:%SZ"),
         "command_line": shlex.join([program, *(str(a) for a in arguments)]),
+    }
+
+
+def camera_record(camera: CameraModel, source: str) -> dict[str, Any]:
+    """The camera_info a calibration used, as plain YAML values.
+
+    Args:
+        camera: the camera model.
+        source: where it came from ("file camera.yaml", "bag topic /endoscope/camera_info").
+
+    Returns:
+        ``{source, width, height, distortion_model, K, D}`` (K row-major, 9 numbers).
+    """
+    return {
+        "source": source,
+        "width": int(camera.width),
+        "height": int(camera.height),
+        "distortion_model": camera.distortion_model,
+        "K": [float(x) for x in camera.K.ravel()],
+        "D": [float(x) for x in camera.D.ravel()],
     }
 
 

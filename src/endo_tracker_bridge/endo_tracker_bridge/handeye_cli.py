@@ -33,7 +33,7 @@ from endo_io.bag.streams import PoseStreamCollector
 from endo_io.camera import CameraModel
 from endo_io.cli import exit_on_error
 from endo_io.image import image_to_array
-from endo_io.provenance import file_record, tool_record
+from endo_io.provenance import camera_record, file_record, tool_record
 from endo_io.stamp import stamp_to_ns
 from endo_io.topics import CAMERA_INFO, IMAGE_RAW, TRACKER_POSE
 from endo_tracker_bridge.conventions import LengthUnit
@@ -186,6 +186,31 @@ def resolve_board(
             f"{columns}x{rows} inner corners are (in {count}): pass --board {columns}x{rows}"
         )
     return Checkerboard(columns, rows, square_mm * 1e-3)
+
+
+def with_estimated_square(
+    observations: BagObservations,
+    board: Checkerboard,
+    search: OffsetSearch | None = None,
+    max_gap_ns: int = 60 * MS,
+) -> tuple[BagObservations, Checkerboard]:
+    """The observations and board with the square side estimated from the tracker.
+
+    ``observations`` were solved with ``board``'s (nominal) square; the board
+    views are rescaled to the estimate
+    (:func:`~endo_tracker_bridge.handeye.estimate_square_size`).
+    """
+    square_m = estimate_square_size(
+        observations.views,
+        observations.tracker_stamps_ns,
+        observations.tracker_poses,
+        board,
+        observations.camera,
+        search,
+        max_gap_ns=max_gap_ns,
+    )
+    views = scaled_views(observations.views, square_m / board.square_m)
+    return replace(observations, views=views), Checkerboard(board.columns, board.rows, square_m)
 
 
 def calibrate_observations(
@@ -343,32 +368,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     max_gap_ns = round(options.max_gap_ms * MS)
     square_source = "given (--square-mm)"
     if options.square_mm is None:
-        square_m = estimate_square_size(
-            observations.views,
-            observations.tracker_stamps_ns,
-            observations.tracker_poses,
-            board,
-            observations.camera,
-            search,
-            max_gap_ns=max_gap_ns,
-        )
-        factor = square_m / board.square_m
-        board = Checkerboard(board.columns, board.rows, square_m)
-        observations = replace(observations, views=scaled_views(observations.views, factor))
+        observations, board = with_estimated_square(observations, board, search, max_gap_ns)
+        square_m = board.square_m
         square_source = "estimated from the tracker (pass --square-mm to fix it)"
         print(f"square: {square_m * 1e3:.3f} mm, {square_source}")
     result = calibrate_observations(observations, board, search, max_gap_ns=max_gap_ns)
     provenance = {
         "input": file_record(options.bag),
         "topics": {"image": topics.image, "camera_info": topics.camera_info, "pose": topics.pose},
-        "camera_info": {
-            "source": f"bag topic {topics.camera_info}",
-            "width": int(observations.camera.width),
-            "height": int(observations.camera.height),
-            "distortion_model": observations.camera.distortion_model,
-            "K": [float(x) for x in np.asarray(observations.camera.K).ravel()],
-            "D": [float(x) for x in np.asarray(observations.camera.D).ravel()],
-        },
+        "camera_info": camera_record(observations.camera, f"bag topic {topics.camera_info}"),
         "board": {
             "inner_corners": f"{board.columns}x{board.rows}",
             "size_source": "given (--board)" if options.board else "detected",
