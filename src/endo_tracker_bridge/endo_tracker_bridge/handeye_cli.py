@@ -137,6 +137,8 @@ def read_observations(
     )
 
 
+#: Board views the solver needs at least (calibrate_hand_eye's minimum).
+MIN_VIEWS = 5
 #: Images sampled (evenly over the recording) to find the board's size.
 SIZE_SAMPLE_IMAGES = 6
 
@@ -160,18 +162,24 @@ def sample_images(
 def resolve_board(
     path: str | Path, topic: str, given: str | None, square_mm: float
 ) -> Checkerboard:
-    """The checkerboard of the recording: ``given`` ("9x6") if its images show it, else detected.
+    """The checkerboard of the recording, its size detected among the common ones.
+
+    ``given`` ("9x6"), when not None, is the board the user named and that
+    was not found in the recording: the error then names the size the images
+    show. Images are sampled evenly over the recording, SIZE_SAMPLE_IMAGES
+    first and four times as many when those show no common board.
 
     Raises:
         HandEyeError: one line naming the size the images show (when ``given``
             is not it) or saying that no common size was found.
     """
-    images = sample_images(path, topic)
-    if given is not None:
-        board = parse_board(given, square_mm)
-        if any(detect_checkerboard(image, board) is not None for image in images):
-            return board
-    found = find_board_size(images)
+    images: list[np.ndarray] = []
+    found = None
+    for count in (SIZE_SAMPLE_IMAGES, 4 * SIZE_SAMPLE_IMAGES):
+        images = sample_images(path, topic, count)
+        found = find_board_size(images)
+        if found is not None:
+            break
     if found is None:
         sizes = ", ".join(f"{c}x{r}" for c, r in COMMON_BOARDS)
         what = f"board {given} is not" if given else "no common checkerboard is"
@@ -179,11 +187,11 @@ def resolve_board(
             f"{what} found in {len(images)} images sampled from {path} (tried {sizes}); "
             "pass --board COLSxROWS (inner corners)"
         )
-    (columns, rows), count = found
-    if given is not None:
+    (columns, rows), seen = found
+    if given is not None and parse_board(given, square_mm).pattern_size != (columns, rows):
         raise HandEyeError(
-            f"board {given} is not found in {len(images)} images sampled from {path}, but "
-            f"{columns}x{rows} inner corners are (in {count}): pass --board {columns}x{rows}"
+            f"board {given} is not found in {path}, but {columns}x{rows} inner corners are "
+            f"(in {seen} of {len(images)} sampled images): pass --board {columns}x{rows}"
         )
     return Checkerboard(columns, rows, square_mm * 1e-3)
 
@@ -357,12 +365,17 @@ def main(argv: Sequence[str] | None = None) -> int:
     options = build_parser().parse_args(argv)
     topics = BagTopics(options.image_topic, options.camera_info_topic, options.pose_topic)
     nominal_mm = options.square_mm if options.square_mm is not None else NOMINAL_SQUARE_MM
-    board = resolve_board(options.bag, topics.image, options.board, nominal_mm)
-    if options.board is None:
+    unit = LengthUnit.parse(options.pose_unit)
+    if options.board is not None:
+        board = parse_board(options.board, nominal_mm)
+        observations = read_observations(options.bag, board, topics, unit, options.max_views)
+        if len(observations.views) < MIN_VIEWS:
+            # the board given is (almost) nowhere: name the one the images show
+            resolve_board(options.bag, topics.image, options.board, nominal_mm)
+    else:
+        board = resolve_board(options.bag, topics.image, None, nominal_mm)
         print(f"board: {board.columns}x{board.rows} inner corners (detected)")
-    observations = read_observations(
-        options.bag, board, topics, LengthUnit.parse(options.pose_unit), options.max_views
-    )
+        observations = read_observations(options.bag, board, topics, unit, options.max_views)
     low, high = (round(v * MS) for v in options.offset_range_ms)
     search = OffsetSearch(low, high, round(options.offset_step_ms * MS))
     max_gap_ns = round(options.max_gap_ms * MS)
