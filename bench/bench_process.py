@@ -1,34 +1,47 @@
-"""Speed of endo-process on the phantom bag: frames/s, × real time, 1 and 2 jobs, 2 scales.
+"""Speed of endo-process on the phantom bag: frames/s, × real time, CPU, 1 and 2 jobs, 2 scales.
 
 The phantom bag (bags/phantom_colon.mcap: 90 frames of 640×480 mono8 at
 30 fps, 3.0 s) is processed end to end by :func:`endo_process.runner.process_bag`
 (correction, SFS, tracker chain, flow, writing the output MCAP) with the
 calibrations endo-demo fits, for every combination of ``--solve-scale``
-{0.5, 1} and ``--jobs`` {1, 2}, in two rounds (the order alternates), so
-that configurations are compared inside one run. The figures are the frame
-loop's wall time (setup and the final scoring are not counted; the worker
-processes' start-up is).
+{0.5, 1} and ``--jobs`` {1, 2} (and 3: two chunked workers, the scheme
+``--jobs 2`` used before), in two rounds (the order reversed in the second),
+so that configurations are compared inside one run. Each run is its own
+process (``python bench_process.py --one ...``) so that its CPU time is
+its own: the main process's, and its workers' (reaped, so counted as
+children). The wall figures are the frame loop's (setup and scoring not
+counted; the workers' start-up is, since they load their kernels on the
+first frame).
+
+A second table times what endo-process itself does to write a frame: three
+640×480 32FC1 images (corrected, relative depth, metric depth) through
+:class:`endo_process.output.OutputBag`, built as a message and serialised
+(rclpy + the rosbags round trip) or encoded straight from the array
+(``endo_io.image.array_to_image_cdr``), under each chunk compression, with
+the bytes per frame on disk.
 
 Run by hand: ``.venv/bin/python bench/bench_process.py [--rounds 2] [--bag B]``;
-prints a Markdown table for docs/benchmarks.md ("endo-process").
+prints Markdown for docs/benchmarks.md ("endo-process").
 """
 
 from __future__ import annotations
 
 import argparse
 import datetime
+import json
 import os
+import subprocess
+import sys
 import tempfile
+import time
 from pathlib import Path
 
+import numpy as np
 from machine import cpu_model
-
-from endo_bringup.graph import run_offline_calibrations
-from endo_process.runner import ProcessOptions, process_bag
-from endo_process.simulated import write_simulated_parameters
 
 ROOT = Path(__file__).resolve().parents[1]
 BAGS = ROOT / "bags"
+CONFIGS = [(0.5, 1), (0.5, 2), (0.5, 3), (1.0, 1), (1.0, 2)]
 
 
 def machine() -> str:
@@ -39,55 +52,136 @@ def load() -> str:
     return " ".join(Path("/proc/loadavg").read_text().split()[:3])
 
 
+def one_run(args: argparse.Namespace) -> None:
+    """One configuration in this process; prints its figures as one JSON line."""
+    from endo_process.runner import ProcessOptions, process_bag
+
+    before = os.times()
+    report = process_bag(ProcessOptions(
+        bag=args.bag, output=args.out, calibration=args.photometric, handeye=args.handeye,
+        params=args.params, solve_scale=args.scale, jobs=args.jobs, progress=False,
+    ))  # fmt: skip
+    after = os.times()
+    main_cpu = (after[0] - before[0]) + (after[1] - before[1])
+    workers_cpu = (after[2] - before[2]) + (after[3] - before[3])
+    print(json.dumps({
+        "fps": report.frames_per_second, "real_time": report.real_time_factor,
+        "frames": report.frames_in, "main_ms": main_cpu / report.frames_in * 1e3,
+        "workers_ms": workers_cpu / report.frames_in * 1e3,
+        "setup_s": report.setup_seconds, "solve_ms": report.median_solve_ms,
+        "mb_per_frame": args.out.stat().st_size / report.frames_in / 1e6,
+    }))  # fmt: skip
+
+
+def writing_table(rounds: int) -> list[str]:
+    """CPU ms to write three 640×480 32FC1 images per frame, per encoding path and compression."""
+    from endo_io.image import array_to_image
+    from endo_process.output import OutputBag
+
+    rng = np.random.default_rng(0)
+    # Depth-like content (smooth, NaN outside the field of view), as the real outputs.
+    y, x = np.mgrid[0:480, 0:640].astype(np.float32)
+    base = 1.0 + 0.3 * np.sin(x / 50.0) * np.cos(y / 40.0)
+    frames = []
+    for k in range(30):
+        image = (base + 0.01 * rng.standard_normal(base.shape)).astype(np.float32) * (1 + k / 100)
+        image[(x - 320) ** 2 + (y - 240) ** 2 > 300**2] = np.nan
+        frames.append(image)
+    rows: dict[tuple[str, bool], list[tuple[float, float]]] = {}
+    with tempfile.TemporaryDirectory() as work:
+        for round_index in range(rounds):
+            for compression in ("lz4", "zstd", "none"):
+                for direct in (False, True):
+                    path = Path(work) / f"w_{round_index}_{compression}_{direct}.mcap"
+                    output = OutputBag(path, compression)
+                    start = time.process_time()
+                    for index, image in enumerate(frames):
+                        stamp = 10**9 + index * 33_333_333
+                        for topic in ("/a", "/b", "/c"):
+                            if direct:
+                                output.write_image(topic, image, "32FC1", stamp, "optical")
+                            else:
+                                message = array_to_image(image, "32FC1", stamp, "optical")
+                                output.write(topic, message, stamp)
+                    output.close()
+                    cpu = (time.process_time() - start) / len(frames) * 1e3
+                    size = path.stat().st_size / len(frames) / 1e6
+                    rows.setdefault((compression, direct), []).append((cpu, size))
+    lines = [
+        "| compression | encoding | CPU ms per frame (run 1, run 2) | MB per frame |",
+        "|---|---|---|---|",
+    ]
+    for (compression, direct), values in rows.items():
+        how = "array_to_image_cdr" if direct else "message + serialize"
+        cpu = ", ".join(f"{v[0]:.2f}" for v in values)
+        lines.append(f"| {compression} | {how} | {cpu} | {values[0][1]:.2f} |")
+    return lines
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--bag", type=Path, default=BAGS / "phantom_colon.mcap")
     parser.add_argument("--rounds", type=int, default=2)
-    parser.add_argument("--compression", default="lz4")
+    parser.add_argument("--one", action="store_true", help=argparse.SUPPRESS)
+    for name in ("out", "photometric", "handeye", "params"):
+        parser.add_argument(f"--{name}", type=Path, help=argparse.SUPPRESS)
+    parser.add_argument("--scale", type=float, help=argparse.SUPPRESS)
+    parser.add_argument("--jobs", type=int, help=argparse.SUPPRESS)
     args = parser.parse_args()
+    if args.one:
+        one_run(args)
+        return
+    from endo_bringup.graph import run_offline_calibrations
+    from endo_process.simulated import write_simulated_parameters
+
     work = Path(tempfile.mkdtemp(prefix="bench_process_"))
     photometric, handeye = run_offline_calibrations(
         BAGS / "graycard.mcap", BAGS / "handeye.mcap", work, dict(os.environ)
     )
     params = write_simulated_parameters(args.bag, work / "endo3d.yaml")
-    configs = [(scale, jobs) for scale in (0.5, 1.0) for jobs in (1, 2)]
-    results: dict[tuple[float, int], list[tuple[float, float, float]]] = {c: [] for c in configs}
+    results: dict[tuple[float, int], list[dict[str, float]]] = {c: [] for c in CONFIGS}
     loads = [load()]
     for round_index in range(args.rounds):
-        order = configs if round_index % 2 == 0 else configs[::-1]
+        order = CONFIGS if round_index % 2 == 0 else CONFIGS[::-1]
         for scale, jobs in order:
             out = work / f"out_{scale}_{jobs}_{round_index}.mcap"
-            cpu_before = os.times()
-            report = process_bag(ProcessOptions(
-                bag=args.bag, output=out, calibration=photometric.result,
-                handeye=handeye.result, params=params, solve_scale=scale, jobs=jobs,
-                compression=args.compression, progress=False,
-            ))  # fmt: skip
-            cpu_after = os.times()
-            cpu = sum(cpu_after[i] - cpu_before[i] for i in range(4))
-            results[(scale, jobs)].append(
-                (report.frames_per_second, report.real_time_factor, cpu / report.frames_in * 1e3)
-            )
+            done = subprocess.run([
+                sys.executable, __file__, "--one", "--bag", str(args.bag), "--out", str(out),
+                "--photometric", str(photometric.result), "--handeye", str(handeye.result),
+                "--params", str(params), "--scale", str(scale), "--jobs", str(jobs),
+            ], capture_output=True, text=True, check=True)  # fmt: skip
+            figures = json.loads(done.stdout.strip().splitlines()[-1])
+            results[(scale, jobs)].append(figures)
             print(f"round {round_index + 1} solve_scale {scale:g} jobs {jobs}: "
-                  f"{report.frames_per_second:.1f} frames/s, {report.real_time_factor:.2f}x real "
-                  f"time, median solve {report.median_solve_ms:.1f} ms, load {load()}",
+                  f"{figures['fps']:.1f} frames/s, {figures['real_time']:.2f}x real time, CPU "
+                  f"main {figures['main_ms']:.0f} + workers {figures['workers_ms']:.0f} ms per "
+                  f"frame, median solve {figures['solve_ms']:.1f} ms, load {load()}",
                   flush=True)  # fmt: skip
             out.unlink()
         loads.append(load())
     print()
     print(f"Machine: {machine()}; {datetime.date.today().isoformat()}; bag {args.bag.name} "
-          f"(90 frames 640×480 mono8, 3.0 s at 30 fps); output compression {args.compression}; "
+          f"(90 frames 640×480 mono8, 3.0 s at 30 fps); output compression lz4; "
           f"load average before/after each round: {' | '.join(loads)}")  # fmt: skip
     print()
     print("| solve_scale | jobs | frames/s (run 1, run 2) | × real time (run 1, run 2) | "
-          "CPU ms per frame (all processes) |")
-    print("|---|---|---|---|---|")
-    for scale, jobs in configs:
+          "CPU ms per frame: main + workers = total (run 1; run 2) | median solve ms |")
+    print("|---|---|---|---|---|---|")
+    for scale, jobs in CONFIGS:
         rows = results[(scale, jobs)]
-        fps = ", ".join(f"{r[0]:.1f}" for r in rows)
-        rt = ", ".join(f"{r[1]:.2f}" for r in rows)
-        cpu = ", ".join(f"{r[2]:.0f}" for r in rows)
-        print(f"| {scale:g} | {jobs} | {fps} | {rt} | {cpu} |")
+        fps = ", ".join(f"{r['fps']:.1f}" for r in rows)
+        rt = ", ".join(f"{r['real_time']:.2f}" for r in rows)
+        cpu = "; ".join(
+            f"{r['main_ms']:.0f} + {r['workers_ms']:.0f} = {r['main_ms'] + r['workers_ms']:.0f}"
+            for r in rows
+        )
+        solve = ", ".join(f"{r['solve_ms']:.0f}" for r in rows)
+        print(f"| {scale:g} | {jobs} | {fps} | {rt} | {cpu} | {solve} |")
+    print()
+    print(f"Writing one frame's three 640×480 32FC1 images (load {load()}):")
+    print()
+    print("\n".join(writing_table(args.rounds)))
+    print(f"\nload at the end: {load()}")
 
 
 if __name__ == "__main__":

@@ -22,15 +22,18 @@ import threading
 from collections.abc import Sequence
 from pathlib import Path
 from types import FrameType
+from typing import TYPE_CHECKING
 
-from endo_io.bag import BagError
+from endo_io import topics
 from endo_io.cli import EXIT_BAD_INPUT, report_error
 from endo_io.errors import Endo3dError
-from endo_process.accuracy import Accuracy, score_recording
-from endo_process.inputs import InputTopics
-from endo_process.report import write_report_figure
-from endo_process.runner import ProcessOptions, ProcessReport, process_bag
-from endo_process.summary import format_report, summary_document
+
+if TYPE_CHECKING:
+    from endo_process.runner import ProcessOptions, ProcessReport
+
+# The pipeline's modules (flow, SFS, matplotlib, ...) are imported in main():
+# a --jobs worker process re-imports this module as its main module, and
+# needs none of them (start-up CPU per worker: docs/benchmarks.md).
 
 PROGRAM = "endo-process"
 EXIT_OK, EXIT_DAMAGED, EXIT_INPUT, EXIT_INTERRUPTED = 0, 1, EXIT_BAD_INPUT, 130
@@ -38,7 +41,6 @@ EXIT_OK, EXIT_DAMAGED, EXIT_INPUT, EXIT_INTERRUPTED = 0, 1, EXIT_BAD_INPUT, 130
 
 def build_parser() -> argparse.ArgumentParser:
     """The command line."""
-    defaults = InputTopics()
     parser = argparse.ArgumentParser(
         prog=PROGRAM,
         description="Run the endo3d graph's cores offline over a recording (no DDS): "
@@ -54,9 +56,9 @@ def build_parser() -> argparse.ArgumentParser:
                         help="ROS 2 parameter file of the nodes (sfs, tracker_bridge, ...)")
     parser.add_argument("--solve-scale", type=float,
                         help="the SFS node's solve_scale (overrides --params)")
-    parser.add_argument("--image-topic", default=defaults.image)
-    parser.add_argument("--camera-info-topic", default=defaults.camera_info)
-    parser.add_argument("--tracker-topic", default=defaults.tracker,
+    parser.add_argument("--image-topic", default=topics.IMAGE_RAW)
+    parser.add_argument("--camera-info-topic", default=topics.CAMERA_INFO)
+    parser.add_argument("--tracker-topic", default=topics.TRACKER_POSE,
                         help="the tracker driver's PoseStamped marker poses")
     parser.add_argument("--camera-info", type=Path,
                         help="camera YAML (camera_calibration format) instead of the topic")
@@ -103,6 +105,9 @@ class _StopOnSignal:
 
 
 def _options(args: argparse.Namespace) -> ProcessOptions:
+    from endo_process.inputs import InputTopics
+    from endo_process.runner import ProcessOptions
+
     if args.jobs < 1:
         raise Endo3dError(f"--jobs must be >= 1, got {args.jobs}")
     if args.chunk_frames < 1:
@@ -135,6 +140,12 @@ def exit_status(report: ProcessReport) -> int:
 def main(argv: Sequence[str] | None = None) -> int:
     """Console entry point of ``endo-process``."""
     args = build_parser().parse_args(argv)
+    from endo_io.bag import BagError
+    from endo_process.accuracy import Accuracy, score_recording
+    from endo_process.report import write_report_figure
+    from endo_process.runner import process_bag
+    from endo_process.summary import format_report, summary_document
+
     try:
         options = _options(args)
         with _StopOnSignal() as stop:

@@ -95,14 +95,38 @@ def write_report_figure(
     _cloud_panel(cloud_axis, recording, stamp, truth)
     _scale_panel(figure.add_subplot(grid[1, 2]), recording, accuracy)
     _calibration_panel(figure, grid[1, 3], calibration)
-    figure.suptitle(f"endo-process: {Path(recording).name}", fontsize=12)
+    figure.suptitle(f"endo-process: {Path(recording).name}\n{headline(accuracy)}", fontsize=12)
     figure.savefig(path, dpi=90)
     plt.close(figure)
     return Path(path)
 
 
+def headline(accuracy: Accuracy) -> str:
+    """The run's key accuracy figures on one line (the figure's subtitle); "" without truth."""
+    parts: list[str] = []
+    if accuracy.metric:
+        errors = list(accuracy.metric.values())
+        parts.append(f"metric depth AbsRel {np.mean([e.abs_rel for e in errors]):.3f}, "
+                     f"MAE {np.mean([e.mae for e in errors]) * 1e3:.1f} mm")  # fmt: skip
+    elif accuracy.relative:
+        relative = np.mean([e.abs_rel for e in accuracy.relative.values()])
+        parts.append(f"relative depth AbsRel {relative:.3f}")
+    if accuracy.cloud_rms_m:
+        parts.append(f"cloud RMS {np.mean(list(accuracy.cloud_rms_m.values())) * 1e3:.1f} mm")
+    if accuracy.scale is not None:
+        error = accuracy.scale.relative_error[np.isfinite(accuracy.scale.relative_error)]
+        if len(error):
+            parts.append(f"final scale {error[-1]:+.1%} vs the truth")
+    poses = accuracy.poses
+    if poses is not None and poses.compared:
+        parts.append(f"camera pose {np.median(poses.position_mm):.2f} mm / "
+                     f"{np.median(poses.rotation_deg):.2f}° (median)")  # fmt: skip
+    return " · ".join(parts)
+
+
 def _cloud_panel(axis: Any, recording: Path, stamp: int | None, truth: np.ndarray | None) -> None:
-    axis.set_title("world points of that frame, distance to the true surface (mm)", fontsize=9)
+    axis.set_title("world points of that frame (2nd-98th percentile box), distance to the true "
+                   "surface (mm)", fontsize=9)  # fmt: skip
     if stamp is None:
         return
     cloud = messages_at(recording, topics.POINTS, {stamp}).get(stamp)
@@ -116,8 +140,15 @@ def _cloud_panel(axis: Any, recording: Path, stamp: int | None, truth: np.ndarra
     points = points[np.isfinite(points).all(axis=1)]
     pose = true_poses[true_stamps.tolist().index(stamp)]
     distance = cloud_distances(points, truth, CameraModel.from_camera_info(info), pose)
-    shown = axis.scatter(*(points * 1e3).T, c=distance * 1e3, s=0.5, cmap="turbo", vmin=0.0,
-                         vmax=max(1e-3, float(np.percentile(distance * 1e3, 98))))  # fmt: skip
+    millimetres = points * 1e3
+    # The view spans the bulk of the surface: a few far points in the lumen
+    # would otherwise shrink it to a corner of the box.
+    low, high = np.percentile(millimetres, [2.0, 98.0], axis=0)
+    inside = np.all((millimetres >= low) & (millimetres <= high), axis=1)
+    top = max(1e-3, float(np.percentile(distance * 1e3, 98)))
+    shown = axis.scatter(*millimetres[inside].T, c=distance[inside] * 1e3, s=0.5, cmap="turbo",
+                         vmin=0.0, vmax=top)  # fmt: skip
+    axis.view_init(elev=20.0, azim=-60.0)
     axis.set_xlabel("x (mm)")
     axis.set_ylabel("y (mm)")
     axis.set_zlabel("z (mm)")

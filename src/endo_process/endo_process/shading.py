@@ -17,6 +17,7 @@ plain picklable data, so worker processes run it on chunks of the recording
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from dataclasses import dataclass
 from typing import Any
@@ -27,7 +28,6 @@ from endo_calib.calibration import PhotometricCalibration, select_channel
 from endo_calib.raw_image import to_raw_frame
 from endo_io.camera import CameraModel
 from endo_io.errors import Endo3dError
-from endo_process.settings import SFS_OPTION_PARAMETERS
 from endo_sfs.errors import NoValidPixelsError
 from endo_sfs.options import SfsOptions
 from endo_sfs.relative_depth import SfsSolution, solve
@@ -93,7 +93,13 @@ class ShadingStage:
         self.channel = channel
         self.fov_radius = float(sfs_parameters["fov_radius"])
         self.warm_start = bool(sfs_parameters["warm_start"])
-        self.options = SfsOptions(**{name: sfs_parameters[name] for name in SFS_OPTION_PARAMETERS})
+        # The solver's options among the node's parameters (endo_process.settings
+        # is not imported here: it pulls in every node module, and rclpy, which
+        # a worker process would load for nothing).
+        self.options = SfsOptions(**{
+            f.name: sfs_parameters[f.name]
+            for f in dataclasses.fields(SfsOptions) if f.name in sfs_parameters
+        })  # fmt: skip
         self._camera: CameraModel | None = None
         self._mask: np.ndarray | None = None
         self._previous: SfsSolution | None = None

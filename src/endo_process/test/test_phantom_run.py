@@ -24,7 +24,7 @@ from endo_io import topics
 from endo_io.bag import BagReader
 from endo_io.bag.streams import read_depth_frames
 from endo_process.accuracy import read_scale_stream, score_recording
-from endo_process.report import write_report_figure
+from endo_process.report import headline, write_report_figure
 from endo_process.runner import ProcessOptions, ProcessReport, process_bag
 from endo_process.simulated import write_simulated_parameters
 from endo_process.summary import summary_document
@@ -103,8 +103,13 @@ def test_accuracy_against_the_ground_truth(full_run: tuple[ProcessReport, Path])
 def test_report_figure(
     full_run: tuple[ProcessReport, Path], calibrations: tuple[Path, Path], tmp_path: Path
 ) -> None:
-    figure = write_report_figure(full_run[1], score_recording(full_run[1]), calibrations[0],
-                                 tmp_path / "report.png")  # fmt: skip
+    accuracy = score_recording(full_run[1])
+    figure = write_report_figure(full_run[1], accuracy, calibrations[0], tmp_path / "report.png")
+    # The subtitle gives the headline figures, the same numbers as the summary.
+    line = headline(accuracy)
+    metric = np.mean([e.abs_rel for e in accuracy.metric.values()])
+    assert f"metric depth AbsRel {metric:.3f}" in line
+    assert "cloud RMS" in line and "final scale" in line and "camera pose" in line
     image = plt.imread(figure)
     assert image.shape[0] > 600 and image.shape[1] > 1200
     assert image[..., :3].std() > 0.1  # drawn, not blank
