@@ -61,11 +61,13 @@ class StageConfig:
     calibration_path: Path
     channel: str
     sfs_parameters: dict[str, Any]
+    mask_extrapolated: bool = False
 
     def build(self) -> ShadingStage:
         """Load the calibration and return a stage."""
         calibration = PhotometricCalibration.load(self.calibration_path)
-        return ShadingStage(calibration, self.channel, self.sfs_parameters)
+        return ShadingStage(calibration, self.channel, self.sfs_parameters,
+                            mask_extrapolated=self.mask_extrapolated)  # fmt: skip
 
 
 def _worker(config: StageConfig, inbox: Any, outbox: Any) -> None:
@@ -112,7 +114,8 @@ class ShadingPool:
         # spawn, not fork: the parent may already run numba or tqdm threads.
         context = multiprocessing.get_context("spawn")
         worker_config = StageConfig(
-            config.calibration_path, config.channel, dict(config.sfs_parameters, threads=1)
+            config.calibration_path, config.channel, dict(config.sfs_parameters, threads=1),
+            config.mask_extrapolated,
         )
         for _ in range(self.worker_count):
             inbox, outbox = context.Queue(), context.Queue()

@@ -387,8 +387,12 @@ def process_bag(options: ProcessOptions, stop: threading.Event | None = None) ->
         ),
         static_ns,
     )  # fmt: skip
-    config = StageConfig(options.calibration, settings.channel, settings.sfs)
-    stage = ShadingStage(photometric, settings.channel, settings.sfs) if options.jobs == 1 else None
+    config = StageConfig(options.calibration, settings.channel, settings.sfs,
+                         settings.mask_extrapolated)  # fmt: skip
+    stage = None
+    if options.jobs == 1:  # the calibration loaded above, not a second time
+        stage = ShadingStage(photometric, settings.channel, settings.sfs,
+                             mask_extrapolated=settings.mask_extrapolated)  # fmt: skip
     feed = _PoseFeed(
         poses,
         output,

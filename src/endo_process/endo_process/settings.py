@@ -31,6 +31,7 @@ from typing import Any
 import numpy as np
 import yaml
 
+from endo_calib.node import PARAMETERS as CORRECTION_PARAMETERS
 from endo_flow.node import PARAMETERS as FLOW_PARAMETERS
 from endo_process.errors import ParameterFileError
 from endo_sfs.errors import SfsError
@@ -48,8 +49,9 @@ SFS_NODE = "sfs"
 BRIDGE_NODE = "tracker_bridge"
 FLOW_NODE = "flow"
 
-#: The correction node's parameters (``endo_calib.node``) that change the result.
-CORRECTION_DEFAULTS: dict[str, Any] = {"channel": "luminance", "calibration_file": ""}
+#: The correction node's parameters (``endo_calib.node.PARAMETERS``) and their
+#: defaults; ``channel`` and ``mask_extrapolated`` change the result.
+CORRECTION_DEFAULTS: dict[str, Any] = {spec.name: spec.default for spec in CORRECTION_PARAMETERS}
 #: The bridge's parameters that apply to a recorded ``ros`` source
 #: (``endo_tracker_bridge.node``; the others choose and open a live source).
 BRIDGE_DEFAULTS: dict[str, Any] = {
@@ -125,12 +127,15 @@ class ProcessSettings:
 
     Attributes:
         channel: the correction node's ``channel``.
+        mask_extrapolated: the correction node's ``mask_extrapolated`` (NaN
+            above the calibration's observed range).
         sfs: the SFS node's parameters (name -> value), every one of them.
         bridge: the tracker bridge's parameters for a ``ros`` source.
         flow: the flow node's parameters, every one of them.
     """
 
     channel: str = "luminance"
+    mask_extrapolated: bool = False
     sfs: dict[str, Any] = field(
         default_factory=lambda: dict(SFS_DEFAULTS)
     )
@@ -170,8 +175,10 @@ def load_settings(path: Path | None, *, solve_scale: float | None = None) -> Pro
     """
     nodes = read_parameter_file(path) if path is not None else {}
     where = str(path)
+    correction = _node_values(nodes, CORRECTION_NODE, CORRECTION_DEFAULTS, where)
     settings = ProcessSettings(
-        channel=str(_node_values(nodes, CORRECTION_NODE, CORRECTION_DEFAULTS, where)["channel"]),
+        channel=str(correction["channel"]),
+        mask_extrapolated=bool(correction["mask_extrapolated"]),
         sfs=_node_values(nodes, SFS_NODE, SFS_DEFAULTS, where),
         bridge=_node_values(nodes, BRIDGE_NODE, BRIDGE_DEFAULTS, where),
         flow=_node_values(nodes, FLOW_NODE, FLOW_DEFAULTS, where),

@@ -82,15 +82,22 @@ class ShadingStage:
     Args:
         calibration: the loaded ``photometric.yaml``.
         channel: the correction node's ``channel`` parameter.
+        mask_extrapolated: the correction node's ``mask_extrapolated`` parameter.
         sfs_parameters: the SFS node's parameters (every name of
             ``endo_sfs.node.PARAMETERS``).
     """
 
     def __init__(
-        self, calibration: PhotometricCalibration, channel: str, sfs_parameters: dict[str, Any]
+        self,
+        calibration: PhotometricCalibration,
+        channel: str,
+        sfs_parameters: dict[str, Any],
+        *,
+        mask_extrapolated: bool = False,
     ) -> None:
         self.calibration = calibration
         self.channel = channel
+        self.mask_extrapolated = mask_extrapolated
         self.fov_radius = float(sfs_parameters["fov_radius"])
         self.warm_start = bool(sfs_parameters["warm_start"])
         # The solver's options among the node's parameters (endo_process.settings
@@ -122,7 +129,9 @@ class ShadingStage:
         base: dict[str, Any] = {"index": frame.index, "stamp_ns": frame.stamp_ns,
                                 "frame_id": frame.frame_id, "camera": frame.camera}  # fmt: skip
         try:
-            corrected = self.calibration.correct(to_raw_frame(frame.raw, frame.encoding))
+            corrected = self.calibration.correct(
+                to_raw_frame(frame.raw, frame.encoding), mask_extrapolated=self.mask_extrapolated
+            )
             irradiance = select_channel(self.calibration, corrected, self.channel)
         except Endo3dError as error:
             return ShadedFrame(**base, irradiance=None, depth_relative=None,
