@@ -96,3 +96,17 @@ def test_every_node_loads_the_file_in_a_namespace_with_a_users_changes(tmp_path)
                 node.destroy_node()
     finally:
         rclpy.shutdown(context=context)
+
+
+def test_endo_process_reads_the_same_file_with_a_users_changes(tmp_path):
+    from endo_process.settings import load_settings
+
+    document = yaml.safe_load(SHIPPED.read_text(encoding="utf-8"))
+    document["/**/sfs"]["ros__parameters"]["roughness"] = 0.25
+    document["/**/flow"]["ros__parameters"]["max_tracks"] = 77
+    users = tmp_path / "my.yaml"
+    users.write_text(yaml.safe_dump(document))
+    settings = load_settings(users)
+    assert settings.sfs["roughness"] == 0.25
+    assert settings.flow["max_tracks"] == 77
+    assert load_settings(SHIPPED).sfs == load_settings(None).sfs  # the defaults, unchanged

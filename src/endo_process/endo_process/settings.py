@@ -68,6 +68,13 @@ BRIDGE_DEFAULTS: dict[str, Any] = {
 SFS_DEFAULTS: dict[str, Any] = {spec.name: spec.default for spec in SFS_PARAMETERS}
 #: The flow node's parameters (``endo_flow.node.PARAMETERS``) and their defaults.
 FLOW_DEFAULTS: dict[str, Any] = {spec.name: spec.default for spec in FLOW_PARAMETERS}
+#: Parameters of the live nodes that do not change an offline result
+#: (diagnostics, live sources, frame skipping): accepted in a file and ignored,
+#: so that the file the nodes get (config/endo3d.yaml) serves endo-process too.
+LIVE_ONLY: dict[str, frozenset[str]] = {
+    CORRECTION_NODE: frozenset(s.name for s in CORRECTION_PARAMETERS) - set(CORRECTION_DEFAULTS),
+    BRIDGE_NODE: frozenset(s.name for s in BRIDGE_PARAMETERS) - set(BRIDGE_DEFAULTS),
+}
 SFS_OPTION_PARAMETERS = tuple(
     f.name for f in dataclasses.fields(SfsOptions) if f.name in SFS_DEFAULTS
 )
@@ -95,7 +102,9 @@ def read_parameter_file(path: Path) -> dict[str, dict[str, Any]]:
         parameters = section.get("ros__parameters") if isinstance(section, Mapping) else None
         if not isinstance(parameters, Mapping):
             raise ParameterFileError(f"{path}: node {name!r} has no ros__parameters mapping")
-        nodes[str(name).lstrip("/")] = dict(parameters)
+        key = str(name).lstrip("/")
+        # `/**/sfs` (config/endo3d.yaml's keys: the node in any namespace) is the node `sfs`
+        nodes[key[3:] if key.startswith("**/") else key] = dict(parameters)
     return nodes
 
 
@@ -107,8 +116,8 @@ def _node_values(
     for section in ("**", node):
         for name, value in nodes.get(section, {}).items():
             if name not in defaults:
-                if section == "**":
-                    continue  # a wildcard parameter of another node
+                if section == "**" or name in LIVE_ONLY.get(node, ()):
+                    continue  # another node's, or a live node's that changes nothing offline
                 raise ParameterFileError(f"{path}: node {node!r} has no parameter {name!r}")
             default = defaults[name]
             if isinstance(default, bool) != isinstance(value, bool) or (
