@@ -38,6 +38,7 @@ from sensor_msgs.msg import Image
 from endo_io.image import array_to_image
 from endo_io.process import run_node, split_ros_args
 from endo_io.qos import SENSOR_DATA_QOS, create_reliable_publisher
+from endo_io.serialized_stamp import serialized_header_stamp_ns
 from endo_io.stamp import ns_to_stamp
 
 #: The probe's topic (private to it; :func:`run_probe` adds its process id, so
@@ -95,11 +96,11 @@ class ProbeReceiver(Node):
         self.create_timer(0.1, self._check_done)
 
     def _on_frame(self, data: bytes) -> None:
-        # CDR: 4-byte encapsulation, stamp (int32 s, uint32 ns), frame_id (uint32 length
-        # with its NUL, then the characters).
-        sec, nanosec, length = struct.unpack_from("<iII", data, 4)
-        stamp_ns = sec * 1_000_000_000 + nanosec
-        self.latency_ms.append((time.time_ns() - stamp_ns) / 1e6)
+        stamp_ns = serialized_header_stamp_ns(data)
+        if stamp_ns is not None:
+            self.latency_ms.append((time.time_ns() - stamp_ns) / 1e6)
+        # frame_id after the stamp: uint32 length (with its NUL), then the characters
+        (length,) = struct.unpack_from("<I", data, 12)
         self.sequence.append(int(data[16 : 16 + length - 1]))
         self._last = time.monotonic()
 
