@@ -34,6 +34,7 @@ import json
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import yaml
@@ -74,12 +75,18 @@ class Sequence:
 
 
 def read_bag(path: Path, calibration: PhotometricCalibration, light_error: float,
-             cache: Path | None, solve_scale: float) -> Sequence:
-    """Correct, solve SFS (cached) and compose the tracker poses of one bag."""
+             cache: Path | None, solve_scale: float, handeye_error: bool = True) -> Sequence:
+    """Correct, solve SFS (cached) and compose the tracker poses of one bag.
+
+    ``handeye_error`` False composes with the true hand–eye (a diagnosis of
+    the share of the scale error that the calibration error causes).
+    """
     truth = yaml.safe_load(path.with_suffix(".ground_truth.yaml").read_text())
     tracker = truth["tracker"]
     T_tracker_world = np.array(tracker["T_tracker_world"])
-    X = np.array(tracker["T_marker_camera"]) @ HANDEYE_ERROR
+    X = np.array(tracker["T_marker_camera"])
+    if handeye_error:
+        X = X @ HANDEYE_ERROR
     latency_ns = round(tracker["latency_s"] * 1e9)
     fov = truth["camera"]["fov_radius_px"]
     wanted = [IMAGE_RAW, CAMERA_INFO, TRUE_DEPTH, TRUE_CAMERA_POSE, TRACKER_POSE]
@@ -169,8 +176,20 @@ def cloud_rms(points: np.ndarray, truth: np.ndarray, pose: np.ndarray,
 
 
 def evaluate(seq: Sequence, options: FlowOptions, depth_range: tuple[float, float],
-             label: str, trace: bool = False, settle_s: float = 1.5) -> dict[str, object]:
-    """Run the pipeline over the sequence and score it."""
+             label: str, trace: bool = False, settle_s: float = 1.5,
+             true_poses: bool = False) -> dict[str, object]:
+    """Run the pipeline over the sequence and score it.
+
+    Scale figures are taken at every frame from the filter's first
+    convergence on (``usable``), not only at the ground-truth frames: the
+    oracle is one constant per sequence. At the ground-truth frames the
+    observation's error is split into the triangulation's share (median of
+    z_triangulated / z_true at the accepted tracks) and SFS's own local scale
+    there (median of s*·d_rel / z_true at the same tracks).
+
+    ``true_poses`` feeds the simulator's exact camera poses instead of the
+    tracker's (a diagnosis: what the pose errors cost).
+    """
     pipe = FlowPipeline(options)
     s_oracle = oracle_scale(seq)
     t_start = seq.stamps[0]
@@ -178,9 +197,12 @@ def evaluate(seq: Sequence, options: FlowOptions, depth_range: tuple[float, floa
     errors: dict[str, int] = {}
     scales: list[tuple[float, float, str]] = []
     wall = []
+    events = {"exposure_steps": 0, "cusum_steps": 0, "gated": 0}
+    observations: list[tuple[float, float]] = []
+    split: list[tuple[float, float]] = []
     for stamp in seq.stamps:
-        frame = FlowFrame(stamp, seq.images[stamp], seq.relative[stamp], seq.camera,
-                          seq.poses[stamp])
+        pose = seq.true_pose.get(stamp) if true_poses else seq.poses[stamp]
+        frame = FlowFrame(stamp, seq.images[stamp], seq.relative[stamp], seq.camera, pose)
         start = time.perf_counter()
         try:
             out = pipe.process(frame)
@@ -194,20 +216,33 @@ def evaluate(seq: Sequence, options: FlowOptions, depth_range: tuple[float, floa
             print(f"  t={t:5.2f} s/s*={out.scale.value / s_oracle:.4f} "
                   f"obs/s*={d.observation / s_oracle:.4f}±{d.observation_std:.3f} "
                   f"tri={d.triangulated:3d} tracks={d.tracks:3d} kf={d.keyframes:2d} "
-                  f"{out.scale.state.name} pose={d.has_pose}", flush=True)
+                  f"{out.scale.state.name} pose={d.has_pose} b={d.brightness_ratio:.3f}"
+                  f"{' EXPOSURE' if d.exposure_step else ''}{' STEP' if d.step else ''}"
+                  f"{' GATED' if d.gated else ''}", flush=True)
         scales.append((t, out.scale.value / s_oracle if out.scale.usable else np.nan,
                        out.scale.state.name))
+        d = out.diagnostics
+        events["exposure_steps"] += int(d.exposure_step)
+        events["cusum_steps"] += int(d.step)
+        events["gated"] += int(d.gated)
+        if np.isfinite(d.observation):
+            observations.append((t, d.observation / s_oracle))
         if stamp not in seq.true_depth or out.depth is None:
             continue
         truth = seq.true_depth[stamp]
-        if trace and len(out.triangulated) and seq.poses[stamp] is not None:
-            local = transform_points(invert_transform(seq.poses[stamp]), out.triangulated)
+        if len(out.triangulated) and pose is not None:
+            # the pipeline's own (noisy) pose: the pixels the tracks were seen at
+            local = transform_points(invert_transform(pose), out.triangulated)
             uv = seq.camera.project(local)
             gt = sample_bilinear(truth, uv)
             rel = sample_bilinear(seq.relative[stamp], uv) * s_oracle
-            print(f"  GT frame: z_tri/gt median {np.nanmedian(local[:, 2] / gt):.4f}, "
-                  f"s*·rel/gt at the tracks {np.nanmedian(rel / gt):.4f}, "
-                  f"everywhere {np.nanmedian(seq.relative[stamp] * s_oracle / truth):.4f}")
+            with np.errstate(invalid="ignore", divide="ignore"):
+                tri, sfs = np.nanmedian(local[:, 2] / gt), np.nanmedian(rel / gt)
+            split.append((float(tri), float(sfs)))
+            if trace:
+                print(f"  GT frame: z_tri/gt median {tri:.4f}, s*·rel/gt at the tracks "
+                      f"{sfs:.4f}, everywhere "
+                      f"{np.nanmedian(seq.relative[stamp] * s_oracle / truth):.4f}")
         mae, absrel = depth_figures(out.depth, truth, *depth_range)
         o_mae, o_absrel = depth_figures(seq.relative[stamp] * s_oracle, truth, *depth_range)
         rms = (cloud_rms(out.points, truth, seq.true_pose[stamp], seq.camera)
@@ -226,6 +261,10 @@ def evaluate(seq: Sequence, options: FlowOptions, depth_range: tuple[float, floa
     centres = np.array([seq.true_pose[s][:3, 3] for s in seq.stamps if s in seq.true_pose])
     moved = np.linalg.norm(centres - centres[0], axis=1) >= 2e-3
     t_2mm = (seq.stamps[int(np.argmax(moved))] - t_start) / 1e9 if moved.any() else np.nan
+    usable = np.array([(t, s) for t, s, _ in scales if np.isfinite(s)])
+    after_conv = np.abs(usable[:, 1] - 1.0) if len(usable) else np.array([np.nan])
+    obs = np.array(observations) if observations else np.empty((0, 2))
+    split_arr = np.array(split) if split else np.full((1, 2), np.nan)
     # every figure over the same frames for every configuration: after settle_s
     after = table[table[:, 0] >= settle_s] if len(table) else table
     per_frame = [float(np.nanmedian(seq.true_depth[s] / seq.relative[s]))
@@ -240,6 +279,15 @@ def evaluate(seq: Sequence, options: FlowOptions, depth_range: tuple[float, floa
         "first_usable_s": first,
         "within_2pct_from_s": converged,
         "settle_s": settle_s,
+        "converged_after_2mm_s": first - t_2mm,
+        "scale_err_after_conv_max_pct": 100 * float(np.max(after_conv)),
+        "scale_err_after_conv_p95_pct": 100 * float(np.percentile(after_conv, 95)),
+        "scale_within_2pct_fraction": float(np.mean(after_conv < 0.02)),
+        "observation_err_rms_pct": 100 * float(np.sqrt(np.mean(np.log(obs[:, 1]) ** 2)))
+        if len(obs) else np.nan,
+        "gt_triangulation_ratio": [round(v, 4) for v in split_arr[:, 0]],
+        "gt_sfs_ratio_at_tracks": [round(v, 4) for v in split_arr[:, 1]],
+        **events,
         "scale_err_mean_pct": 100 * float(np.mean(np.abs(after[:, 1]))) if len(after) else np.nan,
         "scale_err_max_pct": 100 * float(np.max(np.abs(after[:, 1]))) if len(after) else np.nan,
         "final_scale_ratio": scales[-1][1],
@@ -268,20 +316,33 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--cache", type=Path, default=None)
     parser.add_argument("--json", type=Path, default=None, help="append results here")
     parser.add_argument("--trace", action="store_true", help="print every frame's scale")
+    parser.add_argument("--set", nargs="*", default=[], metavar="OPTION=VALUE",
+                        help="override top-level FlowOptions fields (e.g. observation_rings=1)")
+    parser.add_argument("--true-poses", action="store_true",
+                        help="diagnosis: the simulator's exact camera poses")
+    parser.add_argument("--no-handeye-error", action="store_true",
+                        help="diagnosis: compose the tracker poses with the true hand-eye")
     args = parser.parse_args(argv)
     try:
         calibration = PhotometricCalibration.load(args.calibration)
     except (OSError, Endo3dError) as error:
         print(f"eval_flow: {error}", file=sys.stderr)
         return 2
+    overrides: dict[str, Any] = {}
+    for item in args.set:
+        key, _, value = item.partition("=")
+        overrides[key] = type(getattr(FlowOptions(), key))(yaml.safe_load(value))
     results = []
     for bag in args.bags:
-        seq = read_bag(bag, calibration, args.light_error, args.cache, args.solve_scale)
+        seq = read_bag(bag, calibration, args.light_error, args.cache, args.solve_scale,
+                       handeye_error=not args.no_handeye_error)
         for mode in args.shape:
-            options = FlowOptions(shape=ShapeCorrectionOptions(mode=mode))
-            label = f"{bag.stem} light_error={args.light_error:g} shape={mode}"
+            options = dataclasses.replace(FlowOptions(shape=ShapeCorrectionOptions(mode=mode)),
+                                          **overrides)
+            label = (f"{bag.stem} light_error={args.light_error:g} shape={mode}"
+                     + "".join(f" {item}" for item in args.set))
             result = evaluate(seq, options, (args.range_mm[0] / 1e3, args.range_mm[1] / 1e3),
-                              label, args.trace)
+                              label, args.trace, true_poses=args.true_poses)
             results.append(result)
             print(json.dumps(result), flush=True)
     if args.json:

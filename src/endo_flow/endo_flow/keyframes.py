@@ -131,6 +131,20 @@ class KeyframeWindow:
         while self._frames and keyframe.stamp_ns - self._frames[0].stamp_ns > self.max_age_ns:
             self._frames.popleft()
 
+    def scale_relative(self, factor: float) -> None:
+        """Multiply every held keyframe's depth_relative by ``factor``.
+
+        A gain or exposure step multiplies ρ by g, so depth_relative by
+        1/√g from that frame on; the keyframes' samples are put on the new
+        frames' footing so that a track's views still agree.
+        """
+        self._frames = deque(
+            (frame if frame.relative is None else Keyframe(
+                frame.stamp_ns, frame.T_world_camera, frame.ids, frame.rays,
+                frame.relative * factor) for frame in self._frames),
+            maxlen=self.capacity,
+        )
+
     def views(
         self,
         ids: np.ndarray,

@@ -91,6 +91,11 @@ class FlowOptions:
             percent per frame at most.
         min_observation_points: fewer accepted tracks give no observation.
         max_parallax_weight_deg: parallax beyond this gets no more weight.
+        observation_rings, observation_sectors: a frame's tracks are
+            weighted so that each of ``observation_rings`` equal-area rings
+            of the field of view, cut into ``observation_sectors`` sectors,
+            counts alike (:func:`area_balanced_weights`); 1 and 1 keep the
+            parallax weights alone.
         min_features: a frame with fewer features raises NoFeaturesError.
         cloud_decimation: the world cloud takes every n-th pixel along each
             axis.
@@ -117,6 +122,9 @@ class FlowOptions:
     exposure_jump: float = 0.08
     min_observation_points: int = 8
     max_parallax_weight_deg: float = 20.0
+    observation_rings: int = 4
+    observation_views: str = "all"
+    observation_sectors: int = 1
     min_features: int = 8
     cloud_decimation: int = 4
     cloud_min_depth_m: float = 1e-3
@@ -140,6 +148,8 @@ class FlowOptions:
             raise ValueError("min_observation_points must be >= 1, min_features >= 0")
         if not self.max_parallax_weight_deg > 0.0:
             raise ValueError("max_parallax_weight_deg must be > 0")
+        if self.observation_rings < 1 or self.observation_sectors < 1:
+            raise ValueError("observation_rings and observation_sectors must be >= 1")
         if self.cloud_decimation < 1:
             raise ValueError("cloud_decimation must be >= 1")
         if not 0.0 <= self.cloud_min_depth_m < self.cloud_max_depth_m:
@@ -281,6 +291,74 @@ def sample_bilinear(image: np.ndarray, uv: np.ndarray, max_ratio: float = 1.1) -
     return out
 
 
+def area_balanced_weights(
+    uv: np.ndarray,
+    weights: np.ndarray,
+    centre: tuple[float, float],
+    radius_px: float,
+    *,
+    rings: int,
+    sectors: int = 1,
+) -> np.ndarray:
+    """Reweight points so that each zone of the field of view counts by its area.
+
+    The image is split into ``rings`` concentric rings of equal area (radii
+    R·√(k / rings)) around ``centre``, each cut into ``sectors`` equal
+    angular sectors; within a zone the points keep their relative weights,
+    and every zone that holds points gets the same total. SFS's depth errors
+    vary over the image (mostly with the radius: the light model, the
+    near-light fall-off), so a scale observed where the tracks happen to be
+    (the rim in forward motion, where the parallax is) follows the tracks'
+    distribution; balanced over equal areas it estimates the scale that fits
+    the whole image, which is what the oracle (and the depth image) needs.
+
+    Args:
+        uv: (N, 2) float pixels.
+        weights: (N,) float >= 0 weights of the points.
+        centre: (cx, cy) pixel of the rings' centre.
+        radius_px: radius of the field of view, pixels (points beyond it
+            fall in the outer ring).
+        rings: number of rings (1 with ``sectors`` 1: the weights unchanged).
+        sectors: angular sectors per ring.
+
+    Returns:
+        (N,) float64 weights, summing to the number of zones with points.
+    """
+    w = np.asarray(weights, np.float64)
+    if rings * sectors <= 1 or len(w) == 0:
+        return w
+    p = np.asarray(uv, np.float64)
+    dx, dy = p[:, 0] - centre[0], p[:, 1] - centre[1]
+    rho2 = (dx * dx + dy * dy) / radius_px**2
+    ring = np.minimum((rho2 * rings).astype(np.int64), rings - 1)
+    sector = np.minimum(((np.arctan2(dy, dx) + np.pi) / (2 * np.pi) * sectors).astype(np.int64),
+                        sectors - 1)
+    zone = ring * sectors + sector
+    total = np.bincount(zone, weights=w, minlength=rings * sectors)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        out = w / total[zone]
+    out[~np.isfinite(out)] = 0.0
+    return out
+
+
+def column_nanmedian(values: np.ndarray) -> np.ndarray:
+    """Median of each column of a (N, V) float array over its finite entries (NaN if none).
+
+    ``np.nanmedian(values, axis=0)`` on small arrays goes through masked
+    arrays and costs ~1 ms per frame here; one sort (NaN last) does it.
+    """
+    if len(values) == 0:
+        return np.full(values.shape[1], np.nan)
+    ordered = np.sort(values, axis=0)
+    count = np.isfinite(ordered).sum(axis=0)
+    columns = np.arange(values.shape[1])
+    lo = ordered[np.maximum(count - 1, 0) // 2, columns]
+    hi = ordered[np.minimum(count // 2, len(values) - 1), columns]
+    out = 0.5 * (lo + hi)
+    out[count == 0] = np.nan
+    return out
+
+
 def view_log_ratios(views: TrackViews, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Per track and view, ln(z_k / d_rel_k); and per track its spread over the views.
 
@@ -308,7 +386,7 @@ def view_log_ratios(views: TrackViews, points: np.ndarray) -> tuple[np.ndarray, 
     count = ok.sum(axis=1)
     with np.errstate(invalid="ignore"), warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN views
-        centred = values - np.nanmedian(values, axis=0)
+        centred = values - column_nanmedian(values)
         spread = np.nanstd(centred, axis=1, ddof=1)
     spread[count < 2] = np.nan
     return values, spread
@@ -494,6 +572,8 @@ class FlowPipeline:
             np.log(features.brightness_ratio)) > opts.exposure_jump)
         if exposure_step:
             self.scale_filter.rescale(0.5 * np.log(features.brightness_ratio))
+            # depth_relative goes as 1/√ρ: the kept views' samples follow the step
+            self.window.scale_relative(float(features.brightness_ratio) ** -0.5)
         t0 = time.perf_counter()
         observation: ScaleObservation | None = None
         triangulated = np.empty((0, 3))
@@ -519,16 +599,31 @@ class FlowPipeline:
             if n_accepted >= opts.min_observation_points:
                 cap = np.radians(opts.max_parallax_weight_deg)
                 weights = np.minimum(result.parallax_rad[accepted], cap) ** 2
+                if opts.observation_rings > 1 or opts.observation_sectors > 1:
+                    weights = area_balanced_weights(
+                        features.uv[accepted], weights, (camera.cx, camera.cy),
+                        0.5 * min(camera.width, camera.height), rings=opts.observation_rings,
+                        sectors=opts.observation_sectors)
                 baseline = float(np.median(result.baseline_m[accepted]))
                 # the pose errors every track of the window shares: not divided
                 # by the view count, since consecutive windows share their views
                 shared = opts.pose_noise_m / max(baseline, 1e-6)
+                if opts.observation_views == "all":
+                    with warnings.catch_warnings():
+                        warnings.simplefilter("ignore", RuntimeWarning)
+                        per_track = np.nanmean(log_ratio[accepted], axis=1)
+                else:
+                    per_track = log_ratio[accepted, -1]
                 observation = observe_log_ratios(
-                    log_ratio[accepted, -1], weights, min_points=opts.min_observation_points,
+                    per_track, weights, min_points=opts.min_observation_points,
                     floor_std=float(np.hypot(opts.observation_floor, shared)),
                 )
                 if observation is not None:
+                    before = self.scale_filter.estimate.value
                     update = self.scale_filter.update(observation, frame.stamp_ns)
+                    if update.step and np.isfinite(before):
+                        # an unannounced step of ρ: the kept views' samples follow it
+                        self.window.scale_relative(before / self.scale_filter.estimate.value)
                     if update.accepted and self.scale_filter.estimate.usable:
                         log_s = np.log(self.scale_filter.estimate.value)
                         uv = features.uv[accepted]

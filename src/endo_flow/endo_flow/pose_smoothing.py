@@ -43,6 +43,7 @@ class PoseSmoother:
         self._poses: deque[np.ndarray] = deque(maxlen=capacity)
         self._final: dict[int, np.ndarray] = {}
         self._stamp_array: np.ndarray | None = None
+        self._pose_array: np.ndarray | None = None
 
     def clear(self) -> None:
         """Forget every pose."""
@@ -50,12 +51,14 @@ class PoseSmoother:
         self._poses.clear()
         self._final.clear()
         self._stamp_array = None
+        self._pose_array = None
 
     def add(self, stamp_ns: int, T_world_camera: np.ndarray) -> None:
         """Record the (4, 4) pose of the frame at ``stamp_ns`` (increasing stamps)."""
         self._stamps.append(int(stamp_ns))
         self._poses.append(np.asarray(T_world_camera, np.float64))
         self._stamp_array = None
+        self._pose_array = None
         oldest = self._stamps[0]
         for stamp in [s for s in self._final if s < oldest]:
             del self._final[stamp]
@@ -88,7 +91,9 @@ class PoseSmoother:
         else:
             t = (stamps[lo:hi] - stamp_ns) / self.half_window_ns  # in [-1, 1]
             weight = (1.0 - np.abs(t) ** 3) ** 3
-            poses = np.stack([self._poses[i] for i in range(lo, hi)])
+            if self._pose_array is None:  # once per added pose, not per keyframe
+                self._pose_array = np.stack(self._poses)
+            poses = self._pose_array[lo:hi]
             relative = reference[:3, :3].T @ poses[:, :3, :3]
             # the rotations within a window differ by a few degrees: the
             # small-angle logarithm vee(R − Rᵀ)/2 is exact to O(θ³)

@@ -56,3 +56,59 @@ def test_bad_frames_raise_one_named_error_and_the_pipeline_continues(moving, kit
         pipe.process(frames[0])
     assert pipe.resets == 1 and len(pipe.window) == 0
     assert pipe.process(frames[1]).diagnostics.seeded > 50
+
+
+def test_area_balanced_observation_estimates_the_whole_image_scale():
+    """SFS 4 % deep at the centre and 4 % shallow at the rim, the tracks crowded at the rim.
+
+    Each half of the disc's area carries half the pixels, so the scale that
+    fits the image is the mean of the two biases (0); the tracks' plain
+    mean follows their distribution.
+    """
+    from endo_flow.pipeline import area_balanced_weights
+    from endo_flow.scale import observe_log_ratios
+
+    rng = np.random.default_rng(1)
+    radius = 240.0
+    # 10 tracks inside rho² < 0.5 (inner ring), 40 outside (outer ring)
+    rho = np.concatenate([np.sqrt(rng.uniform(0.0, 0.5, 10)), np.sqrt(rng.uniform(0.5, 1.0, 40))])
+    phi = rng.uniform(0.0, 2 * np.pi, 50)
+    uv = np.stack([320 + radius * rho * np.cos(phi), 240 + radius * rho * np.sin(phi)], axis=1)
+    log_ratio = np.where(rho**2 < 0.5, -0.04, 0.04) + 0.005 * rng.standard_normal(50)
+    plain = observe_log_ratios(log_ratio, np.ones(50))
+    weights = area_balanced_weights(uv, np.ones(50), (320.0, 240.0), radius, rings=2)
+    balanced = observe_log_ratios(log_ratio, weights)
+    assert plain is not None and balanced is not None
+    assert plain.log_scale > 0.02  # the rim's bias
+    assert abs(balanced.log_scale) < 0.005
+    np.testing.assert_allclose(weights[rho**2 < 0.5].sum(), weights[rho**2 >= 0.5].sum())
+    # one zone: the weights are the input's
+    same = area_balanced_weights(uv, np.arange(50.0), (320.0, 240.0), radius, rings=1)
+    np.testing.assert_array_equal(same, np.arange(50.0))
+
+
+def test_column_nanmedian_matches_numpy():
+    from endo_flow.pipeline import column_nanmedian
+
+    rng = np.random.default_rng(2)
+    values = rng.normal(size=(41, 12))
+    values[rng.random(values.shape) < 0.4] = np.nan
+    values[:, 3] = np.nan  # a view no track was seen in
+    with np.errstate(invalid="ignore"), pytest.warns(RuntimeWarning):
+        expected = np.nanmedian(values, axis=0)
+    np.testing.assert_allclose(column_nanmedian(values), expected, equal_nan=True)
+    assert np.isnan(column_nanmedian(np.empty((0, 3)))).all()
+
+
+def test_keyframe_samples_follow_a_gain_step():
+    """After ρ × g the kept views' depth_relative is divided by √g, like the new frames'."""
+    from endo_flow.keyframes import Keyframe, KeyframeWindow
+
+    window = KeyframeWindow(capacity=5, min_step_m=0.0)
+    rays = np.tile([0.0, 0.0, 1.0], (3, 1))
+    for k in range(3):
+        window.add(Keyframe(k, np.eye(4), np.array([7, 8, 9]), rays, np.array([1.0, 2.0, 4.0])))
+    window.scale_relative(1.2**-0.5)
+    views = window.views(np.array([8]))
+    assert views.relative is not None
+    np.testing.assert_allclose(views.relative[0], 2.0 / np.sqrt(1.2))
