@@ -34,7 +34,7 @@ from endo_tracker_bridge.node import TrackerBridgeNode
 
 from .conftest import PHANTOM
 
-FRAMES = 24  # the scale becomes usable (and metric depth appears) after ~15 frames
+FRAMES = 27  # the scale becomes usable (and metric depth appears) after ~20 frames
 
 pytestmark = pytest.mark.ros
 
