@@ -62,7 +62,7 @@ MONO_CHANNELS = ("mono",)
 
 
 #: Alternations each start of the response/light alternation gets before the best goes on.
-START_TRIAL_ITERATIONS = 6
+START_TRIAL_ITERATIONS = 3
 #: Where the tail takes over from the free curve: this fraction of its window below its top.
 TAIL_JOIN_FRACTION = 0.6
 #: Partly saturated samples confirm a tail when it reaches the last code's

@@ -263,7 +263,7 @@ def fit_tail(
     observed_top: float,
     *,
     window_fraction: float = TAIL_WINDOW_FRACTION,
-    max_samples: int = 20000,
+    max_samples: int = 8000,
     min_samples: int = 200,
 ) -> TailFit | None:
     """Fit :class:`LogitPowerTail` to the brightest observed samples.
