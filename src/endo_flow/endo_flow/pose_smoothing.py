@@ -86,11 +86,12 @@ class PoseSmoother:
             return reference
         lo = int(np.searchsorted(stamps, stamp_ns - self.half_window_ns))
         hi = int(np.searchsorted(stamps, stamp_ns + self.half_window_ns, side="right"))
-        if hi - lo < 3:
+        t = (stamps[lo:hi] - stamp_ns) / self.half_window_ns  # in [-1, 1]
+        weight = (1.0 - np.abs(t) ** 3) ** 3
+        # a line needs two poses of positive weight (one exactly half_window_ns away weighs 0)
+        if hi - lo < 3 or np.count_nonzero(weight > 0.0) < 2:
             result = reference
         else:
-            t = (stamps[lo:hi] - stamp_ns) / self.half_window_ns  # in [-1, 1]
-            weight = (1.0 - np.abs(t) ** 3) ** 3
             if self._pose_array is None:  # once per added pose, not per keyframe
                 self._pose_array = np.stack(self._poses)
             poses = self._pose_array[lo:hi]
