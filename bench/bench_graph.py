@@ -33,6 +33,8 @@ from __future__ import annotations
 
 import argparse
 import os
+import pickle
+import signal
 import statistics
 import subprocess
 import sys
@@ -122,7 +124,7 @@ def run_once(bag: Path, configuration: Configuration, rate: float, work: Path,
     processes = planned_graph(bag, photometric, handeye, out, settings)
     with GraphMonitor(processes, env) as monitor, ProcessSampler(processes) as sampler:
         run = run_live_graph(bag, photometric, handeye, out, env, settings)
-    figures = graph_figures(run.processes, monitor, sampler)
+    figures = graph_figures(run.processes, monitor, sampler, run.played)
     bad = {name: code for name, code in run.return_codes.items() if code != 0}
     if bad:
         print(f"  exit codes {bad}; logs in {run.log_dir}", flush=True)
@@ -191,7 +193,7 @@ def report(results: list[Result], sweep: list[Result], args: argparse.Namespace,
             f"| {r.bag} | {r.configuration.name} | {r.configuration.solve_scale:g} | {r.run} | "
             + " | ".join(cells.get(p.name, "—") for p in results[0].figures.processes) + " |"
         )
-    lines += ["", *ratio_lines(results), "", *target_lines(results)]
+    lines += ["", *ratio_lines(results), "", *cost_lines(results), "", *target_lines(results)]
     if sweep:
         lines += ["", "`endo-demo`'s default playback rate: the phantom at the demo's "
                   f"solve_scale {GRAPH_SOLVE_SCALE:g}, all optimisations on:", "",
@@ -233,6 +235,27 @@ def ratio_lines(results: list[Result]) -> list[str]:
         p50 = r.figures.end_to_end_ms[0] / base.figures.end_to_end_ms[0]
         lines.append(f"| {r.bag} | {r.configuration.name} | {r.configuration.solve_scale:g} | "
                      f"{r.run} | {depth:.2f} | {p50:.2f} | {cpu(r) / cpu(base):.2f} |")
+    return lines
+
+
+def cost_lines(results: list[Result]) -> list[str]:
+    """CPU ms per frame of each process (all on), and the cores 30 Hz would need."""
+    runs = [r for r in results if r.configuration.name == "all on"]
+    if not runs or not runs[0].figures.processes:
+        return []
+    names = [p.name for p in runs[0].figures.processes]
+    lines = ["CPU cost per frame, every optimisation on: CPU ms each process spent (from the "
+             "start of the play to its end, the drain included) per frame it let out (the "
+             "recorder, bridge and replay: per frame played). CPU time is less sensitive to the "
+             "load than wall time (it still grows with cache and memory contention). The "
+             "cores 30 Hz needs = Σ ms per frame × 30 / 1000:", "",
+             "| bag | scale | pass | " + " | ".join(names) + " | cores for 30 Hz |",
+             "|---|---|---|" + "---|" * (len(names) + 1)]
+    for r in runs:
+        costs = [r.figures.cpu_ms_per_frame(n) for n in names]
+        lines.append(f"| {r.bag} | {r.configuration.solve_scale:g} | {r.run} | "
+                     + " | ".join(f"{c:.1f}" for c in costs)
+                     + f" | {sum(costs) * 30 / 1000:.2f} |")
     return lines
 
 
@@ -294,7 +317,15 @@ def main() -> int:
     parser.add_argument("--only", nargs="+", default=None, help="configuration names to run")
     parser.add_argument("--quick", action="store_true", help="one pass, phantom only, all on")
     parser.add_argument("--no-write", action="store_true", help="do not edit docs/benchmarks.md")
+    parser.add_argument("--report-from", type=Path, default=None,
+                        help="only write the report of a saved results.pkl")
     args = parser.parse_args()
+    # SIGTERM ends the bench like Ctrl-C: unwinding stops every child process
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(128 + signal.SIGTERM))
+    if args.report_from is not None:
+        with args.report_from.open("rb") as file:
+            results, sweep = pickle.load(file)
+        return write_report(results, sweep, args)
     if args.quick:
         args.runs, args.no_long, args.only = 1, True, ["all on"]
     env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
@@ -317,6 +348,7 @@ def main() -> int:
                 figures = run_once(bag, configuration, args.rate, work, env)
                 print("\n".join("   " + line for line in stage_lines(figures)), flush=True)
                 results.append(Result(bag.stem, configuration, args.rate, run, figures, load))
+                save(work, results, sweep)
         if args.sweep:
             for rate in args.sweep_rates:
                 load = os.getloadavg()[0]
@@ -326,6 +358,18 @@ def main() -> int:
                 print("\n".join("   " + line for line in stage_lines(figures)), flush=True)
                 sweep.append(Result(PHANTOM.stem, Configuration("all on", GRAPH_SOLVE_SCALE),
                                     rate, run, figures, load))
+                save(work, results, sweep)
+    return write_report(results, sweep, args)
+
+
+def save(work: Path, results: list[Result], sweep: list[Result]) -> None:
+    """The results so far, for ``--report-from`` (a report can be rewritten without rerunning)."""
+    with (work / "results.pkl").open("wb") as file:
+        pickle.dump((results, sweep), file)
+
+
+def write_report(results: list[Result], sweep: list[Result], args: argparse.Namespace) -> int:
+    """Print the section; write it into docs/benchmarks.md unless --no-write."""
     section = report(results, sweep, args, demo_rate_of(sweep) if sweep else None)
     print(section)
     if not args.no_write:

@@ -16,7 +16,7 @@ bound (tests/test_demo_graph.py), not an issue 11 bar.
 
 from __future__ import annotations
 
-from collections.abc import Collection, Iterable
+from collections.abc import Collection, Iterable, Mapping
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
@@ -50,18 +50,29 @@ class AccuracyBars:
     rotation_deg: float = 0.5
 
 
-def frame_shortfalls(rows: Iterable[StageCount], per_frame: Collection[str]) -> list[str]:
+def frame_shortfalls(
+    rows: Iterable[StageCount],
+    per_frame: Collection[str],
+    skipped: Mapping[str, int | None] | None = None,
+) -> list[str]:
     """Stages that let out fewer messages than came in, on their per-frame outputs.
 
     rows: the run's stage report; per_frame: the topics that carry one
     message per input message (the others, e.g. the periodic map, are not
-    judged here).
+    judged here); skipped: stage -> stale frames it skipped for a newer one
+    (its /diagnostics, :mod:`endo_bringup.graph_monitor`), named in the
+    sentence when known: the stage was slower than the playback.
     """
-    return [
-        f"{row.stage} kept {row.count_out} of {row.count_in} frames on {row.topic}"
-        for row in rows
-        if row.topic in per_frame and row.count_out < row.count_in
-    ]
+    skipped = skipped or {}
+    problems = []
+    for row in rows:
+        if row.topic in per_frame and row.count_out < row.count_in:
+            count = skipped.get(row.stage)
+            why = f" (skipped {count} stale frames: slower than the playback)" if count else ""
+            problems.append(
+                f"{row.stage} kept {row.count_out} of {row.count_in} frames on {row.topic}{why}"
+            )
+    return problems
 
 
 def converged_scale_error(accuracy: Accuracy, convergence_s: float) -> np.ndarray:

@@ -352,7 +352,8 @@ class GraphReport:
         if self.run is None:
             return []
         per_frame = {t for p in self.run.processes for t in p.per_frame_outputs}
-        problems = frame_shortfalls(stage_counts(self.run, self.counts), per_frame)
+        skipped = {} if self.figures is None else {s.stage: s.skipped for s in self.figures.stages}
+        problems = frame_shortfalls(stage_counts(self.run, self.counts), per_frame, skipped)
         if self.accuracy is not None:
             problems += accuracy_shortfalls(self.accuracy)
         return problems
@@ -468,7 +469,7 @@ def run_graph_stage(
             report.run = run_live_graph(
                 phantom, calibrate.result, handeye.result, out_dir, graph_env, settings
             )
-        report.figures = graph_figures(report.run.processes, monitor, sampler)
+        report.figures = graph_figures(report.run.processes, monitor, sampler, report.run.played)
     except (GraphError, GroundTruthError) as error:
         report.error = str(error)
         return report

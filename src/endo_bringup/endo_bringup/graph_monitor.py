@@ -325,11 +325,16 @@ class StageFigures:
 
 @dataclass(frozen=True)
 class ProcessFigures:
-    """One process: CPU (% of one core) over the play window, peak RSS (MB)."""
+    """One process: CPU (% of one core) over the play window, peak RSS (MB).
+
+    cpu_s: CPU seconds from the start of the play window to the process's
+    last sample (its work on the frames, the drain after the replay included).
+    """
 
     name: str
     cpu_percent: float
     rss_mb: float
+    cpu_s: float = float("nan")
 
 
 @dataclass(frozen=True)
@@ -353,6 +358,15 @@ class GraphFigures:
     def document(self) -> dict[str, Any]:
         """The figures as plain JSON-able data (pairs as lists; NaN stays NaN)."""
         return dict(json.loads(json.dumps(dataclasses.asdict(self))))
+
+    def cpu_ms_per_frame(self, name: str) -> float:
+        """CPU ms process ``name`` spent per frame it let out (per frame played: not a stage)."""
+        process = next((p for p in self.processes if p.name == name), None)
+        if process is None:
+            return float("nan")
+        stage = next((s for s in self.stages if s.stage == name), None)
+        frames = self.frames_played if stage is None else stage.frames_out
+        return 1e3 * process.cpu_s / frames if frames else float("nan")
 
     def stage(self, name: str) -> StageFigures:
         """The figures of stage ``name`` (a process name of the table)."""
@@ -402,17 +416,26 @@ def graph_figures(
     processes: Sequence[GraphProcess],
     monitor: GraphMonitor,
     sampler: ProcessSampler | None,
+    played: Mapping[str, int] | None = None,
 ) -> GraphFigures:
-    """The figures of a finished run (see the module docstring)."""
+    """The figures of a finished run (see the module docstring).
+
+    played: messages the player published per topic (``GraphRun.played``).
+    The monitor may match the player's new publisher after its first
+    frames (the player starts once the graph's nodes subscribe), so the
+    images played, the first stage's input and the play window come from
+    it: window = frames played × their median interval, ending one interval
+    after the last image.
+    """
     arrivals, status = monitor.snapshot()
     player = next(p for p in processes if p.name == PLAYER)
-    images = arrivals.get(player.publishes[0], {})
+    image_topic = player.publishes[0]
+    images = arrivals.get(image_topic, {})
+    frames_played = len(images) if played is None else int(played.get(image_topic, len(images)))
     sent = sorted(source for source, _ in images.values())
-    if len(sent) > 1:
-        period = (sent[-1] - sent[0]) / (len(sent) - 1)
-        start, end = sent[0], sent[-1] + period
-    else:
-        start, end = (sent[0], sent[0] + 1) if sent else (0, 1)
+    period = float(np.median(np.diff(sent))) if len(sent) > 1 else 1.0
+    end = (sent[-1] if sent else 0) + period
+    start = end - frames_played * period
     window_s = (end - start) / 1e9
     stages = []
     for process in processes:
@@ -428,7 +451,7 @@ def graph_figures(
         )
         stages.append(StageFigures(
             stage=process.name, input_topic=first, output_topic=output,
-            frames_in=len(arrivals.get(first, {})),
+            frames_in=frames_played if first == image_topic else len(arrivals.get(first, {})),
             received=None if counts is None else counts["received"], frames_out=len(got),
             skipped=None if counts is None else counts["skipped"],
             dropped=None if counts is None else counts["dropped"],
@@ -444,11 +467,13 @@ def graph_figures(
                 100.0 * (inside[-1].cpu_s - inside[0].cpu_s) / (inside[-1].t - inside[0].t)
                 if len(inside) > 1 and inside[-1].t > inside[0].t else float("nan")
             )
-            figures_of_processes.append(
-                ProcessFigures(name, cpu, max(s.rss_mb for s in samples))
-            )
+            before = [s for s in samples if s.t <= start / 1e9]
+            at_start = before[-1] if before else samples[0]
+            figures_of_processes.append(ProcessFigures(
+                name, cpu, max(s.rss_mb for s in samples), samples[-1].cpu_s - at_start.cpu_s
+            ))
     return GraphFigures(
-        window_s=window_s, frames_played=len(images), stages=stages,
+        window_s=window_s, frames_played=frames_played, stages=stages,
         end_to_end_ms=_percentiles(clouds), end_to_end_frames=len(clouds),
         processes=figures_of_processes, load=os.getloadavg()[0],
     )  # fmt: skip

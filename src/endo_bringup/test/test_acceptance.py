@@ -85,6 +85,11 @@ def test_frame_shortfalls_judge_per_frame_outputs_only() -> None:
     assert frame_shortfalls(rows, per_frame) == [
         f"endo-sfs kept 66 of 90 frames on {topics.DEPTH_RELATIVE}"
     ]
+    # with the node's skip count (its /diagnostics), the sentence says why
+    assert frame_shortfalls(rows, per_frame, {"endo-sfs": 24, "endo-flow": 0}) == [
+        f"endo-sfs kept 66 of 90 frames on {topics.DEPTH_RELATIVE} "
+        "(skipped 24 stale frames: slower than the playback)"
+    ]
 
 
 def test_summary_json_and_side_by_side(tmp_path) -> None:

@@ -7,6 +7,7 @@ exactly that. The /proc readers are checked on real child processes.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import subprocess
 import sys
@@ -18,6 +19,7 @@ from endo_bringup.graph import GraphSettings, graph_processes
 from endo_bringup.graph_monitor import (
     CLOUD_TOPIC,
     GraphMonitor,
+    ProcessFigures,
     ProcessSampler,
     _children,
     _cpu_and_rss,
@@ -97,6 +99,18 @@ def test_figures_of_a_known_run(tmp_path: Path) -> None:
     assert figures.end_to_end_frames == len(clouds) == 16
     assert figures.end_to_end_ms[0] == pytest.approx((86.0 + 88.0) / 2)  # the middle two
     assert not figures.every_frame_kept
+    costs = dataclasses.replace(figures, processes=[ProcessFigures("endo-sfs", 50.0, 300.0, 0.8),
+                                                    ProcessFigures("endo-replay", 5.0, 90.0, 0.3)])
+    assert costs.cpu_ms_per_frame("endo-sfs") == pytest.approx(800.0 / 20)  # per depth out
+    assert costs.cpu_ms_per_frame("endo-replay") == pytest.approx(300.0 / 30)  # per frame played
+    assert math.isnan(costs.cpu_ms_per_frame("endo-flow"))  # not sampled
+    # the monitor matched the player late and missed its first 3 images: the counts played say
+    for k in range(3):
+        del times[topics.IMAGE_RAW][STAMP0 + k * PERIOD_NS]
+    late = graph_figures(processes, monitor, None, {topics.IMAGE_RAW: frames})
+    assert late.frames_played == frames
+    assert late.stage("endo-photometric-correction").frames_in == frames
+    assert late.window_s == pytest.approx(figures.window_s)
     document = figures.document()
     assert document["end_to_end_ms"] == list(figures.end_to_end_ms)
     assert document["stages"][1]["skipped"] == 10
