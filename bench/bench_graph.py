@@ -140,8 +140,7 @@ def _ms(pair: tuple[float, float]) -> str:
     return f"{pair[0]:.0f} / {pair[1]:.0f}"
 
 
-def report(results: list[Result], sweep: list[Result], args: argparse.Namespace,
-           demo_rate: float | None) -> str:
+def report(results: list[Result], sweep: list[Result], args: argparse.Namespace) -> str:
     """The docs/benchmarks.md section."""
     loads = [r.load_before for r in results + sweep] + [r.figures.load for r in results + sweep]
     lines = [
@@ -153,7 +152,10 @@ def report(results: list[Result], sweep: list[Result], args: argparse.Namespace,
         f"suites and benchmarks: 1-minute load average {min(loads):.1f}–{max(loads):.1f} "
         f"(median {statistics.median(loads):.1f}) on {os.cpu_count()} cores**, so absolute "
         "rates and latencies measure the load as much as the graph; compare configurations "
-        "as ratios inside one pass (each pass runs every configuration once, back to back).",
+        "as ratios inside one pass (each pass runs every configuration once, back to back)."
+        + (f" Left out: {', '.join(args.exclude)} (bag:pass; that pass overlapped with a test "
+           "graph on the same DDS domain, whose messages the listener counted too); a later "
+           "pass replaces it." if getattr(args, "exclude", None) else ""),
         "",
         "Each run is `endo_bringup.graph.run_live_graph` (the demo's runner and table: "
         "replay → correction → sfs → tracker bridge → flow → recorder, separate processes, "
@@ -195,20 +197,22 @@ def report(results: list[Result], sweep: list[Result], args: argparse.Namespace,
         )
     lines += ["", *ratio_lines(results), "", *cost_lines(results), "", *target_lines(results)]
     if sweep:
-        lines += ["", "`endo-demo`'s default playback rate: the phantom at the demo's "
-                  f"solve_scale {GRAPH_SOLVE_SCALE:g}, all optimisations on:", "",
-                  "| rate | fps | pass | load | correction out/in | sfs out/in | flow out/in | "
-                  "every frame kept | end to end p50/p99 ms |", "|---" * 9 + "|"]
-        for r in sweep:
+        lines += ["", "`endo-demo`'s default playback rate: the phantom, all optimisations on "
+                  f"(the demo's solve_scale is {GRAPH_SOLVE_SCALE:g}):", "",
+                  "| scale | rate | fps | pass | load | correction out/in | sfs out/in | "
+                  "flow out/in | every frame kept | end to end p50/p99 ms |", "|---" * 10 + "|"]
+        for r in sorted(sweep, key=lambda r: (-r.configuration.solve_scale, r.rate, r.run)):
             f = r.figures
             lines.append(
-                f"| {r.rate:g} | {30 * r.rate:g} | {r.run} | {r.load_before:.1f} | "
+                f"| {r.configuration.solve_scale:g} | {r.rate:g} | {30 * r.rate:g} | {r.run} | "
+                f"{r.load_before:.1f} | "
                 f"{_stage(f, CORRECTION)} | {_stage(f, SFS)} | {_stage(f, FLOW)} | "
                 f"{'yes' if f.every_frame_kept else 'no'} | {_ms(f.end_to_end_ms)} |"
             )
-        lines += ["", "Fastest rate with every frame kept in every pass: "
-                  + (f"**{demo_rate:g}** (`endo-demo --graph-rate` default)" if demo_rate
-                     else "none of those tried") + "."]
+        for scale in sorted({r.configuration.solve_scale for r in sweep}, reverse=True):
+            best = demo_rate_of([r for r in sweep if r.configuration.solve_scale == scale])
+            lines += ["", f"Fastest rate with every frame kept in every pass at solve_scale "
+                      f"{scale:g}: " + (f"**{best:g}**" if best else "none of those tried") + "."]
     return "\n".join(lines) + "\n"
 
 
@@ -247,9 +251,13 @@ def cost_lines(results: list[Result]) -> list[str]:
     lines = ["CPU cost per frame, every optimisation on: CPU ms each process spent (from the "
              "start of the play to its end, the drain included) per frame it let out (the "
              "recorder, bridge and replay: per frame played). CPU time is less sensitive to the "
-             "load than wall time (it still grows with cache and memory contention). The "
-             "cores 30 Hz needs = Σ ms per frame × 30 / 1000:", "",
-             "| bag | scale | pass | " + " | ".join(names) + " | cores for 30 Hz |",
+             "load than wall time, but not immune: on a starved machine it grows with cache and "
+             "memory contention and with sfs's two threads waiting for each other, and a "
+             "stage's work on frames that gave no output (flow deserializes every corrected "
+             "image, ~1 ms each; frames it processed without a pose) is charged to those it "
+             "let out. So Σ ms per frame × 30 / 1000 is an upper bound of the cores 30 Hz "
+             "needs:", "",
+             "| bag | scale | pass | " + " | ".join(names) + " | cores for 30 Hz (bound) |",
              "|---|---|---|" + "---|" * (len(names) + 1)]
     for r in runs:
         costs = [r.figures.cpu_ms_per_frame(n) for n in names]
@@ -317,14 +325,28 @@ def main() -> int:
     parser.add_argument("--only", nargs="+", default=None, help="configuration names to run")
     parser.add_argument("--quick", action="store_true", help="one pass, phantom only, all on")
     parser.add_argument("--no-write", action="store_true", help="do not edit docs/benchmarks.md")
-    parser.add_argument("--report-from", type=Path, default=None,
-                        help="only write the report of a saved results.pkl")
+    parser.add_argument("--report-from", type=Path, nargs="+", default=None,
+                        help="only write the report of saved results.pkl files (concatenated)")
+    parser.add_argument("--exclude", nargs="+", default=[], metavar="BAG:PASS",
+                        help="with --report-from: leave out a bag's runs of one pass (a pass "
+                        "that was disturbed, e.g. by another graph on the same DDS domain)")
+    parser.add_argument("--first-pass", type=int, default=1, help="number of the first pass")
+    parser.add_argument("--sweep-only", action="store_true", help="only the demo-rate sweep")
+    parser.add_argument("--sweep-scale", type=float, default=GRAPH_SOLVE_SCALE,
+                        help=f"solve_scale of the sweep (the demo's: {GRAPH_SOLVE_SCALE:g})")
     args = parser.parse_args()
     # SIGTERM ends the bench like Ctrl-C: unwinding stops every child process
     signal.signal(signal.SIGTERM, lambda *_: sys.exit(128 + signal.SIGTERM))
     if args.report_from is not None:
-        with args.report_from.open("rb") as file:
-            results, sweep = pickle.load(file)
+        results, sweep = [], []
+        for path in args.report_from:
+            with path.open("rb") as file:
+                more, more_sweep = pickle.load(file)
+            results += more
+            sweep += more_sweep
+        excluded = {tuple(item.rsplit(":", 1)) for item in args.exclude}
+        results = [r for r in results if (r.bag, str(r.run)) not in excluded]
+        results.sort(key=lambda r: (r.run, r.bag != PHANTOM.stem))
         return write_report(results, sweep, args)
     if args.quick:
         args.runs, args.no_long, args.only = 1, True, ["all on"]
@@ -338,7 +360,9 @@ def main() -> int:
     chosen = [c for c in configurations(args.scales) if args.only is None or c.name in args.only]
     results: list[Result] = []
     sweep: list[Result] = []
-    for run in range(1, args.runs + 1):
+    if args.sweep_only:
+        chosen, args.sweep = [], True
+    for run in range(args.first_pass, args.first_pass + args.runs):
         for bag in bags:
             for configuration in chosen:
                 load = os.getloadavg()[0]
@@ -353,10 +377,10 @@ def main() -> int:
             for rate in args.sweep_rates:
                 load = os.getloadavg()[0]
                 print(f"== sweep pass {run}: phantom at {rate:g}x (load {load:.1f})", flush=True)
-                figures = run_once(PHANTOM, Configuration("all on", GRAPH_SOLVE_SCALE), rate,
+                figures = run_once(PHANTOM, Configuration("all on", args.sweep_scale), rate,
                                    work, env)
                 print("\n".join("   " + line for line in stage_lines(figures)), flush=True)
-                sweep.append(Result(PHANTOM.stem, Configuration("all on", GRAPH_SOLVE_SCALE),
+                sweep.append(Result(PHANTOM.stem, Configuration("all on", args.sweep_scale),
                                     rate, run, figures, load))
                 save(work, results, sweep)
     return write_report(results, sweep, args)
@@ -370,7 +394,7 @@ def save(work: Path, results: list[Result], sweep: list[Result]) -> None:
 
 def write_report(results: list[Result], sweep: list[Result], args: argparse.Namespace) -> int:
     """Print the section; write it into docs/benchmarks.md unless --no-write."""
-    section = report(results, sweep, args, demo_rate_of(sweep) if sweep else None)
+    section = report(results, sweep, args)
     print(section)
     if not args.no_write:
         replace_section(section, TITLE)

@@ -374,11 +374,12 @@ class GraphFigures:
 
     @property
     def every_frame_kept(self) -> bool:
-        """No stage skipped, dropped or lost a frame, and every per-frame output carried all."""
-        return all(
-            not s.skipped and not s.dropped and not s.lost and s.frames_out >= self.frames_played
-            for s in self.stages
-        )
+        """Every stage's per-frame output carried every frame played, and nothing was skipped.
+
+        (A frame flow dropped for want of a pose still gives its scale: the
+        outputs decide, not the drop counters.)
+        """
+        return all(not s.skipped and s.frames_out >= self.frames_played for s in self.stages)
 
 
 def _percentiles(values: list[float]) -> tuple[float, float]:
@@ -451,7 +452,9 @@ def graph_figures(
         )
         stages.append(StageFigures(
             stage=process.name, input_topic=first, output_topic=output,
-            frames_in=frames_played if first == image_topic else len(arrivals.get(first, {})),
+            frames_in=(frames_played if first == image_topic
+                       else int(played[first]) if played is not None and first in played
+                       else len(arrivals.get(first, {}))),
             received=None if counts is None else counts["received"], frames_out=len(got),
             skipped=None if counts is None else counts["skipped"],
             dropped=None if counts is None else counts["dropped"],

@@ -107,7 +107,9 @@ def test_figures_of_a_known_run(tmp_path: Path) -> None:
     # the monitor matched the player late and missed its first 3 images: the counts played say
     for k in range(3):
         del times[topics.IMAGE_RAW][STAMP0 + k * PERIOD_NS]
-    late = graph_figures(processes, monitor, None, {topics.IMAGE_RAW: frames})
+    late = graph_figures(processes, monitor, None, {topics.IMAGE_RAW: frames,
+                                                    topics.TRACKER_POSE: 61})
+    assert late.stage("endo-tracker-bridge").frames_in == 61  # a played topic not watched
     assert late.frames_played == frames
     assert late.stage("endo-photometric-correction").frames_in == frames
     assert late.window_s == pytest.approx(figures.window_s)
