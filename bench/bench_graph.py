@@ -157,6 +157,9 @@ def report(results: list[Result], sweep: list[Result], args: argparse.Namespace)
            "graph on the same DDS domain, whose messages the listener counted too); a later "
            "pass replaces it." if getattr(args, "exclude", None) else ""),
         "",
+        "Bags: `phantom_colon` (the committed 3 s phantom, 90 frames) and the long render "
+        "(`endo-sim render colon --seed 2 --duration 60 --depth-every 30`, 1800 frames; not "
+        "tuned on), 640×480 mono8 at 30 fps, played at 1× (30 fps) unless said. "
         "Each run is `endo_bringup.graph.run_live_graph` (the demo's runner and table: "
         "replay → correction → sfs → tracker bridge → flow → recorder, separate processes, "
         "loopback DDS with the large-frame shared-memory profile) with the bag's true "
