@@ -358,8 +358,8 @@ def main() -> int:
     work = Path(tempfile.mkdtemp(prefix="endo3d_bench_graph_"))
     env, note = with_large_frame_profile(env, work)
     print(f"bench_graph: {note}; runs in {work}", flush=True)
-    bags = [PHANTOM] if args.no_long else [PHANTOM, ensure_long_bag(args.long_bag,
-                                                                    args.long_seconds)]
+    no_long = args.no_long or args.sweep_only
+    bags = [PHANTOM] if no_long else [PHANTOM, ensure_long_bag(args.long_bag, args.long_seconds)]
     chosen = [c for c in configurations(args.scales) if args.only is None or c.name in args.only]
     results: list[Result] = []
     sweep: list[Result] = []
