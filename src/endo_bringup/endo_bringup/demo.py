@@ -296,7 +296,7 @@ SAMPLE_BAGS = (GRAYCARD_BAG, HANDEYE_BAG, PHANTOM_BAG)
 #: (docs/benchmarks.md, the live graph at video rate): on 2026-12-02, the
 #: machine at load 20–32 from other sessions, no rate kept every frame at full
 #: resolution, not even 0.05× (SFS 75–81 of 90; 0.1×: 44–72; 0.25×: 12–23), nor
-#: at solve_scale 0.5 (0.1×: 16; 0.25×: 7). So 0.25 stays the default until a
+#: at solve_scale 0.5 (0.1×: 16–86; 0.25×: 7–26). So 0.25 stays the default until a
 #: sweep on a quiet machine says otherwise; the demo prints what each stage kept
 #: and skipped (endo_bringup.graph_monitor, the bench's code), so a run on a
 #: loaded machine says so instead of looking like a fault.
