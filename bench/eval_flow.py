@@ -317,7 +317,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--json", type=Path, default=None, help="append results here")
     parser.add_argument("--trace", action="store_true", help="print every frame's scale")
     parser.add_argument("--set", nargs="*", default=[], metavar="OPTION=VALUE",
-                        help="override top-level FlowOptions fields (e.g. observation_rings=1)")
+                        help="override FlowOptions fields (observation_rings=1, "
+                        "tracking.max_tracks=100)")
     parser.add_argument("--true-poses", action="store_true",
                         help="diagnosis: the simulator's exact camera poses")
     parser.add_argument("--no-handeye-error", action="store_true",
@@ -331,7 +332,13 @@ def main(argv: list[str] | None = None) -> int:
     overrides: dict[str, Any] = {}
     for item in args.set:
         key, _, value = item.partition("=")
-        overrides[key] = type(getattr(FlowOptions(), key))(yaml.safe_load(value))
+        if "." in key:  # one nested field, e.g. tracking.max_tracks=100
+            group, name = key.split(".", 1)
+            nested = overrides.get(group, getattr(FlowOptions(), group))
+            typed = type(getattr(nested, name))(yaml.safe_load(value))
+            overrides[group] = dataclasses.replace(nested, **{name: typed})
+        else:
+            overrides[key] = type(getattr(FlowOptions(), key))(yaml.safe_load(value))
     results = []
     for bag in args.bags:
         seq = read_bag(bag, calibration, args.light_error, args.cache, args.solve_scale,
