@@ -361,7 +361,16 @@ class GraphReport:
         problems = frame_shortfalls(stage_counts(self.run, self.counts), per_frame, skipped)
         if self.accuracy is not None:
             problems += accuracy_shortfalls(self.accuracy)
+        if not self.depth_errors and self._skipped_frames():
+            problems.append(
+                "no depth frame has a ground truth with the same stamp (the stages skipped "
+                "stale frames: slower than the playback)"
+            )
         return problems
+
+    def _skipped_frames(self) -> bool:
+        """Whether a stage skipped frames for newer ones (so truth frames may be missing)."""
+        return self.figures is not None and any(s.skipped for s in self.figures.stages)
 
     def failures(self) -> list[str]:
         """Why this run counts as failed (empty when it did not)."""
@@ -383,7 +392,7 @@ class GraphReport:
                 for topic in node_outputs(self.run.processes)
                 if self.counts.get(topic, 0) == 0
             ]
-            if not self.depth_errors:
+            if not self.depth_errors and not self._skipped_frames():
                 problems.append("no depth frame has a ground truth with the same stamp")
             if self.poses is None or self.poses.compared == 0:
                 problems.append("no camera pose could be compared with the ground truth")

@@ -18,9 +18,11 @@ import pytest
 from endo_bringup.graph import GraphSettings, graph_processes
 from endo_bringup.graph_monitor import (
     CLOUD_TOPIC,
+    GraphFigures,
     GraphMonitor,
     ProcessFigures,
     ProcessSampler,
+    StageFigures,
     _children,
     _cpu_and_rss,
     graph_figures,
@@ -137,3 +139,23 @@ def test_cpu_and_memory_of_children_come_from_proc() -> None:
         child.kill()
         child.wait()
     assert _cpu_and_rss(child.pid) is None
+
+
+def test_missing_truth_frames_are_a_shortfall_when_stages_skipped(tmp_path: Path) -> None:
+    from endo_bringup.demo import GraphReport
+    from endo_bringup.graph import GraphRun, OfflineStep
+
+    processes = _table(tmp_path)
+    step = OfflineStep(["endo-calibrate"], 0, "", tmp_path / "p.yaml", 1.0)
+    run = GraphRun(tmp_path / "graph.mcap", {topics.IMAGE_RAW: 90, topics.CAMERA_INFO: 90,
+                                             topics.TRACKER_POSE: 180},
+                   {p.name: 0 for p in processes}, tmp_path, 10.0, processes)
+    counts = {t: 5 for p in processes for t in p.publishes}
+    report = GraphReport(calibrate=step, handeye=step, scores=None, run=run, counts=counts)
+    truth = "no depth frame has a ground truth with the same stamp"
+    assert truth in report.failures()  # nothing skipped: a broken wire
+    stage = StageFigures("endo-sfs", topics.IMAGE_CORRECTED, topics.DEPTH_RELATIVE, 90, 90, 30,
+                         60, 0, 0, 10.0, (1.0, 2.0))
+    report.figures = GraphFigures(3.0, 90, [stage], (1.0, 2.0), 3, [], 1.0)
+    assert truth not in report.failures()  # the SFS node skipped them: slower than the play
+    assert any(p.startswith(truth + " (the stages skipped") for p in report.shortfalls())
