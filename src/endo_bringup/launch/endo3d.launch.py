@@ -25,7 +25,7 @@ from pathlib import Path  # noqa: I001  (ruff takes the repository's launch/ for
 
 from launch import LaunchDescription
 from launch.actions import DeclareLaunchArgument
-from launch.substitutions import LaunchConfiguration, PythonExpression
+from launch.substitutions import LaunchConfiguration
 from launch_ros.actions import Node
 
 #: config/ beside launch/, in a clone and in share/endo_bringup alike (the
@@ -37,7 +37,7 @@ def generate_launch_description() -> LaunchDescription:
     """The launch arguments and the four nodes."""
     params_file = LaunchConfiguration("params_file")
     namespace = LaunchConfiguration("namespace")
-    respawn = PythonExpression(["'", LaunchConfiguration("respawn"), "'.lower() == 'true'"])
+    respawn = LaunchConfiguration("respawn")  # "true"/"false", typed by launch
 
     def graph(topic: str) -> list:
         """A graph topic under the namespace (unchanged when the namespace is empty)."""
