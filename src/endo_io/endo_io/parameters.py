@@ -11,6 +11,11 @@ default, description, range or choices, read-only or not) and hands them to
   range or outside its choices raises :class:`ParameterValidationError` with
   one line naming the parameter, which :func:`endo_io.process.run_node`
   prints before exiting with code 2;
+* refuses a start-up override whose name is an edit or two away from a
+  row (``solve_scal`` for ``solve_scale``): a typo in a parameter file would
+  otherwise be ignored in silence and the node run on its default; any other
+  name that is not the node's is logged once as ignored (a ``/**`` section
+  shared by every node legitimately carries other nodes' parameters);
 * accepts an integer for a double (``-p solve_scale:=1``, as users type
   it; rclpy alone refuses it for a double-typed parameter) and a number for
   a string (``-p tool_id:=7``);
@@ -55,12 +60,34 @@ _ARRAY_ELEMENT = {
     Type.DOUBLE_ARRAY: Type.DOUBLE,
     Type.STRING_ARRAY: Type.STRING,
 }
+# Overrides rclpy itself reads when a publisher or subscription is made.
+_RCLPY_PREFIXES = ("qos_overrides.",)
 _TYPE_WORDS = {
     Type.BOOL: "true or false",
     Type.INTEGER: "an integer",
     Type.DOUBLE: "a number",
     Type.STRING: "a string",
 }
+
+
+def _edit_distance(a: str, b: str) -> int:
+    """Edits (insert, delete, substitute, swap two neighbours) turning ``a`` into ``b``."""
+    previous2: list[int] = []
+    previous = list(range(len(b) + 1))
+    for i, char_a in enumerate(a, 1):
+        current = [i]
+        for j, char_b in enumerate(b, 1):
+            cost = min(previous[j] + 1, current[j - 1] + 1, previous[j - 1] + (char_a != char_b))
+            if i > 1 and j > 1 and char_a == b[j - 2] and a[i - 2] == char_b:
+                cost = min(cost, previous2[j - 2] + 1)
+            current.append(cost)
+        previous2, previous = previous, current
+    return previous[-1]
+
+
+def _is_near_miss(name: str, row: str) -> bool:
+    """Whether ``name`` is a typo of ``row``: one edit away, two for names of 8+ letters."""
+    return 0 < _edit_distance(name, row) <= (2 if len(row) >= 8 else 1)
 
 
 @dataclass(frozen=True)
@@ -217,12 +244,41 @@ class NodeParameters:
             node.undeclare_parameter(spec.name)
             node.declare_parameter(spec.name, value, spec.descriptor(), ignore_override=True)
             self._values[spec.name] = value
+        self._check_unknown_overrides(node)
         self._apply: ApplyCallback | None = None
         node.add_pre_set_parameters_callback(self._convert_numbers)
         node.add_on_set_parameters_callback(self._on_set)
 
     def __getitem__(self, name: str) -> Any:
         return self._values[name]
+
+    def _check_unknown_overrides(self, node: Node) -> None:
+        """Refuse a start-up override that is a near miss of a row; log the other strangers.
+
+        Raises:
+            ParameterValidationError: an override's name is a near miss of a
+                row's (:func:`_is_near_miss`) but is not one.
+        """
+        # rclpy keeps the --ros-args / --params-file values the node was given.
+        given = getattr(node, "_parameter_overrides", {})
+        unknown = sorted(
+            name for name in given
+            if name not in self.specs
+            and not node.has_parameter(name)  # use_sim_time and rclpy's own
+            and not name.startswith(_RCLPY_PREFIXES)
+        )
+        for name in unknown:
+            close = [row for row in self.specs if _is_near_miss(name, row)]
+            if close:
+                raise ParameterValidationError(
+                    f"parameter {name}: {node.get_name()} has no such parameter "
+                    f"(did you mean {close[0]}?)"
+                )
+        if unknown:
+            node.get_logger().warning(
+                f"ignoring parameter(s) that {node.get_name()} does not have: "
+                f"{', '.join(unknown)} (`--help` lists its parameters)"
+            )
 
     def values(self) -> dict[str, Any]:
         """A copy of every parameter's current value."""

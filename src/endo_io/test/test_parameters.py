@@ -157,3 +157,28 @@ def test_describe_parameters_lists_only_the_table(context):
     text = describe_parameters(node)
     assert text.count("\n") == len(TABLE) - 1 and "use_sim_time" not in text
     node.destroy_node()
+
+
+def test_a_near_miss_of_a_parameter_name_is_refused_naming_the_right_one(context):
+    with pytest.raises(ParameterValidationError) as caught:
+        _node(gian=1.5)
+    message = str(caught.value)
+    assert "\n" not in message
+    assert message == "parameter gian: filter_under_test has no such parameter (did you mean gain?)"
+
+
+def test_a_foreign_parameter_is_ignored_with_one_warning(context, capfd):
+    # A '/**' section shared by every node carries other nodes' parameters.
+    node = _node(solve_scale=0.5, gain=1.0)
+    assert node.parameters["gain"] == 1.0
+    assert not node.has_parameter("solve_scale")
+    warnings = [line for line in capfd.readouterr().err.splitlines() if "ignoring" in line]
+    assert len(warnings) == 1 and "solve_scale" in warnings[0]
+    node.destroy_node()
+
+
+def test_run_node_turns_a_typo_into_one_line_and_exit_code_2(capsys):
+    code = run_node(FilterNode, ["filter", "--ros-args", "-p", "tapz:=3"])
+    assert code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "tapz" in err[0] and "did you mean taps?" in err[0]
