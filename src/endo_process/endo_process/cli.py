@@ -144,6 +144,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     from endo_process.accuracy import Accuracy, score_recording
     from endo_process.report import write_report_figure
     from endo_process.runner import process_bag
+    from endo_process.settings import load_settings
+    from endo_process.simulated import registration_mismatch
     from endo_process.summary import format_report, summary_document
 
     try:
@@ -156,6 +158,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     if report.frames_shaded and not report.interrupted:
         accuracy = score_recording(options.output)
     print(format_report(report, accuracy))
+    if accuracy is not None and accuracy.poses is not None:
+        mismatch = registration_mismatch(options.bag, load_settings(options.params).T_world_tracker)
+        if mismatch is not None:
+            print(f"{PROGRAM}: warning: {mismatch}", file=sys.stderr)
     if args.report is not None and report.frames_shaded:
         write_report_figure(options.output, accuracy or Accuracy(), options.calibration,
                             args.report)  # fmt: skip

@@ -1,0 +1,46 @@
+"""endo_process.simulated: a simulated recording's registration, checked and written."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from endo_process.settings import load_settings
+from endo_process.simulated import main, registration_mismatch, simulated_parameters
+
+BAGS = Path(__file__).resolve().parents[3] / "bags"
+PHANTOM = BAGS / "phantom_colon.mcap"
+
+
+def test_the_default_identity_registration_is_named_as_another_frame():
+    message = registration_mismatch(PHANTOM, np.eye(4))
+    assert message is not None
+    assert "phantom_colon.mcap" in message and "--params sim.yaml" in message
+    assert "\n" not in message
+
+
+def test_the_simulators_registration_and_a_bag_without_truth_raise_nothing(tmp_path):
+    document = simulated_parameters(PHANTOM)
+    T_world_tracker = np.asarray(
+        document["tracker_bridge"]["ros__parameters"]["T_world_tracker"]
+    ).reshape(4, 4)
+    assert registration_mismatch(PHANTOM, T_world_tracker) is None
+    # 2 mm off is no longer the simulator's world
+    shifted = T_world_tracker.copy()
+    shifted[0, 3] += 2e-3
+    assert "2 mm" in (registration_mismatch(PHANTOM, shifted) or "")
+    assert registration_mismatch(tmp_path / "own_rig.mcap", np.eye(4)) is None
+
+
+def test_the_written_file_loads_as_endo_process_settings(tmp_path, capsys):
+    out = tmp_path / "sim.yaml"
+    assert main([str(PHANTOM), "-o", str(out)]) == 0
+    settings = load_settings(out)
+    truth = yaml.safe_load(PHANTOM.with_name("phantom_colon.ground_truth.yaml").read_text())
+    T_tracker_world = np.asarray(truth["tracker"]["T_tracker_world"], np.float64)
+    np.testing.assert_allclose(settings.T_world_tracker @ T_tracker_world, np.eye(4), atol=1e-12)
+    assert settings.sfs["roughness"] == truth["photometry"]["roughness_rad"]
+    assert main([str(tmp_path / "none.mcap"), "-o", str(out)]) == 2
+    assert capsys.readouterr().err.count("\n") == 1
