@@ -35,12 +35,14 @@ import argparse
 import platform
 import subprocess
 import time
+from collections.abc import Callable
 
 import numpy as np
 import skfmm
 
 from endo_io.camera import CameraModel
 from endo_io.pose import pose_to_matrix, rigid_transform
+from endo_sfs import relative_depth
 from endo_sfs.evaluation import depth_error
 from endo_sfs.options import SfsOptions
 from endo_sfs.orthographic import eikonal_speed, solve_orthographic
@@ -270,6 +272,150 @@ def phantom_sequence(bag: str, calibration: str, rng: np.random.Generator):
     truth = sequence[0][2]
     both = np.isfinite(truth) & np.isfinite(first.depth)
     return sequence, camera, float(np.median(truth[both] / first.depth[both]))
+
+
+# ------------------------------------------------------------------ workers
+
+
+def _process_cpu_s(pid: int) -> float:
+    """User + system CPU seconds of a process so far (/proc/<pid>/stat)."""
+    fields = open(f"/proc/{pid}/stat").read().rsplit(")", 1)[1].split()  # noqa: PTH123, SIM115
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+#: Seconds after which the workers bench sends a frame again.
+RESEND_S = 2.0
+
+
+def run_workers(images: list[np.ndarray], camera: CameraModel, stamps: list[int], workers: int,
+                parameters: list[str]) -> tuple[dict[int, np.ndarray], list[float], float, int]:
+    """Solve ``images`` with ``workers`` endo-sfs processes; depth by stamp, CPU s each, wall s.
+
+    Frames are published as the workers free up (one in flight per worker),
+    so the wall time is the throughput of the workers; a frame whose depth
+    has not come back after RESEND_S is sent again (counted: best effort
+    loses a large image now and then under load).
+    """
+    import signal
+    import sys
+    from pathlib import Path
+
+    import rclpy
+    from rclpy.executors import SingleThreadedExecutor
+    from sensor_msgs.msg import CameraInfo, Image
+
+    from endo_io import topics
+    from endo_io.image import array_to_image, image_to_array
+    from endo_io.qos import SENSOR_DATA_QOS, reliable_qos
+    from endo_io.stamp import stamp_to_ns
+
+    binary = Path(sys.executable).parent / "endo-sfs"
+    env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
+    processes = [subprocess.Popen(
+        [str(binary), "--ros-args", "-r", f"__node:=sfs_{index}", *parameters,
+         "-p", f"worker_count:={workers}", "-p", f"worker_index:={index}"],
+        env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+    ) for index in range(workers)]
+    context = rclpy.Context()
+    rclpy.init(context=context)
+    node = rclpy.create_node("bench_sfs_workers", context=context)
+    executor = SingleThreadedExecutor(context=context)
+    executor.add_node(node)
+    received: dict[int, np.ndarray] = {}
+    subscription = node.create_subscription(
+        Image, topics.DEPTH_RELATIVE,
+        lambda msg: received.__setitem__(stamp_to_ns(msg.header.stamp), image_to_array(msg)),
+        reliable_qos(100))
+    image_pub = node.create_publisher(Image, topics.IMAGE_CORRECTED, SENSOR_DATA_QOS)
+    info_pub = node.create_publisher(CameraInfo, topics.CAMERA_INFO, SENSOR_DATA_QOS)
+
+    def spin_until(condition: Callable[[], bool], seconds: float) -> bool:
+        deadline = time.monotonic() + seconds
+        while not condition() and time.monotonic() < deadline:
+            executor.spin_once(timeout_sec=0.01)
+        return condition()
+
+    try:
+        if not spin_until(lambda: image_pub.get_subscription_count() >= workers
+                          and info_pub.get_subscription_count() >= workers
+                          and subscription.get_publisher_count() >= workers, 180.0):
+            raise RuntimeError("the workers did not come up in 180 s")
+        spin_until(lambda: False, 2.0)  # discovery of the workers' own depth subscriptions
+        cpu_start = [_process_cpu_s(p.pid) for p in processes]
+        start = time.perf_counter()
+        in_flight: dict[int, tuple[int, float]] = {}  # stamp -> (frame, last sent)
+
+        def send(k: int) -> None:
+            info = camera.to_camera_info(stamps[k])
+            info_pub.publish(info)
+            image_pub.publish(array_to_image(images[k].astype(np.float32), "32FC1", stamps[k],
+                                             info.header.frame_id))
+            in_flight[stamps[k]] = (k, time.monotonic())
+
+        def settle(limit: int) -> None:
+            # best effort loses a 1.2 MB image now and then under load: resend it
+            nonlocal resent
+            while True:
+                for stamp in [s for s in in_flight if s in received]:
+                    del in_flight[stamp]
+                if len(in_flight) <= limit:
+                    return
+                executor.spin_once(timeout_sec=0.01)
+                for k, sent in list(in_flight.values()):
+                    if time.monotonic() - sent > RESEND_S:
+                        send(k)
+                        resent += 1
+
+        resent = 0
+        for k in range(len(images)):
+            settle(workers - 1)
+            send(k)
+        settle(0)
+        wall = time.perf_counter() - start
+        cpu = [_process_cpu_s(p.pid) - c for p, c in zip(processes, cpu_start, strict=True)]
+    finally:
+        for process in processes:
+            process.send_signal(signal.SIGINT)
+        for process in processes:
+            try:
+                process.wait(15)
+            except subprocess.TimeoutExpired:
+                process.kill()
+        executor.shutdown()
+        node.destroy_node()
+        rclpy.shutdown(context=context)
+    return received, cpu, wall, resent
+
+
+def bench_workers(bag: str, calibration: str, solve_scale: float, frames: int) -> None:
+    """One endo-sfs process against two workers on the phantom: frames, CPU per frame, output."""
+    sequence, camera, _ = phantom_sequence(bag, calibration, np.random.default_rng(0))
+    sequence = sequence[:frames]
+    stamps = [1_800_000_000 * 10**9 + k * (10**9 // 30) for k in range(len(sequence))]
+    images = [irradiance for irradiance, _, _ in sequence]
+    parameters = ["-p", "threads:=1", "-p", "roughness:=0.3", "-p", "fov_radius:=240.0",
+                  "-p", f"solve_scale:={solve_scale}"]
+    print(f"\nSFS workers, phantom {len(images)} frames, solve_scale {solve_scale:g}, one thread "
+          "per worker (separate processes over DDS)")
+    print("| workers | frames out | frames sent again | CPU s per worker | CPU ms per frame (all "
+          "workers) | wall s | frames/s | depth vs one worker: max / median relative "
+          "difference |")
+    print("|---|---|---|---|---|---|---|---|")
+    reference: dict[int, np.ndarray] = {}
+    for workers in (1, 2):
+        depths, cpu, wall, resent = run_workers(images, camera, stamps, workers, parameters)
+        if workers == 1:
+            reference = depths
+        differences = []
+        for stamp, depth in depths.items():
+            if stamp in reference:
+                both = np.isfinite(depth) & np.isfinite(reference[stamp])
+                differences.append(np.abs(depth[both] / reference[stamp][both] - 1.0))
+        spread = np.concatenate(differences) if differences else np.array([np.nan])
+        print(f"| {workers} | {len(depths)} | {resent} | {' / '.join(f'{c:.1f}' for c in cpu)} | "
+              f"{1e3 * sum(cpu) / max(1, len(depths)):.1f} | {wall:.1f} | "
+              f"{len(depths) / wall:.1f} | {spread.max():.1e} / {np.median(spread):.1e} |",
+              flush=True)
 
 
 # ------------------------------------------------------------------ orthographic
@@ -510,10 +656,27 @@ def main() -> None:
     parser.add_argument("--warm-starts", action="store_true",
                         help="only compare warm starts (previous frame, pose-predicted) on the "
                         "posed tube and, with --phantom-bag/--calibration, the phantom")
-    parser.add_argument("--phantom-bag", metavar="BAG", help="--warm-starts: the phantom bag")
+    parser.add_argument("--first-pass", action="store_true",
+                        help="--warm-starts: always solve with the value-ordered first pass "
+                        "(the chain otherwise sweeps once it costs > 2.5 solves per node)")
+    parser.add_argument("--phantom-bag", metavar="BAG",
+                        help="--warm-starts, --workers: the phantom bag")
+    parser.add_argument("--workers", action="store_true",
+                        help="only run one endo-sfs process against two workers on the "
+                        "phantom (--phantom-bag, --calibration; ROS_DOMAIN_ID from the "
+                        "environment)")
     args = parser.parse_args()
     print(f"machine: {machine()}")
+    if args.workers:
+        if not (args.phantom_bag and args.calibration):
+            parser.error("--workers needs --phantom-bag and --calibration")
+        bench_workers(args.phantom_bag, args.calibration, args.solve_scale, args.frames)
+        print(f"machine after: {machine()}")
+        return
     if args.warm_starts:
+        if args.first_pass:
+            relative_depth.FIRST_PASS_WORK_LIMIT = float("inf")
+            print("value-ordered first pass on every frame")
         bench_warm_starts(args.frames, args.phantom_bag, args.calibration, args.threads)
         print(f"machine after: {machine()}")
         return

@@ -73,6 +73,7 @@ def _run(
     camera, images = sequence
     node, executor = listener
     received: dict[int, list[np.ndarray]] = {}
+    resent: set[int] = set()
 
     def on_depth(msg: Image) -> None:
         received.setdefault(stamp_to_ns(msg.header.stamp), []).append(image_to_array(msg))
@@ -112,17 +113,22 @@ def _run(
     try:
         # each worker subscribes to the images and, with several, to the depth topic
         ready = spin_until(lambda: image_pub.get_subscription_count() >= workers
+                           and info_pub.get_subscription_count() >= workers
                            and subscription.get_publisher_count() >= workers
                            and node.count_subscribers(topics.DEPTH_RELATIVE)
                            >= 1 + (workers if workers > 1 else 0), 120.0)
         assert ready, describe()
         for k, image in enumerate(images):
             stamp = START_NS + k * PERIOD_NS
-            info = camera.to_camera_info(stamp)
-            info_pub.publish(info)
-            image_pub.publish(array_to_image(image, "32FC1", stamp, info.header.frame_id))
-            # slower than the solves, so that no frame waits in a queue
-            spin_until(lambda k=k: len(received) > k, 5.0)
+            for attempt in range(3):
+                if attempt:
+                    resent.add(stamp)  # best effort lost it (a loaded machine)
+                info = camera.to_camera_info(stamp)
+                info_pub.publish(info)
+                image_pub.publish(array_to_image(image, "32FC1", stamp, info.header.frame_id))
+                # one frame at a time, so that no frame waits in a queue
+                if spin_until(lambda stamp=stamp: stamp in received, 10.0):
+                    break
         assert spin_until(lambda: len(received) == FRAMES, 60.0), (
             f"{len(received)} of {FRAMES} frames\n{describe()}"
         )
@@ -140,7 +146,8 @@ def _run(
         node.destroy_publisher(info_pub)
         for log in logs:
             log.close()
-    assert all(len(depths) == 1 for depths in received.values()), "a frame solved twice"
+    twice = {stamp for stamp, depths in received.items() if len(depths) > 1}
+    assert twice <= resent, "a frame solved by two workers"
     return {stamp: depths[0] for stamp, depths in received.items()}
 
 
