@@ -287,14 +287,18 @@ def _process_cpu_s(pid: int) -> float:
 RESEND_S = 2.0
 
 
-def run_workers(images: list[np.ndarray], camera: CameraModel, stamps: list[int], workers: int,
-                parameters: list[str]) -> tuple[dict[int, np.ndarray], list[float], float, int]:
+def run_workers(
+    images: list[np.ndarray], camera: CameraModel, stamps: list[int], workers: int,
+    parameters: list[str],
+) -> tuple[dict[int, np.ndarray], list[float], float, int, int]:
     """Solve ``images`` with ``workers`` endo-sfs processes; depth by stamp, CPU s each, wall s.
 
     Frames are published as the workers free up (one in flight per worker),
-    so the wall time is the throughput of the workers; a frame whose depth
-    has not come back after RESEND_S is sent again (counted: best effort
-    loses a large image now and then under load).
+    so the wall time is the throughput of the workers. Best effort loses a
+    large image now and then under load: a frame whose depth has not come
+    back after RESEND_S is sent again while it is the newest sent (counted),
+    and counted lost once a newer one went out (the nodes refuse an older
+    stamp).
     """
     import signal
     import sys
@@ -361,12 +365,20 @@ def run_workers(images: list[np.ndarray], camera: CameraModel, stamps: list[int]
                 if len(in_flight) <= limit:
                     return
                 executor.spin_once(timeout_sec=0.01)
-                for k, sent in list(in_flight.values()):
-                    if time.monotonic() - sent > RESEND_S:
+                newest = max(k for k, _ in in_flight.values())
+                for stamp, (k, sent) in list(in_flight.items()):
+                    if time.monotonic() - sent <= RESEND_S:
+                        continue
+                    if k == newest:
                         send(k)
                         resent += 1
+                    else:
+                        # a newer frame went out: the workers refuse an older stamp
+                        del in_flight[stamp]
+                        lost.append(stamp)
 
         resent = 0
+        lost: list[int] = []
         for k in range(len(images)):
             settle(workers - 1)
             send(k)
@@ -384,7 +396,7 @@ def run_workers(images: list[np.ndarray], camera: CameraModel, stamps: list[int]
         executor.shutdown()
         node.destroy_node()
         rclpy.shutdown(context=context)
-    return received, cpu, wall, resent
+    return received, cpu, wall, resent, len(lost)
 
 
 def bench_workers(bag: str, calibration: str, solve_scale: float, frames: int) -> None:
@@ -397,13 +409,13 @@ def bench_workers(bag: str, calibration: str, solve_scale: float, frames: int) -
                   "-p", f"solve_scale:={solve_scale}"]
     print(f"\nSFS workers, phantom {len(images)} frames, solve_scale {solve_scale:g}, one thread "
           "per worker (separate processes over DDS)")
-    print("| workers | frames out | frames sent again | CPU s per worker | CPU ms per frame (all "
-          "workers) | wall s | frames/s | depth vs one worker: max / median relative "
-          "difference |")
-    print("|---|---|---|---|---|---|---|---|")
+    print("| workers | frames out | frames sent again | frames lost | CPU s per worker | "
+          "CPU ms per frame (all workers) | wall s | frames/s | depth vs one worker: max / "
+          "median relative difference |")
+    print("|---|---|---|---|---|---|---|---|---|")
     reference: dict[int, np.ndarray] = {}
     for workers in (1, 2):
-        depths, cpu, wall, resent = run_workers(images, camera, stamps, workers, parameters)
+        depths, cpu, wall, resent, lost = run_workers(images, camera, stamps, workers, parameters)
         if workers == 1:
             reference = depths
         differences = []
@@ -412,7 +424,8 @@ def bench_workers(bag: str, calibration: str, solve_scale: float, frames: int) -
                 both = np.isfinite(depth) & np.isfinite(reference[stamp])
                 differences.append(np.abs(depth[both] / reference[stamp][both] - 1.0))
         spread = np.concatenate(differences) if differences else np.array([np.nan])
-        print(f"| {workers} | {len(depths)} | {resent} | {' / '.join(f'{c:.1f}' for c in cpu)} | "
+        cpu_each = " / ".join(f"{c:.1f}" for c in cpu)
+        print(f"| {workers} | {len(depths)} | {resent} | {lost} | {cpu_each} | "
               f"{1e3 * sum(cpu) / max(1, len(depths)):.1f} | {wall:.1f} | "
               f"{len(depths) / wall:.1f} | {spread.max():.1e} / {np.median(spread):.1e} |",
               flush=True)
