@@ -4,11 +4,16 @@ Used by ``endo-demo`` and ``endo-launch``. :class:`ProcessGroup` is a
 context manager. Leaving it, by any path (success, an exception, Ctrl-C),
 sends SIGINT to every child that still runs, waits for them together, and
 kills (SIGKILL) those that have not exited after the grace period, so no
-node outlives the run.
+node outlives the run. On Linux every child also gets ``PR_SET_PDEATHSIG``
+(SIGKILL), so that a ``kill -9`` of the parent, which runs no cleanup,
+still takes its children with it instead of leaving them to PID 1.
 """
 
 from __future__ import annotations
 
+import ctypes
+import ctypes.util
+import os
 import shutil
 import signal
 import subprocess
@@ -22,6 +27,29 @@ from typing import IO
 
 #: ``echo(name, line)``: called with each line a child writes (newline stripped).
 Echo = Callable[[str, str], None]
+
+#: prctl(2) option: the signal a child gets when the thread that forked it dies.
+PR_SET_PDEATHSIG = 1
+
+
+def _die_with_parent() -> Callable[[], None] | None:
+    """A ``preexec_fn`` giving the child SIGKILL when its parent dies (Linux; None elsewhere).
+
+    libc is loaded here, in the parent, so the child only makes the call.
+    The parent may die between the fork and the prctl: the child then
+    already has another parent and exits at once.
+    """
+    if not sys.platform.startswith("linux"):
+        return None
+    libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6", use_errno=True)
+    parent = os.getpid()
+
+    def preexec() -> None:
+        libc.prctl(PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0)
+        if os.getppid() != parent:
+            os._exit(1)
+
+    return preexec
 
 
 class ProcessGroup:
@@ -76,16 +104,19 @@ class ProcessGroup:
         log = self.log_path(name).open(mode)
         log.write(("$ " + " ".join(argv) + "\n").encode())
         log.flush()
+        # The death signal follows the forking *thread*: children are started
+        # from the thread that owns the group (the launcher's main thread).
+        preexec = _die_with_parent()
         if echo is None:
             with log:
                 process = subprocess.Popen(
                     argv, env=self.env, stdout=log, stderr=subprocess.STDOUT,
-                    start_new_session=new_session,
+                    start_new_session=new_session, preexec_fn=preexec,
                 )  # fmt: skip
         else:
             process = subprocess.Popen(
                 argv, env=self.env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-                start_new_session=new_session,
+                start_new_session=new_session, preexec_fn=preexec,
             )  # fmt: skip
             thread = threading.Thread(
                 target=_copy_lines, args=(process, log, name, echo), daemon=True,
