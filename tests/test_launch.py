@@ -240,6 +240,11 @@ def test_replay_with_record_runs_the_whole_graph_and_records_every_output(small_
         poses = reader.topics[topics.TRACKER_POSE].message_count
     counts = count_messages(out)
     assert counts[topics.CAMERA_INFO] == frames, counts  # played into the recorder
+    # the launcher's own count of each output at the end (issue 13: exit 1 when one is empty)
+    assert f"outputs ({frames} frames played):" in launcher.output
+    assert f"endo-sfs {topics.DEPTH_RELATIVE}: {counts[topics.DEPTH_RELATIVE]} from" in (
+        launcher.output
+    )
     # One output per input of each node. A node starved of CPU on a loaded
     # machine loses an input frame now and then on its best-effort (sensor
     # data) subscription and says so ("lost in transport"); that is the node's

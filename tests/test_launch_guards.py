@@ -24,7 +24,20 @@ from pathlib import Path
 
 import pytest
 
+from endo_bringup.graph import PLAYED_TOPICS
+from endo_bringup.launcher import build_parser, output_counts, plan_launch
+from endo_io import topics
+from endo_io.bag import BagReader, BagWriter
+
+ROOT = Path(__file__).resolve().parents[1]
+BAG = ROOT / "bags" / "phantom_colon.mcap"
 LAUNCH = str(Path(sys.executable).parent / "endo-launch")
+REPLAY = str(Path(sys.executable).parent / "endo-replay")
+RECORD = str(Path(sys.executable).parent / "endo-record")
+
+
+def _launch(*argv: str, timeout_s: float = 60.0) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([LAUNCH, *argv], capture_output=True, text=True, timeout=timeout_s)
 
 
 def _children(pid: int) -> list[int]:
@@ -52,6 +65,69 @@ def _wait_gone(pids: list[int], timeout_s: float) -> list[int]:
     while (alive := [p for p in pids if _alive(p)]) and time.monotonic() < deadline:
         time.sleep(0.1)
     return alive
+
+
+# ---------------------------------------------------------------- bad arguments
+
+
+@pytest.mark.parametrize(
+    ("argv", "says"),
+    [
+        (["replay", str(BAG), "--rate", "0"], "--rate must be > 0, got 0.0"),
+        (["replay", str(BAG), "--rate", "nan"], "--rate must be > 0, got nan"),
+        (["sim", "nosuchscene"], "invalid choice: 'nosuchscene'"),
+        (["sim", "--sim-arg=--fps=abc"], "--fps"),
+    ],
+)
+def test_bad_source_arguments_are_refused_before_anything_starts(
+    argv: list[str], says: str, tmp_path: Path
+) -> None:
+    for extra in (["--dry-run"], ["--log-dir", str(tmp_path / "logs")]):
+        done = _launch(*argv, *extra)
+        assert done.returncode == 2, (done.stdout, done.stderr)
+        assert done.stdout == ""  # no command line printed, nothing started
+        lines = done.stderr.strip().splitlines()
+        assert len(lines) == 1 and says in lines[0], done.stderr
+        assert not (tmp_path / "logs").exists()
+
+
+# ---------------------------------------------------------------- the source waits for nodes
+
+
+def test_the_replay_waits_for_the_nodes_inputs_only(tmp_path: Path) -> None:
+    plan = plan_launch(build_parser().parse_args(["replay", str(BAG), "--namespace", "rig"]))
+    assert plan.source is not None
+    argv = list(plan.source.arguments)
+    waited = argv[argv.index("--wait-topics") + 1 : argv.index("--wait-timeout")]
+    # bag topics (the source remaps them itself), every one a node reads; no truth, no /clock
+    assert waited == [topics.IMAGE_RAW, topics.CAMERA_INFO, topics.TRACKER_POSE]
+    read = {t for node in plan.nodes for t in node.subscribes}
+    assert {"/rig" + t for t in waited} <= read
+
+
+@pytest.mark.ros
+def test_endo_replay_plays_without_waiting_for_clock_subscribers(tmp_path: Path) -> None:
+    """One subscriber on the image topic, none on /clock: no wait, no warning."""
+    recording = tmp_path / "images.mcap"
+    recorder = subprocess.Popen([RECORD, "--topics", topics.IMAGE_RAW, "-o", str(recording)],
+                                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)  # fmt: skip
+    try:
+        done = subprocess.run(
+            [REPLAY, str(BAG), "--topics", topics.IMAGE_RAW, "--rate", "5", "--clock",
+             "--wait-for-subscribers", "1", "--wait-topics", topics.IMAGE_RAW,
+             "--wait-timeout", "60"],
+            capture_output=True, text=True, timeout=120,
+        )  # fmt: skip
+    finally:
+        recorder.send_signal(signal.SIGINT)
+        recorder.wait(30)
+    assert done.returncode == 0, done.stderr
+    assert "did not reach" not in done.stdout + done.stderr
+    with BagReader(recording) as reader:  # it played to the one subscriber that was there
+        assert reader.topics[topics.IMAGE_RAW].message_count > 0
+    refused = subprocess.run([REPLAY, str(BAG), "--topics", topics.IMAGE_RAW, "--wait-topics",
+                              topics.CAMERA_INFO], capture_output=True, text=True)  # fmt: skip
+    assert refused.returncode == 2 and "not among --topics" in refused.stderr
 
 
 # ---------------------------------------------------------------- children die with the parent
@@ -94,3 +170,72 @@ def test_kill_9_of_endo_launch_leaves_no_node_running(tmp_path: Path) -> None:
     finally:
         for pid in _children(launcher.pid):
             os.kill(pid, signal.SIGKILL)
+
+
+# ---------------------------------------------------------------- one graph per domain
+
+
+@pytest.mark.ros
+def test_a_second_graph_in_the_same_domain_is_refused(tmp_path: Path) -> None:
+    other = subprocess.Popen(
+        [sys.executable, "-c", textwrap.dedent(f"""
+            import rclpy
+            from sensor_msgs.msg import Image
+            rclpy.init()
+            node = rclpy.create_node("sfs")
+            node.create_publisher(Image, {topics.DEPTH_RELATIVE!r}, 1)
+            print("up", flush=True)
+            rclpy.spin(node)
+        """)],
+        stdout=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    try:
+        assert other.stdout is not None and other.stdout.readline().strip() == "up"
+        done = _launch("live", "--log-dir", str(tmp_path / "logs"))
+    finally:
+        other.kill()
+        other.wait()
+    assert done.returncode == 2, (done.stdout, done.stderr)
+    line = done.stderr.strip()
+    assert len(line.splitlines()) == 1, line
+    domain = os.environ.get("ROS_DOMAIN_ID", "0")
+    for part in (f"ROS domain {domain}", "/sfs (node)",
+                 f"{topics.DEPTH_RELATIVE} (published by /sfs)", "--allow-shared-domain"):
+        assert part in line, line
+    assert not (tmp_path / "logs").exists()  # nothing was started
+    # In another namespace the same node is no conflict: plan only, the probe itself
+    from endo_bringup.domain_probe import graph_conflicts
+
+    assert graph_conflicts(["/rig2" + topics.DEPTH_RELATIVE], ["/rig2/sfs"], discovery_s=1.0) == []
+
+
+# ---------------------------------------------------------------- outputs at the end
+
+
+def _recording(path: Path, counts: dict[str, int]) -> Path:
+    with BagWriter(path) as writer:
+        for topic, count in counts.items():
+            writer.add_topic(topic, "std_msgs/msg/Empty")
+            for i in range(count):
+                writer.write(topic, b"\x00\x01\x00\x00", 1_000 + i)
+    return path
+
+
+def test_the_end_of_a_replay_counts_each_output_and_names_the_missing_ones(tmp_path: Path) -> None:
+    plan = plan_launch(build_parser().parse_args(
+        ["replay", str(BAG), "--record", str(tmp_path / "x.mcap")]))  # fmt: skip
+    with BagReader(BAG) as reader:
+        played = {t: reader.topics[t].message_count for t in PLAYED_TOPICS if t in reader.topics}
+    frames, poses = played[topics.IMAGE_RAW], played[topics.TRACKER_POSE]
+    # the probe's run: 2 of the frames gave a relative depth, flow gave no metric output
+    recorded = {topics.IMAGE_CORRECTED: frames, topics.DEPTH_RELATIVE: 2, topics.SCALE: 2,
+                topics.DEPTH: 0, topics.POINTS: 0, topics.MAP: 0,
+                topics.CAMERA_POSE: poses, topics.MARKER_POSE: poses}  # fmt: skip
+    lines, missing = output_counts(plan, played, _recording(tmp_path / "bad.mcap", recorded))
+    assert f"endo-sfs {topics.DEPTH_RELATIVE}: 2 from {frames} in" in lines
+    assert f"endo-flow {topics.SCALE}: 2 from 2 in" in lines
+    assert missing == [f"endo-flow published nothing on {t} (2 messages in)"
+                       for t in (topics.DEPTH, topics.POINTS, topics.MAP)]  # fmt: skip
+    recorded.update({topics.DEPTH: 1, topics.POINTS: 1, topics.MAP: 1})
+    lines, missing = output_counts(plan, played, _recording(tmp_path / "good.mcap", recorded))
+    assert missing == [] and len(lines) == 8

@@ -37,19 +37,23 @@ import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import TextIO
+from typing import NoReturn, TextIO
 
 import yaml
 
 from endo_bringup.graph import (
     PLAYED_TOPICS,
+    PLAYER,
     GraphProcess,
+    GraphRun,
     graph_nodes,
     node_outputs,
+    stage_counts,
 )
 from endo_bringup.params_file import write as write_params
 from endo_bringup.process_group import ProcessGroup
 from endo_io.bag import BagReader
+from endo_io.bag.streams import count_messages
 from endo_io.cli import report_error
 from endo_io.dds_transport import configure_large_frames
 from endo_io.errors import Endo3dError
@@ -72,6 +76,10 @@ DRAIN_QUIET_S = 6.0
 
 class LaunchError(Endo3dError):
     """The graph could not be started as asked (a missing file, a bag without images)."""
+
+
+class DomainInUseError(LaunchError):
+    """Another endo3d graph already runs in this ROS domain: the two would mix their data."""
 
 
 class NodeFailedError(LaunchError):
@@ -155,6 +163,9 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--drain-timeout", type=float, default=30.0, metavar="SECONDS",
                    help="replay: after the bag ends, how long to wait for the outputs")
     g.add_argument("--quiet", action="store_true", help="do not echo the nodes' logs")
+    g.add_argument("--allow-shared-domain", action="store_true",
+                   help="start even when another endo3d graph already runs in this ROS domain "
+                   "(its data and ours then mix)")
     g.add_argument("--dry-run", action="store_true",
                    help="print the command lines, start nothing")
     parser = argparse.ArgumentParser(
@@ -234,18 +245,24 @@ def plan_launch(options: argparse.Namespace) -> LaunchPlan:
             played = [t for t in PLAYED_TOPICS if t in reader.topics]
         if IMAGE_RAW not in played:
             raise LaunchError(f"{options.bag} has no {IMAGE_RAW}: nothing to play into the graph")
+        # Wait only for the topics a node reads (not /clock, not the truth: nobody may read them).
+        read = {t for node in nodes for t in node.subscribes}
+        waited = [t for t in played if rules.get(t, t) in read]
         arguments = [str(options.bag), "--topics", *played, "--rate", repr(options.rate),
-                     "--clock", "--wait-for-subscribers", "1", "--wait-timeout", "30"]  # fmt: skip
+                     "--clock", "--wait-for-subscribers", "1", "--wait-topics", *waited,
+                     "--wait-timeout", "30"]  # fmt: skip
         if options.loop:
             arguments.append("--loop")
         for topic in played:
             if rules.get(topic, topic) != topic:
                 arguments += ["--remap", f"{topic}:={rules[topic]}"]
+        _check_replay_arguments(arguments)
         source = GraphProcess(SOURCE, "endo-replay", arguments=tuple(arguments),
                               publishes=tuple(rules.get(t, t) for t in played))  # fmt: skip
         recorded_extra = [rules.get(t, t) for t in (TRUE_DEPTH, TRUE_CAMERA_POSE) if t in played]
         ends = not options.loop
     elif options.preset == "sim":
+        _check_sim_arguments(["live", options.scene, *options.sim_arg])
         inputs = (IMAGE_RAW, CAMERA_INFO, TRACKER_POSE)
         sim_rules = {t: rules[t] for t in inputs if t in rules}
         source = GraphProcess(SOURCE, "endo-sim", arguments=("live", options.scene,
@@ -258,6 +275,40 @@ def plan_launch(options: argparse.Namespace) -> LaunchPlan:
             "--topics", *recorded, "-o", str(options.record), "--flush-period", "0.5"),
             subscribes=tuple(recorded))  # fmt: skip
     return LaunchPlan(nodes, source, recorder, ends, _missing_calibrations(nodes))
+
+
+def _check_replay_arguments(arguments: Sequence[str]) -> None:
+    """Check the source's arguments with endo-replay's own parser and checks, before any start."""
+    from endo_io.replay_node import build_parser as replay_parser
+    from endo_io.replay_node import check_options
+
+    try:
+        check_options(_parse_quietly(replay_parser(), arguments, "endo-replay"))
+    except ValueError as error:
+        raise LaunchError(f"endo-replay: {error}") from None
+
+
+def _check_sim_arguments(arguments: Sequence[str]) -> None:
+    """Parse ``endo-sim live``'s arguments with its own parser, before any start."""
+    from endo_sim.cli import build_parser as sim_parser
+
+    _parse_quietly(sim_parser(), arguments, "endo-sim")
+
+
+def _parse_quietly(
+    parser: argparse.ArgumentParser, arguments: Sequence[str], program: str
+) -> argparse.Namespace:
+    """``parser.parse_args``, its error as a :class:`LaunchError` (one line, no usage)."""
+
+    def fail(message: str) -> NoReturn:
+        raise LaunchError(f"{program}: {message}")
+
+    parser.error = fail  # type: ignore[method-assign]
+    for action in parser._actions:  # the subcommands' parsers too
+        for child in getattr(action, "choices", None) or ():
+            if isinstance(action.choices, dict):
+                action.choices[child].error = fail
+    return parser.parse_args(list(arguments))
 
 
 def _missing_calibrations(nodes: Sequence[GraphProcess]) -> list[str]:
@@ -439,6 +490,58 @@ def _child_environment(log_dir: Path) -> dict[str, str]:
     return env
 
 
+def _refuse_a_shared_domain(plan: LaunchPlan) -> None:
+    """Raise when this ROS domain already has our nodes or publishers on our topics.
+
+    Raises:
+        DomainInUseError: one line naming what was found and the domain.
+    """
+    from endo_bringup.domain_probe import graph_conflicts
+
+    ours = [p for p in (*plan.nodes, plan.source) if p is not None]
+    topics = sorted({t for p in ours for t in p.publishes})
+    names = []
+    for node in plan.nodes:
+        namespace = node.remaps.get("__ns", "")
+        names.append(f"{namespace}/{node.node_name}")
+    found = graph_conflicts(topics, names)
+    if found:
+        domain = os.environ.get("ROS_DOMAIN_ID", "0")
+        raise DomainInUseError(
+            f"ROS domain {domain} already has an endo3d graph: {', '.join(found)}; stop it, "
+            "choose another ROS_DOMAIN_ID or --namespace, or pass --allow-shared-domain"
+        )
+
+
+def output_counts(plan: LaunchPlan, played: dict[str, int], recording: Path
+                  ) -> tuple[list[str], list[str]]:  # fmt: skip
+    """Per node output, messages out against what came in, from the recording.
+
+    The counting is the demo's (:func:`endo_bringup.graph.stage_counts`).
+
+    Args:
+        plan: a replay's plan with a recorder.
+        played: bag topic -> messages played, in the order of the source's ``--topics``.
+        recording: the finalised recording.
+
+    Returns:
+        (one line per output, one line per node output that got nothing at all
+        although its input got messages).
+    """
+    assert plan.source is not None and plan.recorder is not None
+    run = GraphRun(recording, played, {}, Path(), 0.0,
+                   [plan.recorder, *plan.nodes, replace(plan.source, name=PLAYER)])  # fmt: skip
+    lines, missing = [], []
+    for row in stage_counts(run, count_messages(recording)):
+        if row.stage == PLAYER:
+            continue
+        lines.append(f"{row.stage} {row.topic}: {row.count_out} from {row.count_in} in")
+        if row.count_out == 0 and row.count_in > 0:
+            missing.append(f"{row.stage} published nothing on {row.topic} "
+                           f"({row.count_in} messages in)")  # fmt: skip
+    return lines, missing
+
+
 def run(options: argparse.Namespace) -> int:
     """Start the plan of ``options``, watch it, stop it; the exit code."""
     plan = plan_launch(options)
@@ -448,6 +551,8 @@ def run(options: argparse.Namespace) -> int:
         return 0
     if options.record is not None and options.record.exists():
         raise LaunchError(f"{options.record} exists; endo-record does not overwrite")
+    if not options.allow_shared_domain:
+        _refuse_a_shared_domain(plan)
     if options.log_dir is None:
         import tempfile
 
@@ -490,10 +595,31 @@ def run(options: argparse.Namespace) -> int:
                     code = code or 1
                 else:
                     echo.say(f"recorded {options.record}")
+                    if plan.ends:
+                        code = _report_outputs(plan, options, echo) or code
     finally:
         for sig, handler in previous.items():
             signal.signal(sig, handler)
     return code
+
+
+def _report_outputs(plan: LaunchPlan, options: argparse.Namespace, echo: _Echo) -> int:
+    """Print each node output's count against frames played; 1 when one output got nothing."""
+    assert plan.source is not None
+    arguments = plan.source.arguments
+    bag_topics = arguments[arguments.index("--topics") + 1:arguments.index("--rate")]
+    with BagReader(options.bag) as reader:
+        played = {t: reader.topics[t].message_count for t in bag_topics}
+    lines, missing = output_counts(plan, played, options.record)
+    echo.say(f"outputs ({played[IMAGE_RAW]} frames played):")
+    for line in lines:
+        echo.say("  " + line)
+    for line in missing:
+        echo.say("warning: " + line)
+    if missing:
+        echo.say("the graph gave no output on some topics: exit 1 (see the logs)")
+        return 1
+    return 0
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -120,6 +120,14 @@ def build_parser() -> argparse.ArgumentParser:
         help="before playing, wait until every publisher has matched N subscriptions",
     )
     parser.add_argument(
+        "--wait-topics",
+        nargs="+",
+        default=None,
+        metavar="TOPIC",
+        help="wait only for these bag topics' subscribers (default: every played topic "
+        "and /clock)",
+    )
+    parser.add_argument(
         "--wait-timeout",
         type=float,
         default=10.0,
@@ -311,8 +319,9 @@ class ReplayNode(Node):
 
     def _wait_for_subscribers(self) -> None:
         wanted = self._options.wait_for_subscribers
-        publishers = list(self._bag_publishers.values())
-        if self._clock_publisher is not None:
+        chosen = self._options.wait_topics
+        publishers = [p for t, p in self._bag_publishers.items() if chosen is None or t in chosen]
+        if self._clock_publisher is not None and chosen is None:
             publishers.append(self._clock_publisher)
         if wanted <= 0 or not publishers:
             return
@@ -403,7 +412,12 @@ class ReplayNode(Node):
             print(f"endo-replay: error: {report.error}", file=sys.stderr, flush=True)
 
 
-def _check_options(options: argparse.Namespace) -> None:
+def check_options(options: argparse.Namespace) -> None:
+    """Refuse options ``endo-replay`` cannot play with (``endo-launch`` checks them first).
+
+    Raises:
+        ValueError: one line naming the option and its value.
+    """
     if not options.rate > 0:
         raise ValueError(f"--rate must be > 0, got {options.rate}")
     if options.clock is not None and not (0 < options.clock < math.inf):
@@ -412,6 +426,9 @@ def _check_options(options: argparse.Namespace) -> None:
         raise ValueError(f"--start-offset must be >= 0, got {options.start_offset}")
     if options.wait_timeout < 0 or options.delay < 0 or options.ack_timeout < 0:
         raise ValueError("--wait-timeout, --delay and --ack-timeout must be >= 0")
+    unknown = set(options.wait_topics or ()) - set(options.topics or options.wait_topics or ())
+    if unknown:
+        raise ValueError(f"--wait-topics {' '.join(sorted(unknown))} not among --topics")
 
 
 @exit_on_error("endo-replay", errors=(Endo3dError, ValueError, OSError), label="error")
@@ -419,7 +436,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Run ``endo-replay``; returns the process exit status (2: bad options or bag)."""
     ours, ros_args = split_ros_args(list(sys.argv if argv is None else argv))
     options = build_parser().parse_args(ours)
-    _check_options(options)
+    check_options(options)
     with BagReader(options.bag) as reader:
         plan = make_plan(reader, options)
         nodes: list[ReplayNode] = []
