@@ -120,6 +120,9 @@ class GraphMonitor:
     def __init__(self, processes: Sequence[GraphProcess], env: Mapping[str, str]) -> None:
         self.processes = list(processes)
         self.domain_id = int(env.get("ROS_DOMAIN_ID", "0"))
+        # Put back on exit: a later graph (or test) in this process must not
+        # inherit a profile file that belonged to this run's temporary folder.
+        self._previous_environment = {name: os.environ.get(name) for name in PROFILE_VARIABLES}
         for name in PROFILE_VARIABLES:
             if name in env:
                 os.environ[name] = env[name]
@@ -189,6 +192,11 @@ class GraphMonitor:
         rclpy.try_shutdown(context=self._context)
         if self._thread is not None:
             self._thread.join(timeout=5.0)
+        for name, value in self._previous_environment.items():
+            if value is None:
+                os.environ.pop(name, None)
+            else:
+                os.environ[name] = value
 
     def snapshot(self) -> tuple[dict[str, dict[int, tuple[int, int]]], dict[str, dict[str, str]]]:
         """(topic -> stamp -> (source, reception) ns, status name -> key -> value), copied."""

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -159,3 +160,17 @@ def test_missing_truth_frames_are_a_shortfall_when_stages_skipped(tmp_path: Path
     report.figures = GraphFigures(3.0, 90, [stage], (1.0, 2.0), 3, [], 1.0)
     assert truth not in report.failures()  # the SFS node skipped them: slower than the play
     assert any(p.startswith(truth + " (the stages skipped") for p in report.shortfalls())
+
+
+def test_the_profile_variables_are_put_back_after_the_run(tmp_path: Path, monkeypatch) -> None:
+    from endo_bringup.dds_profile import PROFILE_VARIABLES
+
+    for name in PROFILE_VARIABLES:
+        monkeypatch.delenv(name, raising=False)
+    profile = tmp_path / "profile.xml"
+    env = {"ROS_DOMAIN_ID": os.environ.get("ROS_DOMAIN_ID", "42"),
+           PROFILE_VARIABLES[0]: str(profile)}
+    with GraphMonitor(_table(tmp_path), env):
+        assert os.environ[PROFILE_VARIABLES[0]] == str(profile)
+    # a later graph or test in this process must not inherit this run's file
+    assert not any(name in os.environ for name in PROFILE_VARIABLES)
