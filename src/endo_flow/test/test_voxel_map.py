@@ -28,17 +28,17 @@ def test_running_means_per_voxel():
 
 
 def test_capacity_is_bounded_and_old_voxels_go_first():
-    m = VoxelMap(voxel_size_m=1e-3, max_voxels=1000, evict_to=0.5)
+    m = VoxelMap(voxel_size_m=1e-3, max_voxels=1000)
     nbytes = m.nbytes
     for frame in range(10):  # 10 frames of 400 new voxels each
         x = (np.arange(400) + 400 * frame) * 1e-3 + 5e-4
         m.insert(np.stack([x, np.zeros(400), np.zeros(400)], axis=1))
-        assert len(m) <= 1000
+        assert len(m) == min(1000, 400 * (frame + 1))
     assert m.nbytes == nbytes
-    assert m.evicted > 0
+    assert m.evicted == 3000
     newest = m.points().points[:, 0]
     assert newest.max() > 3.9  # the last frame is there
-    assert newest.min() > 2.0  # the first frames were evicted
+    assert newest.min() > 3.0  # the first 3000 voxels were evicted, the last 1000 kept
     m.reset()
     assert len(m) == 0
 
