@@ -272,6 +272,11 @@ def ground_truth_document(sequence: Sequence, stem: str, counts: dict[str, int])
             "light_map_npy": f"{stem}.light_map.npy",
             "light_map_formula": "cos(theta)^(spot_exponent + vignetting_exponent)",
         },
+        "texture": {
+            "drift": float(config.texture.drift),
+            "mottle": float(config.texture.mottle),
+            "vessel_density_per_cm2": float(config.texture.vessel_density_per_cm2),
+        },
         "response": {
             **p.response.parameters(),
             "inverse_response_npy": f"{stem}.inverse_response.npy",

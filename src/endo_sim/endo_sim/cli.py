@@ -26,6 +26,7 @@ from endo_sim.graycard import DEFAULT_CARD_DISTANCE_M
 from endo_sim.photometry import Photometry
 from endo_sim.response import CameraResponse
 from endo_sim.sequences import SCENES, SimulationConfig, build_sequence
+from endo_sim.texture import TextureOptions
 from endo_sim.tracker import TRACKER_UNITS, TrackerModel
 
 if TYPE_CHECKING:
@@ -139,6 +140,26 @@ def _add_common(parser: argparse.ArgumentParser) -> None:
         default=defaults.read_noise_electrons,
         help=f"read noise, electrons RMS ({defaults.read_noise_electrons:g})",
     )
+    x = parser.add_argument_group("tissue texture (colon, abdomen)")
+    xdef = TextureOptions()
+    x.add_argument(
+        "--albedo-drift",
+        type=float,
+        default=xdef.drift,
+        help=f"amplitude of ln albedo's slow (4 mm) drift ({xdef.drift})",
+    )
+    x.add_argument(
+        "--albedo-mottle",
+        type=float,
+        default=xdef.mottle,
+        help=f"relative amplitude of the fine (0.3 mm) mottling ({xdef.mottle})",
+    )
+    x.add_argument(
+        "--vessel-density",
+        type=float,
+        default=xdef.vessel_density_per_cm2,
+        help=f"vessel trees per cm² ({xdef.vessel_density_per_cm2}; 0: none)",
+    )
     t = parser.add_argument_group("tracker")
     tdef = TrackerModel()
     t.add_argument(
@@ -235,6 +256,11 @@ def config_from_args(args: argparse.Namespace) -> SimulationConfig:
         depth_every=args.depth_every,
         photometry=photometry,
         tracker=tracker,
+        texture=TextureOptions(
+            drift=args.albedo_drift,
+            mottle=args.albedo_mottle,
+            vessel_density_per_cm2=args.vessel_density,
+        ),
         frames_per_level=args.frames_per_level,
         card_distance_m=args.card_distance,
         stations=args.stations,

@@ -31,7 +31,7 @@ from endo_sim.handeye import (
 from endo_sim.photometry import Photometry
 from endo_sim.render import Renderer
 from endo_sim.surface import Scene
-from endo_sim.texture import tissue_texture
+from endo_sim.texture import TextureOptions, tissue_texture
 from endo_sim.tracker import TrackerModel
 from endo_sim.trajectory import (
     NS_PER_S,
@@ -59,6 +59,7 @@ class SimulationConfig:
     and length (gray card: frames_per_level per card instead; hand–eye: set
     by the stations). channels: 1 (mono) or 3 (rgb8). depth_every: publish
     ground-truth depth with every n-th frame. seed: everything random.
+    texture: the tissue albedo's amplitudes (colon and abdomen).
     """
 
     scene: str
@@ -74,6 +75,7 @@ class SimulationConfig:
     depth_every: int = 1
     photometry: Photometry = field(default_factory=Photometry)
     tracker: TrackerModel = field(default_factory=TrackerModel)
+    texture: TextureOptions = field(default_factory=TextureOptions)
     frames_per_level: int = 10
     card_distance_m: float = DEFAULT_CARD_DISTANCE_M
     stations: int = 15
@@ -172,7 +174,10 @@ def build_sequence(config: SimulationConfig) -> Sequence:
         if config.scene == "colon":
             geometry = ColonGeometry()
             texture = tissue_texture(
-                seed, (0.2, 2.0 * math.pi * geometry.radius_m), channels=config.channels
+                seed,
+                (0.2, 2.0 * math.pi * geometry.radius_m),
+                channels=config.channels,
+                options=config.texture,
             )
             colon = ColonScene(geometry, texture, seed)
             scenes = [colon]
@@ -180,7 +185,9 @@ def build_sequence(config: SimulationConfig) -> Sequence:
             truth["colon_geometry"] = dict(vars(geometry))
         else:
             ageometry = AbdomenGeometry()
-            texture = tissue_texture(seed, (0.2, 0.2), channels=config.channels)
+            texture = tissue_texture(
+                seed, (0.2, 0.2), channels=config.channels, options=config.texture
+            )
             scenes = [AbdomenScene(ageometry, texture, seed)]
             trajectory = AbdomenTrajectory(ageometry.curvature_radius_m, seed, duration_ns)
             truth["abdomen_geometry"] = dict(vars(ageometry))

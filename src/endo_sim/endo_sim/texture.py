@@ -221,12 +221,36 @@ def _vessel_map(
     return np.clip(np.maximum(layers[0], layers[1]), 0.0, 1.0).astype(np.float64)
 
 
+@dataclass(frozen=True)
+class TextureOptions:
+    """How much the tissue albedo varies (:func:`tissue_texture`).
+
+    drift: amplitude of ln albedo's slow drift (unit noise at 4 mm scale;
+    0.08: perfusion and mucus over centimetres). mottle: relative amplitude
+    of the fine mottling (unit noise at 0.3 mm; 0.04). vessel_density_per_cm2:
+    vessel trees started per cm² (0.3; 0: no vessels). The defaults are the
+    mucosa every scene has unless told otherwise; a smaller drift and no
+    vessels give a uniform, low-texture tissue (a smooth peritoneum) whose
+    shading the shape-from-shading model of one albedo describes.
+    """
+
+    drift: float = 0.08
+    mottle: float = 0.04
+    vessel_density_per_cm2: float = 0.3
+
+    def __post_init__(self) -> None:
+        if not (0.0 <= self.drift <= 0.5 and 0.0 <= self.mottle <= 0.5):
+            raise SimulationParameterError("texture drift and mottle must be in [0, 0.5]")
+        if not 0.0 <= self.vessel_density_per_cm2 <= 10.0:
+            raise SimulationParameterError("vessel density must be in [0, 10] per cm²")
+
+
 def tissue_texture(
     seed: int,
     period_m: tuple[float, float],
     texel_m: float = 0.125e-3,
     channels: int = 1,
-    vessel_density_per_cm2: float = 0.3,
+    options: TextureOptions | None = None,
 ) -> Texture:
     """A mucosa-like periodic albedo texture, deterministic from ``seed``.
 
@@ -234,11 +258,14 @@ def tissue_texture(
     number of texels spans each period exactly (needed for seamless wrap).
     texel_m: approximate texel size (default 0.125 mm: finer than a pixel's
     footprint at 20 mm for a 320 px focal length). channels: 1 (grey) or 3 (RGB).
-    vessel_density_per_cm2: vessel trees started per cm².
+    options: the amplitudes (:class:`TextureOptions`; defaults if None).
 
-    Albedo = base · exp(0.08·n_low) · (1 + 0.04·n_fine) · (1 − depth_c·vessels),
+    Albedo = base · exp(drift·n_low) · (1 + mottle·n_fine) · (1 − depth_c·vessels),
     with n_low unit noise at 4 mm scale and n_fine at 0.3 mm, clipped to [0.02, 0.95].
+    The noise fields are drawn whatever the amplitudes, so a seed gives the same
+    pattern at every amplitude.
     """
+    opts = options or TextureOptions()
     if channels not in (1, 3):
         raise SimulationParameterError(f"texture channels must be 1 or 3, got {channels}")
     rows = max(8, round(period_m[0] / texel_m))
@@ -248,8 +275,9 @@ def tissue_texture(
     rng = np.random.default_rng([int(seed), 0x7E27])
     low = band_limited_noise(rng, shape, 4e-3 / texel)
     fine = band_limited_noise(rng, shape, 0.3e-3 / texel)
-    vessels = _vessel_map(rng, shape, texel, vessel_density_per_cm2)
-    modulation = np.exp(0.08 * low) * (1.0 + 0.04 * fine)
+    vessels = (_vessel_map(rng, shape, texel, opts.vessel_density_per_cm2)
+               if opts.vessel_density_per_cm2 > 0.0 else np.zeros(shape))
+    modulation = np.exp(opts.drift * low) * (1.0 + opts.mottle * fine)
     if channels == 1:
         base: tuple[float, ...] = (MUCOSA_GREY,)
         depth: tuple[float, ...] = (VESSEL_DEPTH_GREY,)
