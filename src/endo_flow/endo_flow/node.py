@@ -78,7 +78,13 @@ from endo_io import topics
 from endo_io.camera import CameraModel
 from endo_io.clock_jump import ClockJumpDetector
 from endo_io.diagnostics import HEALTH_PARAMETERS, InputHealth
-from endo_io.errors import ClockJumpError, Endo3dError, PoseLookupError, PoseNotYetError
+from endo_io.errors import (
+    ClockJumpError,
+    Endo3dError,
+    PoseBeforeStreamError,
+    PoseLookupError,
+    PoseNotYetError,
+)
 from endo_io.image import array_to_image, image_to_array
 from endo_io.parameters import NodeParameters, ParameterSpec
 from endo_io.pose import pose_to_matrix
@@ -293,7 +299,8 @@ class FlowNode(Node):
             if missing is not None:
                 self.health.drop(type(missing).__name__,
                                  f"frame {head.stamp_ns} ns has no pose, processed without: "
-                                 f"{missing}")
+                                 f"{missing}",
+                                 expected=isinstance(missing, PoseBeforeStreamError))
             self._process(head, pose)
 
     # ------------------------------------------------------------------ processing

@@ -270,13 +270,22 @@ class InputHealth:
         """Report an extra key/value (e.g. a latency figure) with the next status."""
         self._extra[key] = str(value)
 
-    def drop(self, cause: str, message: str) -> None:
-        """Count one dropped message under ``cause`` and log ``message`` (throttled)."""
+    def drop(self, cause: str, message: str, *, expected: bool = False) -> None:
+        """Count one dropped message under ``cause`` and log ``message`` (throttled).
+
+        ``expected``: a condition of normal operation, not a fault (a frame
+        before the pose stream's first pose, at every start and loop): counted
+        and reported the same, logged as a warning (``<Cause> (N so far):
+        <message>``) instead of an error.
+        """
         self.dropped[cause] += 1
         self.last_error = f"{cause}: {message}"
         self._events["dropped"].add(time.monotonic(), self.last_error)
         total = self.dropped[cause]
-        self._log(cause, "error", f"dropped message ({total} so far): {self.last_error}")
+        if expected:
+            self._log(cause, "warning", f"{cause} ({total} so far): {message}")
+        else:
+            self._log(cause, "error", f"dropped message ({total} so far): {self.last_error}")
 
     def clock_jump(self, message: str) -> None:
         """Count one reset of the node's state because time jumped, and log ``message``."""

@@ -53,6 +53,15 @@ class PoseTooOldError(PoseLookupError):
     """The stamp is older than every pose still held: it will never be answered."""
 
 
+class PoseBeforeStreamError(PoseTooOldError):
+    """The stamp is before the first pose of the pose stream (which started or restarted later).
+
+    No pose will come for it. A normal start: the camera's first frame often
+    precedes the tracker's first pose, at every start and every loop of a
+    replay; a caller reports it as an expected condition, not as an error.
+    """
+
+
 class PoseNotYetError(PoseLookupError):
     """The stamp is newer than the newest pose: the answer may still arrive."""
 

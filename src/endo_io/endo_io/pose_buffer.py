@@ -9,12 +9,21 @@ never extrapolates and never hands out a stale pose: a query it cannot
 answer raises why, so the caller can wait (:class:`PoseNotYetError`) or
 give up (:class:`PoseTooOldError`, :class:`PoseGapError`).
 
-Stamps are checked by :class:`endo_io.clock_jump.ClockJumpDetector`. Time
-that goes backwards by more than ``jump_tolerance_ns`` (a bag that loops, a
-tracker that restarts), or a forward jump confirmed by the next pose, clears
-the buffer, keeps the new pose and raises :class:`ClockJumpError` so that
-the caller logs and counts the reset. One pose stamped far in the future is
-refused (:class:`FutureStampError`) and locks nothing out.
+Stamps are checked by :class:`endo_io.clock_jump.ClockJumpDetector`. A pose
+stream does not go backwards: a pose stamped before the newest one, by any
+amount (:data:`POSE_JUMP_TOLERANCE_NS`), means the stream restarted (a bag
+that loops, a tracker that restarts), and so does a forward jump confirmed by the
+next pose. Either clears the buffer, keeps the new pose and raises
+:class:`ClockJumpError` so that the caller logs and counts the reset (a
+warning, not a dropped pose). A pose at the newest stamp again is a duplicate
+(:class:`PoseOrderError`). One pose stamped far in the future is refused
+(:class:`FutureStampError`) and locks nothing out.
+
+A stamp older than every pose held is answered by why: before the stream's
+first pose (nothing held was evicted since it started or restarted) it is
+:class:`PoseBeforeStreamError`, the normal start of a stream (a camera's
+first frame before the tracker's first pose, at each loop of a replay);
+after evictions it is :class:`PoseTooOldError`.
 """
 
 from __future__ import annotations
@@ -27,6 +36,7 @@ from endo_io.clock_jump import DEFAULT_FORWARD_TOLERANCE_NS, ClockJumpDetector
 from endo_io.errors import (
     ClockJumpError,
     FutureStampError,
+    PoseBeforeStreamError,
     PoseError,
     PoseGapError,
     PoseNotYetError,
@@ -36,6 +46,14 @@ from endo_io.errors import (
 )
 from endo_io.pose import DEFAULT_TOLERANCE, check_rotation, interpolate_transforms
 from endo_io.stamp import NS_PER_S
+
+#: How far a pose may be stamped before its stream's newest without the stream
+#: counting as restarted: none. Tracker drivers stamp in order and DDS keeps one
+#: writer's order, so a step back, of any size, is a loop or a driver restart
+#: (a bridge respawned under load saw a loop as a 0.7 s step back); the
+#: stream's state is reset (and counted as a clock jump), never the sample
+#: dropped as an error.
+POSE_JUMP_TOLERANCE_NS = 0
 
 
 class PoseBuffer:
@@ -47,7 +65,8 @@ class PoseBuffer:
             bridged by interpolation, integer nanoseconds.
         jump_tolerance_ns: A pose stamped more than this before the newest one is taken for a
             clock jump (the buffer resets); one stamped less before it, or at the
-            same stamp, is out of order and refused.
+            same stamp, is out of order and refused. Default
+            :data:`POSE_JUMP_TOLERANCE_NS` (0: any step back resets).
         forward_tolerance_ns: A pose stamped more than this after the newest one (and not
             arriving after an equally long silence) is refused until the next pose
             confirms the jump.
@@ -59,7 +78,7 @@ class PoseBuffer:
         *,
         capacity: int = 600,
         max_gap_ns: int = NS_PER_S // 10,
-        jump_tolerance_ns: int = NS_PER_S,
+        jump_tolerance_ns: int = POSE_JUMP_TOLERANCE_NS,
         forward_tolerance_ns: int = DEFAULT_FORWARD_TOLERANCE_NS,
         rotation_tolerance: float = DEFAULT_TOLERANCE,
     ) -> None:
@@ -73,6 +92,8 @@ class PoseBuffer:
         self.rotation_tolerance = rotation_tolerance
         self._stamps: deque[int] = deque(maxlen=capacity)
         self._poses: deque[np.ndarray] = deque(maxlen=capacity)
+        #: a pose was evicted (capacity) since the stream started or restarted
+        self._evicted = False
         self._clock = ClockJumpDetector(
             back_tolerance_ns=self.jump_tolerance_ns, forward_tolerance_ns=forward_tolerance_ns
         )
@@ -94,6 +115,7 @@ class PoseBuffer:
         """Forget every pose (and the stream's timeline)."""
         self._stamps.clear()
         self._poses.clear()
+        self._evicted = False
         self._clock.reset()
 
     def insert(self, stamp_ns: int, T: np.ndarray, *, arrival_ns: int | None = None) -> None:
@@ -104,13 +126,13 @@ class PoseBuffer:
 
         Raises:
             PoseError: ``T`` is not a finite rigid transform (nothing stored).
-            PoseOrderError: ``stamp_ns`` is at or before the newest pose, within
-                the jump tolerance (nothing stored).
+            PoseOrderError: ``stamp_ns`` is the newest pose's again (a duplicate), or
+                before it within a non-zero jump tolerance (nothing stored).
             FutureStampError: ``stamp_ns`` is far after the newest pose and not
                 yet confirmed by a later one (nothing stored).
             ClockJumpError: time jumped (back by more than the jump tolerance,
-                or a confirmed forward jump); the buffer was cleared and now
-                holds this pose.
+                by default any step back, or a confirmed forward jump); the
+                buffer was cleared and now holds this pose.
         """
         mat = np.array(T, dtype=np.float64)
         if mat.shape != (4, 4) or not np.all(np.isfinite(mat)):
@@ -125,11 +147,13 @@ class PoseBuffer:
         if jump is not None:
             self._stamps.clear()
             self._poses.clear()
+            self._evicted = False
             self._append(stamp_ns, mat)
             raise ClockJumpError(f"{jump.describe('pose time')}; pose buffer reset")
         self._append(stamp_ns, mat)
 
     def _append(self, stamp_ns: int, mat: np.ndarray) -> None:
+        self._evicted |= len(self._stamps) == self.capacity
         self._stamps.append(int(stamp_ns))
         self._poses.append(mat)
 
@@ -144,7 +168,11 @@ class PoseBuffer:
         Raises:
             PoseNotYetError: the stamp is newer than the newest pose, or the
                 buffer is empty (the poses may not have arrived yet).
-            PoseTooOldError: the stamp is older than the oldest pose held.
+            PoseBeforeStreamError: the stamp is before the stream's first pose
+                (nothing was evicted since the stream started or restarted):
+                no pose will come for it.
+            PoseTooOldError: the stamp is older than the oldest pose held, and
+                older poses were evicted.
             PoseGapError: the poses around the stamp are too far apart.
         """
         if not self._stamps:
@@ -160,9 +188,15 @@ class PoseBuffer:
         if stamp_ns < oldest:
             if oldest - stamp_ns <= tolerance_ns:
                 return self._poses[0].copy()
+            if not self._evicted:
+                raise PoseBeforeStreamError(
+                    f"stamp {stamp_ns} ns is {(oldest - stamp_ns) / 1e6:.1f} ms before the "
+                    f"pose stream's first pose ({oldest} ns, where it started or restarted): "
+                    "no pose will come for it"
+                )
             raise PoseTooOldError(
                 f"stamp {stamp_ns} ns is {(oldest - stamp_ns) / 1e6:.1f} ms before the "
-                "oldest pose held"
+                f"oldest pose held (older ones were evicted: capacity {self.capacity})"
             )
         stamps = np.fromiter(self._stamps, dtype=np.int64, count=len(self._stamps))
         after = int(np.searchsorted(stamps, stamp_ns, side="right"))

@@ -9,6 +9,7 @@ from scipy.spatial.transform import Rotation, Slerp
 from endo_io.errors import (
     ClockJumpError,
     FutureStampError,
+    PoseBeforeStreamError,
     PoseError,
     PoseGapError,
     PoseNotYetError,
@@ -48,8 +49,9 @@ def test_refusals_are_typed():
     for s, T in zip(stamps, poses, strict=True):
         buffer.insert(s, T)
     assert len(buffer) == 3 and buffer.oldest_ns == stamps[2]  # bounded
-    with pytest.raises(PoseTooOldError):
+    with pytest.raises(PoseTooOldError, match="evicted") as refused:
         buffer.query(stamps[1])
+    assert not isinstance(refused.value, PoseBeforeStreamError)  # it was held once
     with pytest.raises(PoseNotYetError):
         buffer.query(stamps[4] + 1)
     np.testing.assert_array_equal(buffer.query(stamps[4] + 2 * MS, tolerance_ns=2 * MS), poses[4])
@@ -66,11 +68,39 @@ def test_bad_poses_and_order():
     bad[0, 0] = np.nan
     with pytest.raises(PoseError):
         buffer.insert(stamps[2], bad)
-    with pytest.raises(PoseOrderError):
-        buffer.insert(stamps[0], poses[0])
-    with pytest.raises(PoseOrderError):
+    with pytest.raises(PoseOrderError):  # a duplicate
         buffer.insert(stamps[1], poses[1])
     assert len(buffer) == 1
+    # 10 ms back: the stream restarted; the buffer holds the new timeline only
+    with pytest.raises(ClockJumpError, match=r"jumped back 0\.010 s"):
+        buffer.insert(stamps[0], poses[0])
+    assert len(buffer) == 1 and buffer.newest_ns == stamps[0]
+
+
+def test_a_stamp_before_the_streams_first_pose_is_told_apart_from_an_evicted_one():
+    # issue 16: the first image of a recording (and of every loop) is 4 ms before the
+    # first pose; that is the stream's start (PoseBeforeStreamError), not a pose lost
+    buffer = PoseBuffer(capacity=4, max_gap_ns=20 * MS)
+    stamps, poses = _stream(3)
+    for s, T in zip(stamps, poses, strict=True):
+        buffer.insert(s, T)
+    with pytest.raises(PoseBeforeStreamError, match=r"4\.0 ms before the pose stream's first"):
+        buffer.query(stamps[0] - 4 * MS)
+    # a loop: the same stamps again, the buffer restarts on them
+    with pytest.raises(ClockJumpError):
+        buffer.insert(stamps[0], poses[0])
+    with pytest.raises(PoseBeforeStreamError):
+        buffer.query(stamps[0] - 4 * MS)
+    for s, T in zip(stamps[1:], poses[1:], strict=True):
+        buffer.insert(s, T)
+    np.testing.assert_allclose(buffer.query(stamps[1] + 5 * MS)[:3, 3],
+                               0.5 * (poses[1][:3, 3] + poses[2][:3, 3]), atol=1e-15)
+    # once poses are evicted, a stamp before the oldest held is too old
+    buffer.insert(stamps[2] + 10 * MS, poses[2])
+    buffer.insert(stamps[2] + 20 * MS, poses[2])
+    with pytest.raises(PoseTooOldError) as refused:
+        buffer.query(stamps[0] - 4 * MS)
+    assert not isinstance(refused.value, PoseBeforeStreamError)
 
 
 def test_backward_jump_resets_and_future_sample_does_not_lock_out():

@@ -49,9 +49,9 @@ def test_every_frame_is_processed_and_the_truth_copied(full_run: tuple[ProcessRe
     report, output = full_run
     assert report.frames_in == report.frames_shaded == 90
     assert not report.dropped and report.damage is None and not report.interrupted
-    # The first image (t = 0) is older than the first tracker sample (4 ms): no pose.
+    # The first image (t = 0) is before the first tracker sample (4 ms): no pose.
     assert report.frames_with_pose == 89
-    assert dict(report.without_pose) == {"PoseTooOldError": 1}
+    assert dict(report.without_pose) == {"PoseBeforeStreamError": 1}
     with BagReader(output) as reader:
         counts = {name: info.message_count for name, info in reader.topics.items()}
     assert counts[topics.IMAGE_CORRECTED] == counts[topics.DEPTH_RELATIVE] == 90

@@ -35,7 +35,11 @@ class ToolNotVisibleError(TrackerSampleError):
 
 
 class TimeWentBackwardsError(TrackerSampleError):
-    """A sample's stamp is not after the previous accepted stamp of its tool."""
+    """A sample's stamp is not after the previous accepted stamp of its tool.
+
+    With the default gate only a repeat of the newest stamp: a step back is
+    a restart of the tool's stream (a clock jump), not a rejected sample.
+    """
 
 
 class SpeedLimitError(TrackerSampleError):

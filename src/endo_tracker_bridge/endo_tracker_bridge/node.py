@@ -26,11 +26,11 @@ poses. Every parameter can be changed at run time and the change takes
 effect (a new source, hand–eye file, transform, limits or frame); a value
 that cannot work is refused with the reason and changes nothing.
 
-Rejected samples (NaN, non-unit quaternion, tool missing, time going
-backwards, speed jump, bad message) are dropped and counted by cause on
+Rejected samples (NaN, non-unit quaternion, tool missing, a repeated
+stamp, speed jump, bad message) are dropped and counted by cause on
 ``/diagnostics``; the node keeps running, and network/serial sources
 reconnect by themselves. Time that jumps (a looped recording, a restarted
-driver: :mod:`endo_io.clock_jump`) resets the tool's history with one log
+driver: any step back, :mod:`endo_io.clock_jump`) resets the tool's history with one log
 line, counted as ``clock_jumps``, and the stream goes on; one sample stamped
 far in the future is dropped (``FutureStampError``) and locks nothing out.
 The status is WARN while the tracker input is silent (``input_stale_s``) or,

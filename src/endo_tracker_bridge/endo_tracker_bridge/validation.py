@@ -10,10 +10,12 @@ Two kinds of checks:
   hand can move an endoscope. A jump beyond that speed is a tracking glitch
   (a reflection taken for a marker sphere, a swapped tool), not motion.
   Time is checked per tool by :class:`endo_io.clock_jump.ClockJumpDetector`:
-  a jump back (a looped recording, a restarted driver) or a confirmed jump
+  a step back of any size (a looped recording, a restarted driver; see
+  :data:`endo_io.pose_buffer.POSE_JUMP_TOLERANCE_NS`) or a confirmed jump
   forward forgets the tool's history and the sample is accepted, reported
-  as a :class:`~endo_io.clock_jump.ClockJump`; one sample stamped far in the
-  future is dropped and locks nothing out.
+  as a :class:`~endo_io.clock_jump.ClockJump`; a repeat of the newest stamp
+  is dropped; one sample stamped far in the future is dropped and locks
+  nothing out.
 
 Each failure raises its own :mod:`endo_tracker_bridge.errors` class with a
 one-line message.
@@ -26,14 +28,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from endo_io.clock_jump import (
-    DEFAULT_BACK_TOLERANCE_NS,
-    DEFAULT_FORWARD_TOLERANCE_NS,
-    ClockJump,
-    ClockJumpDetector,
-)
+from endo_io.clock_jump import DEFAULT_FORWARD_TOLERANCE_NS, ClockJump, ClockJumpDetector
 from endo_io.errors import FutureStampError, PoseError, StampOrderError
 from endo_io.pose import DEFAULT_TOLERANCE, check_rotation, rotation_angle, unit_quaternion
+from endo_io.pose_buffer import POSE_JUMP_TOLERANCE_NS
 from endo_tracker_bridge.errors import (
     NonFinitePoseError,
     NonOrthonormalRotationError,
@@ -141,6 +139,8 @@ class SampleGate:
         limits: the speed limits.
         back_tolerance_ns: a stamp more than this before its tool's newest is
             a clock jump (history reset); less is out of order (dropped).
+            Default :data:`~endo_io.pose_buffer.POSE_JUMP_TOLERANCE_NS` (0: any
+            step back is a restart; only a repeat of the newest stamp is dropped).
         forward_tolerance_ns: a stamp more than this after its tool's newest,
             without an equally long silence on the arrival clock, is dropped
             until the next sample confirms the jump.
@@ -150,7 +150,7 @@ class SampleGate:
         self,
         limits: SpeedLimits | None = None,
         *,
-        back_tolerance_ns: int = DEFAULT_BACK_TOLERANCE_NS,
+        back_tolerance_ns: int = POSE_JUMP_TOLERANCE_NS,
         forward_tolerance_ns: int = DEFAULT_FORWARD_TOLERANCE_NS,
     ) -> None:
         self.limits = limits or SpeedLimits()
@@ -178,7 +178,8 @@ class SampleGate:
 
         Raises:
             ToolNotVisibleError, NonFinitePoseError, SpeedLimitError;
-            TimeWentBackwardsError: at or shortly before the tool's newest stamp;
+            TimeWentBackwardsError: at the tool's newest stamp (or before it within
+                a non-zero ``back_tolerance_ns``);
             FutureStampError: far after it, not yet confirmed by a later sample.
         """
         if sample.status is not ToolStatus.VISIBLE:

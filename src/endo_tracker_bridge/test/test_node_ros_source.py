@@ -28,6 +28,10 @@ X = rigid_transform([0.1, 2.9, -0.2], [0.004, 0.010, -0.230])
 WORLD_TRACKER = rigid_transform([0.3, 0.0, -1.2], [1.0, 2.0, 3.0])
 
 
+def _values(diagnostics: DiagnosticArray) -> dict[str, str]:
+    return {kv.key: kv.value for kv in diagnostics.status[0].values}
+
+
 def test_ros_source_in_millimetres(tmp_path):
     calibration = tmp_path / "handeye.yaml"
     HandEyeCalibration(T_marker_camera=X, time_offset_ns=OFFSET_NS).save(calibration)
@@ -56,6 +60,11 @@ def test_ros_source_in_millimetres(tmp_path):
             probe.create_subscription(PoseStamped, topic, bucket.append, 10)
         probe.create_subscription(DiagnosticArray, "/diagnostics", diagnostics.append, 10)
 
+        def spin_until(condition, seconds):
+            end = time.monotonic() + seconds
+            while not condition() and time.monotonic() < end:
+                executor.spin_once(timeout_sec=0.02)
+
         def spin(seconds):
             end = time.monotonic() + seconds
             while time.monotonic() < end:
@@ -70,16 +79,24 @@ def test_ros_source_in_millimetres(tmp_path):
             driver.publish(msg)
             k += 1
             spin(0.1)
-        # bad inputs: wrong frame, backwards stamp, NaN, non-unit quaternion
-        driver.publish(matrix_to_pose(marker_mm, stamp_ns + (k + 1) * 16_000_000, "camera"))
+        # bad inputs: wrong frame, NaN, non-unit quaternion, a repeated stamp; a
+        # stamp back to the start is a restart of the stream (a clock jump), not a drop
+        # (in two bursts: the bridge's sensor-data subscription keeps the last 5)
+        health = bridge._health
+        driver.publish(matrix_to_pose(marker_mm, stamp_ns + (k + 1) * 16_000_000, "polaris"))
+        driver.publish(matrix_to_pose(marker_mm, stamp_ns + (k + 2) * 16_000_000, "camera"))
         driver.publish(matrix_to_pose(marker_mm, stamp_ns, "polaris"))
-        nan_msg = matrix_to_pose(marker_mm, stamp_ns + (k + 2) * 16_000_000, "polaris")
+        spin_until(lambda: health.clock_jumps == 1, 10.0)
+        nan_msg = matrix_to_pose(marker_mm, stamp_ns + (k + 3) * 16_000_000, "polaris")
         nan_msg.pose.position.y = float("nan")
         driver.publish(nan_msg)
-        long_q = matrix_to_pose(marker_mm, stamp_ns + (k + 3) * 16_000_000, "polaris")
+        long_q = matrix_to_pose(marker_mm, stamp_ns + (k + 4) * 16_000_000, "polaris")
         long_q.pose.orientation.w *= 1.2
         driver.publish(long_q)
-        spin(1.5)
+        for _ in range(2):
+            driver.publish(matrix_to_pose(marker_mm, stamp_ns + (k + 5) * 16_000_000, "polaris"))
+        spin_until(lambda: sum(health.dropped.values()) >= 4, 10.0)
+        spin_until(lambda: diagnostics and _values(diagnostics[-1])["dropped"] == "4", 10.0)
         bridge.close()
     finally:
         rclpy.shutdown(context=context)
@@ -98,7 +115,7 @@ def test_ros_source_in_millimetres(tmp_path):
     T_tracker_marker[:3, 3] /= 1000.0
     np.testing.assert_allclose(T_camera, WORLD_TRACKER @ T_tracker_marker @ X, atol=1e-12)
 
-    values = {kv.key: kv.value for kv in diagnostics[-1].status[0].values}
+    values = _values(diagnostics[-1])
     for cause in (
         "UnexpectedFrameError",
         "TimeWentBackwardsError",
@@ -106,6 +123,7 @@ def test_ros_source_in_millimetres(tmp_path):
         "NonUnitQuaternionError",
     ):
         assert values[f"dropped.{cause}"] == "1", values
+    assert values["clock_jumps"] == "1" and values["dropped"] == "4", values
 
 
 def test_bad_configuration_is_refused_with_a_named_error(tmp_path):
@@ -136,3 +154,52 @@ def test_bad_configuration_is_refused_with_a_named_error(tmp_path):
                 )
     finally:
         rclpy.shutdown(context=context)
+
+
+def test_a_loop_seen_as_a_0_7_s_step_back_is_one_warning_and_no_pose_is_lost(capfd):
+    # issue 16: a bridge respawned under load saw a looped bag as a 0.7 s step back and
+    # logged [ERROR] TimeWentBackwardsError, dropping that pose, until the next confirmed it
+    context = rclpy.Context()
+    rclpy.init(context=context)
+    try:
+        bridge = TrackerBridgeNode(context=context, parameter_overrides=[
+            Parameter("ros_topic", value="/driver/pose")])
+        probe = rclpy.create_node("probe", context=context)
+        executor = SingleThreadedExecutor(context=context)
+        executor.add_node(bridge)
+        executor.add_node(probe)
+        driver = probe.create_publisher(PoseStamped, "/driver/pose", 10)
+        published: list[PoseStamped] = []
+        diagnostics: list[DiagnosticArray] = []
+        probe.create_subscription(PoseStamped, topics.CAMERA_POSE, published.append, 200)
+        probe.create_subscription(DiagnosticArray, "/diagnostics", diagnostics.append, 10)
+
+        def spin_until(condition, seconds=10.0):
+            end = time.monotonic() + seconds
+            while not condition() and time.monotonic() < end:
+                executor.spin_once(timeout_sec=0.02)
+            return condition()
+
+        assert spin_until(lambda: driver.get_subscription_count() > 0
+                          and probe.count_publishers(topics.CAMERA_POSE) > 0)
+        stamps = [1_800_000_000_000_000_000 + k * 16_666_667 for k in range(60)]
+        stamps += [stamps[-1] - 700_000_000 + k * 16_666_667 for k in range(30)]
+        health = bridge._health
+        for k, stamp in enumerate(stamps):
+            T = rigid_transform([0.0, 0.0, 0.0], [0.0005 * (k % 60), 0.0, 1.0])
+            driver.publish(matrix_to_pose(T, stamp, "tracker"))
+            assert spin_until(lambda k=k: health.processed + sum(health.dropped.values()) > k)
+        assert spin_until(lambda: len(published) == len(stamps))
+        assert spin_until(lambda: bool(diagnostics)
+                          and _values(diagnostics[-1])["processed"] == str(len(stamps)))
+        bridge.close()
+    finally:
+        rclpy.shutdown(context=context)
+    values = _values(diagnostics[-1])
+    assert values["clock_jumps"] == "1" and values["dropped"] == "0", values
+    assert [pose_to_matrix(msg)[1] for msg in published] == stamps  # every pose, in order
+    err = capfd.readouterr().err
+    assert "[ERROR]" not in err, err[-2000:]
+    jumps = [line for line in err.splitlines() if "clock jump" in line]
+    assert len(jumps) == 1 and jumps[0].startswith("[WARN]"), err[-2000:]
+    assert "time jumped back 0.700 s" in jumps[0] and "its history was reset" in jumps[0]

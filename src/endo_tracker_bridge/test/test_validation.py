@@ -74,17 +74,35 @@ def test_missing_or_disabled_tool_is_rejected():
     assert gate.check(_sample(1)).stamp_ns == 1 * MS
 
 
-def test_time_going_backwards_or_repeating_is_rejected():
+def test_a_repeated_stamp_is_rejected_and_a_step_back_restarts_the_tool():
     gate = SampleGate()
     gate.check(_sample(100))
-    with pytest.raises(TimeWentBackwardsError, match="16000000 ns before"):
-        gate.check(_sample(84))
-    with pytest.raises(TimeWentBackwardsError):
+    with pytest.raises(TimeWentBackwardsError, match="0 ns before or at"):
         gate.check(_sample(100))
     # the reference stays the last accepted sample; a later one passes
     assert gate.check(_sample(117)).stamp_ns == 117 * MS
+    # 16 ms back: a restart of the tool's stream, accepted with its history reset
+    result = gate.admit(_sample(101))
+    assert result.clock_jump is not None and result.clock_jump.delta_ns == -16 * MS
+    assert gate.check(_sample(118)).stamp_ns == 118 * MS
     # tools are independent
     assert gate.check(_sample(50, tool="pointer")).tool_id == "pointer"
+    # a gate given a back tolerance still drops a step back within it
+    tolerant = SampleGate(back_tolerance_ns=1_000 * MS)
+    tolerant.check(_sample(100))
+    with pytest.raises(TimeWentBackwardsError, match="16000000 ns before"):
+        tolerant.check(_sample(84))
+
+
+def test_a_loop_seen_as_a_short_step_back_is_a_restart_not_a_drop():
+    # issue 16: after a respawn under load the bridge saw a looped bag as a 0.7 s step
+    # back; under the old 1 s tolerance that sample was dropped (TimeWentBackwardsError,
+    # an [ERROR] line) until the next one confirmed the restart
+    before = [_sample(1_000 + 16 * k, x_m=0.0005 * k) for k in range(60)]  # up to 1.944 s
+    after = [_sample(1_244 + 16 * k, x_m=0.0005 * k) for k in range(60)]  # 0.700 s back
+    accepted, jumps, causes = _run(SampleGate(), [*before, *after])
+    assert not causes and len(accepted) == 120
+    assert [j.delta_ns for j in jumps] == [-700 * MS]
 
 
 def test_speed_jumps_are_rejected():
