@@ -11,6 +11,7 @@ marker pose, at the same stamp).
 
 from __future__ import annotations
 
+import itertools
 import os
 import signal
 import subprocess
@@ -145,11 +146,17 @@ def test_a_looped_replay_keeps_the_bridge_publishing_on_every_pass(tmp_path):
              "--wait-for-subscribers", "1", "--wait-timeout", "30", "--rate", "2"],
             env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
         )
-        # two passes of the 3 s bag: poses of the second pass come out
-        spin_until(lambda: int(status.get("clock_jumps", 0)) >= 1 and len(stamps) > 340, 30.0)
+        # the loop: the bridge counts the jump and poses of the second pass come out
+        def second_pass_out() -> bool:
+            return int(status.get("clock_jumps", 0)) >= 1 and any(
+                b < a for a, b in itertools.pairwise(stamps))
+
+        assert spin_until(second_pass_out, 60.0), (len(stamps), status)
         replay.send_signal(signal.SIGINT)
         replay.communicate(timeout=10)
-        spin_until(lambda: False, 1.5)
+        # the bridge's last word: a status after the input went quiet (every pose it
+        # received is counted by then)
+        assert spin_until(lambda: float(status.get("age_s./tracker/pose", "0")) > 0.5, 30.0)
         executor.shutdown()
         listener.destroy_node()
     finally:
@@ -166,7 +173,12 @@ def test_a_looped_replay_keeps_the_bridge_publishing_on_every_pass(tmp_path):
     passes = [k for k in range(1, len(stamps)) if stamps[k] < stamps[k - 1]]
     assert passes, (len(stamps), status)
     second = stamps[passes[0]:passes[1] if len(passes) > 1 else None]
-    # best effort at 120 Hz on a loaded machine: a few may be lost, none altered
-    assert len(second) >= 0.8 * len(expected) and set(second) <= set(expected)
-    assert int(status["clock_jumps"]) >= 1 and status.get("dropped.TimeWentBackwardsError") is None
+    assert second and set(second) <= set(expected)
+    # Every pose the bridge received, on every pass, was published: nothing dropped
+    # (the lock-out dropped every pose of the second pass as TimeWentBackwardsError).
+    # How many reach the bridge at 120 Hz through its best-effort, keep-last-5 input
+    # depends on the machine's load; what it does with them does not.
+    assert int(status["clock_jumps"]) >= 1 and status["dropped"] == "0", status
+    assert int(status["processed"]) == int(status["received"]), status
     assert log.count("clock jump") >= 1 and "Traceback" not in log, log
+    assert "[ERROR]" not in log, log

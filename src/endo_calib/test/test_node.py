@@ -6,6 +6,7 @@ calibration without a restart; a bad file is rejected and changes nothing; a
 node without a usable calibration publishes nothing and keeps running.
 """
 
+import gc
 import time
 
 import numpy as np
@@ -13,6 +14,7 @@ import pytest
 import rclpy
 import yaml
 from rclpy.executors import SingleThreadedExecutor
+from rclpy.node import Node
 from rclpy.parameter import Parameter
 from sensor_msgs.msg import Image
 
@@ -38,18 +40,33 @@ def _write_calibration(path, exponent, colour=False):
 
 @pytest.fixture
 def ros():
+    """(context, executor, nodes): every node in ``nodes`` is destroyed after the test.
+
+    A node left alive keeps its publishers and subscriptions on the DDS graph of
+    this process, where later tests would discover them.
+    """
     context = rclpy.Context()
     rclpy.init(context=context)
     executor = SingleThreadedExecutor(context=context)
-    yield context, executor
-    executor.shutdown()
-    rclpy.shutdown(context=context)
+    nodes: list[Node] = []
+    try:
+        yield context, executor, nodes
+    finally:
+        executor.shutdown()
+        for node in nodes:
+            node.destroy_node()
+        # a node whose constructor raised (pytest.raises) is only referenced from
+        # the exception's frames: collect it, which destroys its handle
+        gc.collect()
+        rclpy.shutdown(context=context)
 
 
 def _start(ros, parameters):
-    context, executor = ros
+    context, executor, nodes = ros
     node = PhotometricCorrectionNode(context=context, namespace=NS, parameter_overrides=parameters)
+    nodes.append(node)
     probe = rclpy.create_node("calib_probe", namespace=NS, context=context)
+    nodes.append(probe)
     received: list[Image] = []
     probe.create_subscription(Image, topics.IMAGE_CORRECTED, received.append, reliable_qos(10))
     publisher = probe.create_publisher(Image, topics.IMAGE_RAW, SENSOR_DATA_QOS)
@@ -81,7 +98,7 @@ def _exchange(executor, publisher, received, msg, expect=True, timeout=5.0):
 
 
 def test_corrects_frames_and_reloads_on_parameter_change(ros, tmp_path):
-    _, executor = ros
+    _, executor, _ = ros
     first = _write_calibration(tmp_path / "first.yaml", 2.2)
     second = _write_calibration(tmp_path / "second.yaml", 1.0)
     node, publisher, received = _start(ros, [Parameter("calibration_file", value=str(first))])
@@ -120,7 +137,7 @@ def test_corrects_frames_and_reloads_on_parameter_change(ros, tmp_path):
 
 
 def test_colour_channels_binning_and_rgb_output(ros, tmp_path):
-    _, executor = ros
+    _, executor, _ = ros
     path = _write_calibration(tmp_path / "rgb.yaml", 2.2, colour=True)
     node, publisher, received = _start(
         ros, [Parameter("calibration_file", value=str(path)), Parameter("channel", value="red")]
@@ -142,7 +159,7 @@ def test_colour_channels_binning_and_rgb_output(ros, tmp_path):
 
 
 def test_without_a_calibration_nothing_is_published(ros, tmp_path):
-    _, executor = ros
+    _, executor, _ = ros
     node, publisher, received = _start(
         ros, [Parameter("calibration_file", value=str(tmp_path / "missing.yaml"))]
     )
@@ -157,7 +174,7 @@ def test_without_a_calibration_nothing_is_published(ros, tmp_path):
 def test_a_colour_channel_of_a_mono_calibration_is_refused_at_start_and_at_run_time(
     ros, tmp_path
 ):
-    context, _ = ros
+    context, _, _ = ros
     mono = _write_calibration(tmp_path / "mono.yaml", 2.2)
     colour = _write_calibration(tmp_path / "rgb.yaml", 2.2, colour=True)
     with pytest.raises(ParameterValidationError, match="'red' needs a colour calibration"):
@@ -185,7 +202,7 @@ def test_a_colour_channel_of_a_mono_calibration_is_refused_at_start_and_at_run_t
 
 def test_a_zero_light_model_is_refused_and_nothing_is_counted_processed(ros, tmp_path):
     # issue 16: a zero light model was accepted: every output NaN, counted "processed"
-    _, executor = ros
+    _, executor, _ = ros
     calibration = synthetic_calibration(W, H, light_model_degree=4, light_source="model")
     path = calibration.save(tmp_path / "zero.yaml")
     document = yaml.safe_load(path.read_text())
@@ -201,7 +218,7 @@ def test_a_zero_light_model_is_refused_and_nothing_is_counted_processed(ros, tmp
 
 def test_extrapolated_values_are_counted_and_masked_on_request(ros, tmp_path):
     """Raw values above the observed range: NaN with mask_extrapolated; their share is reported."""
-    _, executor = ros
+    _, executor, _ = ros
     calibration = synthetic_calibration(W, H, gamma=2.2)
     calibration.response_ranges = {
         "mono": {"observed": [10, 200], "extrapolated_above": 200, "top_model": "test"}

@@ -150,6 +150,8 @@ class InputHealth:
             overridden by the ``status_window_s`` entry of ``settings``.
         settings: the node's parameters (:class:`endo_io.parameters.NodeParameters`
             or a dict); read at every status, so run-time changes apply.
+        clock: the monotonic clock (seconds) that times arrivals, events and
+            log throttling; ``time.monotonic`` (a test passes its own).
     """
 
     def __init__(
@@ -162,8 +164,10 @@ class InputHealth:
         stale_after_s: float = DEFAULT_STALE_S,
         window_s: float = DEFAULT_WINDOW_S,
         settings: Settings | None = None,
+        clock: Callable[[], float] = time.monotonic,
     ) -> None:
         self._node = node
+        self._clock = clock
         self._name = f"{node.get_name()}: {name}"
         self._log_throttle_s = log_throttle_s
         self._stale_after_s = stale_after_s
@@ -238,7 +242,7 @@ class InputHealth:
         self.watch(input_name)
         entry = self._inputs[input_name]
         entry.received += 1
-        entry.last_arrival = time.monotonic()
+        entry.last_arrival = self._clock()
         if entry.gaps is not None and stamp_ns is not None:
             missing = entry.gaps.add(stamp_ns)
             if missing:
@@ -252,7 +256,7 @@ class InputHealth:
         """Count ``count`` frames of ``input_name`` lost in transport (logged, throttled)."""
         total = self.lost_on(input_name)
         text = f"{count} frame(s) missing on {input_name} ({total} so far)"
-        self._events["lost"].add(time.monotonic(), text, count)
+        self._events["lost"].add(self._clock(), text, count)
         self._log(f"lost:{input_name}", "warning", f"lost in transport: {text}")
 
     def lost_on(self, input_name: str) -> int:
@@ -280,7 +284,7 @@ class InputHealth:
         """
         self.dropped[cause] += 1
         self.last_error = f"{cause}: {message}"
-        self._events["dropped"].add(time.monotonic(), self.last_error)
+        self._events["dropped"].add(self._clock(), self.last_error)
         total = self.dropped[cause]
         if expected:
             self._log(cause, "warning", f"{cause} ({total} so far): {message}")
@@ -290,7 +294,7 @@ class InputHealth:
     def clock_jump(self, message: str) -> None:
         """Count one reset of the node's state because time jumped, and log ``message``."""
         self.clock_jumps += 1
-        self._events["clock jump"].add(time.monotonic(), message)
+        self._events["clock jump"].add(self._clock(), message)
         self._log("clock jump", "warning", f"clock jump ({self.clock_jumps} so far): {message}")
 
     def set_problem(self, key: str, message: str | None) -> None:
@@ -305,7 +309,7 @@ class InputHealth:
         self._refreshers.append(refresh)
 
     def _log(self, key: str, level: str, text: str) -> None:
-        now = time.monotonic()
+        now = self._clock()
         if now - self._last_log.get(key, -1e18) >= self._log_throttle_s:
             self._last_log[key] = now
             # rclpy fixes a call site's severity: one call per severity
@@ -437,7 +441,7 @@ class InputHealth:
 
     def problems(self) -> list[str]:
         """The conditions that make the level WARN now (empty: OK)."""
-        now = time.monotonic()
+        now = self._clock()
         stale_s, window_s = self.stale_after_s, self.window_s
         found = []
         for name, entry in list(self._inputs.items()):
@@ -459,7 +463,7 @@ class InputHealth:
         problems = self.problems()
         level = DiagnosticStatus.WARN if problems else DiagnosticStatus.OK
         message = "; ".join(problems) if problems else "ok"
-        now = time.monotonic()
+        now = self._clock()
         inputs = sorted(self._inputs.items())
         dropped = sorted(self.dropped.items())
         pairs: list[tuple[str, object]] = [

@@ -40,8 +40,19 @@ def _values(health: InputHealth) -> dict[str, str]:
     return {kv.key: kv.value for kv in health.status().values}
 
 
+class FakeClock:
+    """A monotonic clock the test moves by hand: the windows below do not depend on the load."""
+
+    def __init__(self) -> None:
+        self.now = 1000.0
+
+    def __call__(self) -> float:
+        return self.now
+
+
 def test_an_input_never_seen_or_stale_warns_and_recovers(node):
-    health = InputHealth(node, "image input", settings={"input_stale_s": 0.2})
+    clock = FakeClock()
+    health = InputHealth(node, "image input", settings={"input_stale_s": 0.2}, clock=clock)
     health.watch("/camera")
     status = health.status()
     assert status.level == DiagnosticStatus.WARN
@@ -49,25 +60,49 @@ def test_an_input_never_seen_or_stale_warns_and_recovers(node):
     assert _values(health)["age_s./camera"] == "never"
     health.received("/camera")
     assert health.status().level == DiagnosticStatus.OK and health.status().message == "ok"
-    time.sleep(0.3)
+    clock.now += 0.19
+    assert health.status().level == DiagnosticStatus.OK  # not yet stale
+    clock.now += 0.02
     status = health.status()
-    assert status.level == DiagnosticStatus.WARN and "/camera stale" in status.message
+    assert status.level == DiagnosticStatus.WARN
+    assert status.message == "/camera stale: nothing for 0.2 s"
+    assert _values(health)["age_s./camera"] == "0.21"
     health.received("/camera")
     assert health.status().level == DiagnosticStatus.OK
 
 
 def test_one_drop_warns_for_the_window_then_the_level_returns_to_ok(node):
     # issue 16: "a status stays WARN forever after a single drop"
-    health = InputHealth(node, "input", window_s=0.3)
+    clock = FakeClock()
+    health = InputHealth(node, "input", window_s=0.3, clock=clock)
     health.guard(lambda: 1 / 0)()
     status = health.status()
     assert status.level == DiagnosticStatus.WARN
     assert "1 dropped in the last 0.3 s (last: ZeroDivisionError" in status.message
-    time.sleep(0.4)
+    clock.now += 0.29
+    assert health.status().level == DiagnosticStatus.WARN  # still within the window
+    clock.now += 0.02
     status = health.status()
     assert status.level == DiagnosticStatus.OK and status.message == "ok"
     # the counters stay: the history is not forgotten, only the level recovers
     assert _values(health)["dropped.ZeroDivisionError"] == "1"
+
+
+def test_an_expected_condition_is_counted_like_a_drop_and_logged_as_a_warning(node, capfd):
+    # issue 16: a frame before the pose stream's first pose (every loop) was an [ERROR]
+    health = InputHealth(node, "frames")
+    health.drop("PoseBeforeStreamError", "frame 7 ns has no pose, processed without: …",
+                expected=True)
+    health.drop("PoseGapError", "frame 9 ns has no pose, processed without: a gap")
+    values = _values(health)
+    assert values["dropped"] == "2" and values["dropped.PoseBeforeStreamError"] == "1"
+    assert health.status().level == DiagnosticStatus.WARN
+    err = capfd.readouterr().err
+    lines = [line for line in err.splitlines() if "so far" in line]
+    assert len(lines) == 2, err
+    assert lines[0].startswith("[WARN]") and lines[0].endswith(
+        "PoseBeforeStreamError (1 so far): frame 7 ns has no pose, processed without: …")
+    assert lines[1].startswith("[ERROR]") and "dropped message (1 so far): PoseGapError" in lines[1]
 
 
 def test_counters_separate_received_processed_and_dropped_by_cause(node):

@@ -7,6 +7,20 @@ collects ``depth_relative``. The two runs must give the same frames (every
 stamp once) and the same depth to the solver's tolerance: the warm start
 (one worker's own previous frame, or the other worker's newest) changes
 where a solve starts, not its fixed point.
+
+Discovery is not symmetric. The test's publishers can count a worker's
+image subscription before that subscription accepts their samples: the
+first frame published then never reaches the worker (measured: 2 of 8 and
+1 of 12 fresh ``endo-sfs`` starts at load 1–4, every later frame arrived).
+Likewise the listener's subscription can count a worker's depth publisher
+before that publisher has matched it; a depth published then is lost, and
+resending its frame cannot bring it back, because the worker refuses a
+stamp it has already solved: the likely way one run under load got 9 of 10
+frames (not reproduced here; first frames lost on the way in were). So
+before the sequence, warm-up frames (earlier stamps, the first image) go out
+one at a time until every worker has answered one in a row: both hops are
+then matched at both ends. A sequence frame that best effort still loses
+(it never reached the worker) is resent under its own stamp.
 """
 
 from __future__ import annotations
@@ -41,6 +55,8 @@ START_NS = 1_800_000_000 * NS_PER_S + 7 * PERIOD_NS // 10  # off the slot grid o
 #: The solver's stopping tolerance in ln r; two solves of a frame from
 #: different warm starts then agree to about 1e-5 relative depth.
 TOLERANCE = 1e-8
+#: Warm-up frames tried at most, one frame period apart before START_NS.
+WARM_UPS = 40
 
 
 @pytest.fixture(scope="module")
@@ -110,6 +126,11 @@ def _run(
             parts.append(log.read()[-1500:])
         return "\n---\n".join(parts)
 
+    def publish(stamp: int, image: np.ndarray) -> None:
+        info = camera.to_camera_info(stamp)
+        info_pub.publish(info)
+        image_pub.publish(array_to_image(image, "32FC1", stamp, info.header.frame_id))
+
     try:
         # each worker subscribes to the images and, with several, to the depth topic
         ready = spin_until(lambda: image_pub.get_subscription_count() >= workers
@@ -118,19 +139,30 @@ def _run(
                            and node.count_subscribers(topics.DEPTH_RELATIVE)
                            >= 1 + (workers if workers > 1 else 0), 120.0)
         assert ready, describe()
+        # Warm-up: consecutive stamps are dealt to consecutive workers, so a run of
+        # `workers` answered in a row means every worker's path is matched both ways.
+        answered_in_a_row = 0
+        for k in range(WARM_UPS):
+            stamp = START_NS - (WARM_UPS - k) * PERIOD_NS
+            publish(stamp, images[0])
+            answered = spin_until(lambda stamp=stamp: stamp in received, 5.0)
+            answered_in_a_row = answered_in_a_row + 1 if answered else 0
+            if answered_in_a_row == workers:
+                break
+        assert answered_in_a_row == workers, f"warm-up unanswered\n{describe()}"
+        spin_until(lambda: False, 0.5)  # a late warm-up depth would arrive by now
+        received.clear()
         for k, image in enumerate(images):
             stamp = START_NS + k * PERIOD_NS
             for attempt in range(3):
                 if attempt:
                     resent.add(stamp)  # best effort lost it (a loaded machine)
-                info = camera.to_camera_info(stamp)
-                info_pub.publish(info)
-                image_pub.publish(array_to_image(image, "32FC1", stamp, info.header.frame_id))
+                publish(stamp, image)
                 # one frame at a time, so that no frame waits in a queue
                 if spin_until(lambda stamp=stamp: stamp in received, 10.0):
                     break
         assert spin_until(lambda: len(received) == FRAMES, 60.0), (
-            f"{len(received)} of {FRAMES} frames\n{describe()}"
+            f"{len(received)} of {FRAMES} frames (resent: {sorted(resent)})\n{describe()}"
         )
         spin_until(lambda: False, 0.5)  # a duplicate would arrive by now
     finally:
