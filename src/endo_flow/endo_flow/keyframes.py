@@ -103,6 +103,8 @@ class KeyframeWindow:
         self.min_turn_rad = min_turn_rad
         self.max_age_ns = max_age_ns
         self._frames: deque[Keyframe] = deque(maxlen=capacity)
+        self._version = 0  # bumped on every change of the held keyframes
+        self._table: _ViewTable | None = None
 
     def __len__(self) -> int:
         return len(self._frames)
@@ -115,6 +117,7 @@ class KeyframeWindow:
     def clear(self) -> None:
         """Forget every keyframe."""
         self._frames.clear()
+        self._version += 1
 
     def wants(self, T_world_camera: np.ndarray) -> bool:
         """Whether a frame at this pose would become a keyframe."""
@@ -130,6 +133,7 @@ class KeyframeWindow:
         self._frames.append(keyframe.sorted_by_id())
         while self._frames and keyframe.stamp_ns - self._frames[0].stamp_ns > self.max_age_ns:
             self._frames.popleft()
+        self._version += 1
 
     def scale_relative(self, factor: float) -> None:
         """Multiply every held keyframe's depth_relative by ``factor``.
@@ -144,6 +148,15 @@ class KeyframeWindow:
                 frame.relative * factor) for frame in self._frames),
             maxlen=self.capacity,
         )
+        self._version += 1
+
+    def _held_table(self, held: int) -> _ViewTable:
+        """The first ``held`` keyframes' tracks as one table, built once per window change."""
+        table = self._table
+        if table is None or table.version != self._version or table.held != held:
+            table = _ViewTable.build(list(self._frames)[:held], self._version)
+            self._table = table
+        return table
 
     def views(
         self,
@@ -166,30 +179,92 @@ class KeyframeWindow:
             first. A keyframe that is also ``current`` is not counted twice
             (``current`` replaces it).
         """
-        frames = [
-            frame if pose_of is None else frame.with_pose(pose_of(frame))
-            for frame in self._frames
-        ]
+        ids = np.asarray(ids, np.int64)
+        held = len(self._frames)
+        if current is not None and held and self._frames[-1].stamp_ns == current.stamp_ns:
+            held -= 1
+        frames = [self._frames[k] for k in range(held)]
+        n, v = len(ids), held + (current is not None)
+        poses = np.empty((v, 4, 4))
+        for k, frame in enumerate(frames):
+            poses[k] = frame.T_world_camera if pose_of is None else pose_of(frame)
         if current is not None:
-            if frames and frames[-1].stamp_ns == current.stamp_ns:
-                frames.pop()
-            frames.append(current.sorted_by_id())
-        n, v = len(ids), len(frames)
-        centres = np.zeros((n, v, 3))
+            poses[held] = current.T_world_camera
+        centres = np.empty((n, v, 3))
+        centres[:] = poses[:, :3, 3]
+        axes = np.empty((n, v, 3))
+        axes[:] = poses[:, :3, 2]
         directions = np.zeros((n, v, 3))
-        axes = np.zeros((n, v, 3))
         relative = np.full((n, v), np.nan)
         valid = np.zeros((n, v), bool)
-        for k, frame in enumerate(frames):
-            centres[:, k] = frame.T_world_camera[:3, 3]
-            axes[:, k] = frame.T_world_camera[:3, 2]
-            if len(frame.ids) == 0:
-                continue
-            at = np.minimum(np.searchsorted(frame.ids, ids), len(frame.ids) - 1)
-            seen = frame.ids[at] == ids
-            R = frame.T_world_camera[:3, :3]
-            directions[seen, k] = frame.rays[at[seen]] @ R.T
-            if frame.relative is not None:
-                relative[seen, k] = frame.relative[at[seen]]
-            valid[:, k] = seen
+        if held and n:
+            # one sorted search for every (keyframe, track) pair
+            table = self._held_table(held)
+            found, rows = table.lookup(ids)
+            valid[:, :held] = found
+            cam = table.rays[rows]  # (n, held, 3) camera-frame rays, garbage where not found
+            cam[~found] = 0.0
+            # world ray = R @ ray, as a batched matmul over the keyframes: (held, n, 3)
+            world = np.matmul(cam.transpose(1, 0, 2), poses[:held, :3, :3].transpose(0, 2, 1))
+            directions[:, :held] = world.transpose(1, 0, 2)
+            relative[:, :held] = np.where(found, table.relative[rows], np.nan)
+        if current is not None and n:
+            if np.array_equal(current.ids, ids):
+                seen = np.ones(n, bool)
+                at = np.arange(n)
+            else:
+                order = np.argsort(current.ids, kind="stable")
+                sorted_ids = current.ids[order]
+                at = np.minimum(np.searchsorted(sorted_ids, ids), max(len(sorted_ids) - 1, 0))
+                seen = sorted_ids[at] == ids if len(sorted_ids) else np.zeros(n, bool)
+                at = order[at] if len(sorted_ids) else at
+            R = current.T_world_camera[:3, :3]
+            directions[seen, held] = current.rays[at[seen]] @ R.T
+            if current.relative is not None:
+                relative[seen, held] = current.relative[at[seen]]
+            valid[:, held] = seen
         return TrackViews(centres, directions, valid, axes, relative)
+
+
+@dataclass(frozen=True)
+class _ViewTable:
+    """The tracks of several keyframes, concatenated and searchable by (keyframe, id).
+
+    Attributes:
+        version: the window's version it was built from.
+        held: keyframes in it.
+        keys: (M,) int64 sorted keys ``k · span + id`` (k: keyframe slot).
+        span: larger than every id in it.
+        rays: (M, 3) float64 camera-frame rays, by key.
+        relative: (M,) float64 depth_relative by key (NaN from a keyframe
+            without).
+    """
+
+    version: int
+    held: int
+    keys: np.ndarray
+    span: int
+    rays: np.ndarray
+    relative: np.ndarray
+
+    @classmethod
+    def build(cls, frames: list[Keyframe], version: int) -> _ViewTable:
+        sizes = [len(frame.ids) for frame in frames]
+        span = 1 + max((int(frame.ids[-1]) for frame in frames if len(frame.ids)), default=0)
+        slot = np.repeat(np.arange(len(frames), dtype=np.int64), sizes)
+        ids = np.concatenate([frame.ids for frame in frames]) if frames else np.empty(0, np.int64)
+        rays = np.concatenate([frame.rays for frame in frames]) if frames else np.empty((0, 3))
+        relative = np.concatenate(
+            [np.full(len(frame.ids), np.nan) if frame.relative is None else frame.relative
+             for frame in frames]) if frames else np.empty(0)
+        return cls(version, len(frames), slot * span + ids, span, rays, relative)
+
+    def lookup(self, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Where each of ``ids`` sits in each keyframe: ((N, held) bool found, (N, held) rows)."""
+        if len(self.keys) == 0:
+            return np.zeros((len(ids), self.held), bool), np.zeros((len(ids), self.held), np.int64)
+        inside = (ids >= 0) & (ids < self.span)
+        query = np.arange(self.held, dtype=np.int64) * self.span + np.where(inside, ids, 0)[:, None]
+        rows = np.minimum(np.searchsorted(self.keys, query), len(self.keys) - 1)
+        found = (self.keys[rows] == query) & inside[:, None]
+        return found, rows

@@ -34,6 +34,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from endo_flow.cloud import binned_camera, world_cloud
 from endo_flow.errors import FlowInputError, NoFeaturesError
 from endo_flow.keyframes import Keyframe, KeyframeWindow, TrackViews
 from endo_flow.pose_smoothing import PoseSmoother
@@ -51,8 +52,7 @@ from endo_flow.triangulation import TriangulationGates, triangulate
 from endo_flow.voxel_map import VoxelMap
 from endo_io.camera import CameraModel
 from endo_io.errors import ClockJumpError, PoseError
-from endo_io.image import irradiance_to_mono8
-from endo_io.pose import check_rotation, transform_points
+from endo_io.pose import check_rotation
 
 
 @dataclass(frozen=True)
@@ -392,46 +392,6 @@ def view_log_ratios(views: TrackViews, points: np.ndarray) -> tuple[np.ndarray, 
     return values, spread
 
 
-def binned_camera(camera: CameraModel, factor: int) -> CameraModel:
-    """The model of ``image[:H//f*f:f, :W//f*f:f]``: every f-th pixel of the camera's image.
-
-    Pixel u' of the decimated image is pixel f·u' of the original, which is
-    exactly image_geometry's binning mapping (``CameraModel`` binning
-    without ROI), so its ray table is the original's at those pixels.
-    """
-    if factor == 1:
-        return camera
-    K = camera.K.copy()
-    K[:2] /= factor
-    return CameraModel(
-        width=camera.width // factor, height=camera.height // factor, K=K, D=camera.D,
-        distortion_model=camera.distortion_model, binning_x=factor, binning_y=factor,
-        frame_id=camera.frame_id, full_width=camera.width, full_height=camera.height,
-    )
-
-
-def surface_normals(points: np.ndarray) -> np.ndarray:
-    """Unit normals of an organised (h, w, 3) point grid, facing the camera at the origin.
-
-    Central differences along both axes, crossed; NaN on the border and
-    wherever a neighbour is missing. Returns (h, w, 3) float32.
-    """
-    p = np.asarray(points, np.float32)
-    normals = np.full(p.shape, np.nan, np.float32)
-    du = p[1:-1, 2:] - p[1:-1, :-2]
-    dv = p[2:, 1:-1] - p[:-2, 1:-1]
-    n = normals[1:-1, 1:-1]
-    n[..., 0] = du[..., 1] * dv[..., 2] - du[..., 2] * dv[..., 1]
-    n[..., 1] = du[..., 2] * dv[..., 0] - du[..., 0] * dv[..., 2]
-    n[..., 2] = du[..., 0] * dv[..., 1] - du[..., 1] * dv[..., 0]
-    centre = p[1:-1, 1:-1]
-    with np.errstate(invalid="ignore", divide="ignore"):
-        facing = (n * centre).sum(axis=-1)
-        # one division: unit length and the sign that faces the camera
-        n /= (np.sqrt((n * n).sum(axis=-1)) * np.where(facing > 0.0, -1.0, 1.0))[..., None]
-    return normals
-
-
 class FlowPipeline:
     """The per-frame step (see the module docstring).
 
@@ -687,23 +647,13 @@ class FlowPipeline:
     def _cloud(
         self, frame: FlowFrame, depth: np.ndarray, T: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Decimated world points, their grey level and world normals."""
+        """Decimated world points, their grey level and world normals (:func:`world_cloud`)."""
         opts = self.options
-        k = opts.cloud_decimation
-        cam = self._cloud_camera
-        assert cam is not None
-        sub = depth[: cam.height * k : k, : cam.width * k : k]
-        local = cam.depth_to_points(sub)
-        normals_local = surface_normals(local)
-        with np.errstate(invalid="ignore"):
-            keep = (sub >= opts.cloud_min_depth_m) & (sub <= opts.cloud_max_depth_m)
-        keep &= np.isfinite(local).all(axis=-1)
-        world = transform_points(T, local[keep]).astype(np.float32)
-        normals = (normals_local[keep] @ T[:3, :3].T).astype(np.float32)
-        image = np.asarray(frame.image)[: cam.height * k : k, : cam.width * k : k][keep]
-        white = self.tracker.white_level or 1.0
-        grey = irradiance_to_mono8(image[None, :], white=white, gamma=opts.tracking.gamma)[0]
-        return world, grey, normals
+        assert self._cloud_camera is not None
+        return world_cloud(depth, frame.image, self._cloud_camera, T,
+                           decimation=opts.cloud_decimation, min_depth_m=opts.cloud_min_depth_m,
+                           max_depth_m=opts.cloud_max_depth_m,
+                           white=self.tracker.white_level or 1.0, gamma=opts.tracking.gamma)
 
 
 __all__ = [

@@ -19,8 +19,6 @@ frame and averages out in the scale filter instead of biasing whole windows.
 
 from __future__ import annotations
 
-from collections import deque
-
 import numpy as np
 
 from endo_io.pose import rigid_transform
@@ -39,27 +37,47 @@ class PoseSmoother:
         if half_window_ns < 0 or capacity < 2:
             raise ValueError("half_window_ns must be >= 0 and capacity >= 2")
         self.half_window_ns = int(half_window_ns)
-        self._stamps: deque[int] = deque(maxlen=capacity)
-        self._poses: deque[np.ndarray] = deque(maxlen=capacity)
+        self.capacity = int(capacity)
+        # the held poses are rows [start, end) of arrays twice the capacity,
+        # in stamp order: appending is a row write, and the last ``capacity``
+        # rows move to the front once the arrays are full (amortised O(1))
+        self._stamp_rows = np.zeros(2 * self.capacity, np.int64)
+        self._pose_rows = np.zeros((2 * self.capacity, 4, 4))
+        self._start = 0
+        self._end = 0
         self._final: dict[int, np.ndarray] = {}
-        self._stamp_array: np.ndarray | None = None
-        self._pose_array: np.ndarray | None = None
+
+    def __len__(self) -> int:
+        return self._end - self._start
+
+    @property
+    def stamps(self) -> np.ndarray:
+        """(n,) int64 stamps of the poses held, oldest first (a view: do not modify)."""
+        return self._stamp_rows[self._start : self._end]
+
+    @property
+    def poses(self) -> np.ndarray:
+        """(n, 4, 4) float64 raw poses held, oldest first (a view: do not modify)."""
+        return self._pose_rows[self._start : self._end]
 
     def clear(self) -> None:
         """Forget every pose."""
-        self._stamps.clear()
-        self._poses.clear()
+        self._start = self._end = 0
         self._final.clear()
-        self._stamp_array = None
-        self._pose_array = None
 
     def add(self, stamp_ns: int, T_world_camera: np.ndarray) -> None:
         """Record the (4, 4) pose of the frame at ``stamp_ns`` (increasing stamps)."""
-        self._stamps.append(int(stamp_ns))
-        self._poses.append(np.asarray(T_world_camera, np.float64))
-        self._stamp_array = None
-        self._pose_array = None
-        oldest = self._stamps[0]
+        if self._end == len(self._stamp_rows):
+            keep = self.capacity - 1
+            self._stamp_rows[:keep] = self._stamp_rows[self._end - keep : self._end]
+            self._pose_rows[:keep] = self._pose_rows[self._end - keep : self._end]
+            self._start, self._end = 0, keep
+        self._stamp_rows[self._end] = int(stamp_ns)
+        self._pose_rows[self._end] = T_world_camera
+        self._end += 1
+        if self._end - self._start > self.capacity:
+            self._start += 1
+        oldest = int(self._stamp_rows[self._start])
         for stamp in [s for s in self._final if s < oldest]:
             del self._final[stamp]
 
@@ -73,41 +91,41 @@ class PoseSmoother:
         Raises:
             KeyError: ``stamp_ns`` was not recorded (or has been dropped).
         """
-        if stamp_ns in self._final:
-            return self._final[stamp_ns]
-        if self._stamp_array is None:
-            self._stamp_array = np.fromiter(self._stamps, np.int64, len(self._stamps))
-        stamps = self._stamp_array
+        final = self._final.get(stamp_ns)
+        if final is not None:
+            return final
+        stamps = self.stamps
         at = int(np.searchsorted(stamps, stamp_ns))
         if at >= len(stamps) or stamps[at] != stamp_ns:
             raise KeyError(f"no pose recorded at {stamp_ns} ns")
-        reference = self._poses[at]
+        poses = self.poses
+        reference = poses[at]
         if self.half_window_ns == 0:
-            return reference
+            return reference.copy()
         lo = int(np.searchsorted(stamps, stamp_ns - self.half_window_ns))
         hi = int(np.searchsorted(stamps, stamp_ns + self.half_window_ns, side="right"))
         t = (stamps[lo:hi] - stamp_ns) / self.half_window_ns  # in [-1, 1]
         weight = (1.0 - np.abs(t) ** 3) ** 3
         # a line needs two poses of positive weight (one exactly half_window_ns away weighs 0)
         if hi - lo < 3 or np.count_nonzero(weight > 0.0) < 2:
-            result = reference
+            result = reference.copy()
         else:
-            if self._pose_array is None:  # once per added pose, not per keyframe
-                self._pose_array = np.stack(self._poses)
-            poses = self._pose_array[lo:hi]
-            relative = reference[:3, :3].T @ poses[:, :3, :3]
+            window = poses[lo:hi]
+            relative = reference[:3, :3].T @ window[:, :3, :3]
             # the rotations within a window differ by a few degrees: the
             # small-angle logarithm vee(R − Rᵀ)/2 is exact to O(θ³)
-            rotvec = 0.5 * np.stack([relative[:, 2, 1] - relative[:, 1, 2],
-                                      relative[:, 0, 2] - relative[:, 2, 0],
-                                      relative[:, 1, 0] - relative[:, 0, 1]], axis=1)
-            values = np.concatenate([poses[:, :3, 3], rotvec], axis=1)  # (n, 6)
-            # weighted linear fit, evaluated at t = 0: the intercept
-            design = np.stack([np.ones_like(t), t], axis=1)
-            normal = design.T @ (design * weight[:, None])
-            coef = np.linalg.solve(normal, design.T @ (values * weight[:, None]))
-            centre, rotation = coef[0, :3], coef[0, 3:]
-            result = rigid_transform(rotation, centre)
+            values = np.empty((hi - lo, 6))
+            values[:, :3] = window[:, :3, 3]
+            values[:, 3] = 0.5 * (relative[:, 2, 1] - relative[:, 1, 2])
+            values[:, 4] = 0.5 * (relative[:, 0, 2] - relative[:, 2, 0])
+            values[:, 5] = 0.5 * (relative[:, 1, 0] - relative[:, 0, 1])
+            # weighted least-squares line a + b·t, evaluated at t = 0: the
+            # intercept a = (S2·Y0 − S1·Y1) / (S0·S2 − S1²); two distinct t of
+            # positive weight make the determinant positive
+            wt = weight * t
+            s0, s1, s2 = weight.sum(), wt.sum(), (wt * t).sum()
+            intercept = (s2 * (weight @ values) - s1 * (wt @ values)) / (s0 * s2 - s1 * s1)
+            result = rigid_transform(intercept[3:], intercept[:3])
             result[:3, :3] = reference[:3, :3] @ result[:3, :3]
         if stamps[-1] - stamp_ns >= self.half_window_ns:
             self._final[stamp_ns] = result

@@ -12,7 +12,8 @@ from dataclasses import replace
 import cv2
 import numpy as np
 
-from endo_flow.pipeline import FlowFrame, FlowOptions, FlowPipeline, binned_camera
+from endo_flow.cloud import binned_camera
+from endo_flow.pipeline import FlowFrame, FlowOptions, FlowPipeline
 from endo_flow.tracking import TrackingOptions
 from endo_sim.sequences import SimulationConfig, build_sequence
 

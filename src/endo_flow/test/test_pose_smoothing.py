@@ -35,7 +35,7 @@ def test_noise_falls_about_threefold():
     raw, smooth, turn = [], [], []
     for k in range(15, 45):
         T = smoother.smoothed(k * STEP)
-        raw.append(np.linalg.norm(smoother._poses[k][:3, 3] - truth[k][:3, 3]))
+        raw.append(np.linalg.norm(smoother.poses[k][:3, 3] - truth[k][:3, 3]))
         smooth.append(np.linalg.norm(T[:3, 3] - truth[k][:3, 3]))
         turn.append(float(rotation_angle(T[:3, :3].T @ truth[k][:3, :3])))
     assert np.sqrt(np.mean(np.square(smooth))) < 0.45 * np.sqrt(np.mean(np.square(raw)))
