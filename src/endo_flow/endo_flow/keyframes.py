@@ -158,6 +158,15 @@ class KeyframeWindow:
             self._table = table
         return table
 
+    def view_stamps(self, current: Keyframe | None = None) -> np.ndarray:
+        """(V,) int64 stamps of the views :meth:`views` gathers, in its order."""
+        stamps = [frame.stamp_ns for frame in self._frames]
+        if current is not None:
+            if stamps and stamps[-1] == current.stamp_ns:
+                stamps.pop()
+            stamps.append(current.stamp_ns)
+        return np.array(stamps, np.int64)
+
     def views(
         self,
         ids: np.ndarray,

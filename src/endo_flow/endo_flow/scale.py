@@ -201,7 +201,12 @@ class ScaleFilterOptions:
             step_threshold / (step_clip − step_allowance) of one sign must
             come in a row.
         converged_std: standard deviation of ln s below which the filter is
-            converged (TRACKING, usable).
+            converged (TRACKING, usable). With observations fused by their
+            novelty (:class:`ViewNovelty`, the pipeline's ``novelty_floor``
+            < 1) the variance counts independent views and is larger than
+            one fusing every frame as independent claims; 0.05 is then the
+            least (in steps of 0.01) with which the phantom converges within
+            1 s of 2 mm of motion (docs/flow.md).
         hold_after_s: time without an accepted observation after which the
             state is HOLDING.
         initial_std: standard deviation of the first observation's estimate
@@ -301,14 +306,30 @@ class ScaleFilter:
             self._variance += self.options.process_noise**2 * dt
         self._stamp_ns = stamp_ns
 
-    def update(self, observation: ScaleObservation, stamp_ns: int) -> ScaleUpdate:
-        """Predict to ``stamp_ns`` and fuse one observation."""
+    def update(self, observation: ScaleObservation, stamp_ns: int,
+               novelty: float = 1.0) -> ScaleUpdate:
+        """Predict to ``stamp_ns`` and fuse one observation.
+
+        Args:
+            observation: the frame's observation.
+            stamp_ns: its stamp, integer ns.
+            novelty: the share of the observation's evidence that no earlier
+                observation used (:class:`ViewNovelty`), in (0, 1]. Its error
+                is as large as ``observation.std`` says (the gate and the
+                CUSUM use that), but only this share of it is independent of
+                what the filter already holds, so it is fused with the
+                variance std² / novelty: consecutive frames that see the
+                same keyframes repeat their pose errors, and fusing them as
+                independent would shrink the variance (and declare
+                convergence) on one draw of those errors.
+        """
         self.predict(stamp_ns)
         opts = self.options
         z, r = observation.log_scale, observation.std**2
+        novelty = float(np.clip(novelty, 1e-6, 1.0))
         if not np.isfinite(self._log_scale):
             self._log_scale = z
-            self._variance = max(r, opts.initial_std**2)
+            self._variance = max(r / novelty, opts.initial_std**2)
             self._accept(stamp_ns)
             return ScaleUpdate(True, False, False, 0.0)
         innovation = z - self._log_scale
@@ -325,7 +346,7 @@ class ScaleFilter:
         if abs(sigma) > opts.gate_sigma:
             self.gated += 1
             return ScaleUpdate(False, True, False, sigma)
-        gain = self._variance / s
+        gain = self._variance / (self._variance + r / novelty)
         self._log_scale += gain * innovation
         self._variance *= 1.0 - gain
         self._accept(stamp_ns)
@@ -371,3 +392,72 @@ class ScaleFilter:
                 self._since_zero = [[], []]
                 return values
         return None
+
+
+class ViewNovelty:
+    """Which views earlier scale observations used, and how new an observation's evidence is.
+
+    A frame's observation averages its tracks' ln(z / d_rel) over all their
+    views (the keyframes and the current frame). The error a view brings
+    (its camera pose's error, SFS's error at the tracks in that image) is
+    fixed once the view exists, so the next frames, which see mostly the
+    same keyframes, repeat it: consecutive observations are correlated
+    (lag-one autocorrelation 0.5–0.9 on the evaluation bags), and fusing
+    them as independent shrinks the filter's variance on one draw of those
+    errors. The share of an observation's weight that lies on views no
+    earlier observation used,
+
+        novelty = Σ_new views w_v / Σ_views w_v,
+        w_v = Σ_tracks seeing v (track weight / the track's view count),
+
+    is taken as the share of its error that is independent of what the
+    filter holds (a frame's own view is always new, a new keyframe once),
+    and :meth:`ScaleFilter.update` fuses the observation with its variance
+    divided by that share: the filter's variance then counts independent
+    views, not frames.
+
+    Args:
+        floor: least novelty returned (a frame whose views were all used
+            before still brings its share of independent noise).
+    """
+
+    def __init__(self, floor: float = 0.02) -> None:
+        if not 0.0 < floor <= 1.0:
+            raise ValueError(f"floor must be in (0, 1], got {floor}")
+        self.floor = float(floor)
+        self._used: set[int] = set()
+
+    def reset(self) -> None:
+        """Forget every view used."""
+        self._used.clear()
+
+    def novelty(self, view_stamps: np.ndarray, view_weights: np.ndarray) -> float:
+        """The share of the weight on views not used before (at least ``floor``).
+
+        Args:
+            view_stamps: (V,) int64 stamps of the observation's views, ns.
+            view_weights: (V,) float >= 0 weight of the observation on each.
+        """
+        w = np.asarray(view_weights, np.float64)
+        total = float(w.sum())
+        if not total > 0.0:
+            return 1.0
+        new = np.array([int(stamp) not in self._used for stamp in view_stamps], bool)
+        return max(self.floor, float(w[new].sum()) / total)
+
+    def use(self, view_stamps: np.ndarray, oldest_ns: int | None = None) -> None:
+        """Mark views as used; forget those stamped before ``oldest_ns`` (out of the window)."""
+        self._used.update(int(stamp) for stamp in view_stamps)
+        if oldest_ns is not None:
+            self._used = {stamp for stamp in self._used if stamp >= oldest_ns}
+
+
+def view_weights(valid: np.ndarray, weights: np.ndarray) -> np.ndarray:
+    """(N, V) bool views of N tracks and their (N,) weights -> (V,) float64 weight per view.
+
+    Each track spreads its weight evenly over the views it was seen in (its
+    ln ratio is the mean over them).
+    """
+    seen = np.asarray(valid, np.float64)
+    count = np.maximum(seen.sum(axis=1, keepdims=True), 1.0)
+    return np.asarray((np.asarray(weights, np.float64)[:, None] * seen / count).sum(axis=0))
