@@ -19,9 +19,65 @@ frame and averages out in the scale filter instead of biasing whole windows.
 
 from __future__ import annotations
 
+import numba
 import numpy as np
 
 from endo_io.pose import rigid_transform
+
+
+@numba.njit(cache=True, nogil=True)
+def _relative(poses: np.ndarray, a: int, b: int, i: int, j: int) -> float:
+    """Entry (i, j) of R_aᵀ R_b for the rotations of poses a and b."""
+    return (poses[a, 0, i] * poses[b, 0, j] + poses[a, 1, i] * poses[b, 1, j]
+            + poses[a, 2, i] * poses[b, 2, j])
+
+
+@numba.njit(cache=True, nogil=True)
+def _local_line(stamps: np.ndarray, poses: np.ndarray, at: int, half_ns: int) -> np.ndarray:
+    """The tricube-weighted line fit around pose ``at``, evaluated there: (6,) float64.
+
+    Centre (3) and rotation vector relative to pose ``at`` (3); NaN when
+    fewer than two poses within ±``half_ns`` have positive weight (one
+    exactly ``half_ns`` away weighs 0) or fewer than three are in the window.
+    """
+    out = np.full(6, np.nan)
+    n = stamps.shape[0]
+    centre = stamps[at]
+    lo = at
+    while lo > 0 and stamps[lo - 1] >= centre - half_ns:
+        lo -= 1
+    hi = at + 1
+    while hi < n and stamps[hi] <= centre + half_ns:
+        hi += 1
+    s0 = s1 = s2 = 0.0
+    y0 = np.zeros(6)
+    y1 = np.zeros(6)
+    positive = 0
+    for k in range(lo, hi):
+        t = (stamps[k] - centre) / half_ns  # in [-1, 1]
+        w = (1.0 - abs(t) ** 3) ** 3
+        if w > 0.0:
+            positive += 1
+        # the rotations within a window differ by a few degrees: the
+        # small-angle logarithm vee(R0ᵀR − (R0ᵀR)ᵀ)/2 is exact to O(θ³)
+        value = np.empty(6)
+        value[0] = poses[k, 0, 3]
+        value[1] = poses[k, 1, 3]
+        value[2] = poses[k, 2, 3]
+        value[3] = 0.5 * (_relative(poses, at, k, 2, 1) - _relative(poses, at, k, 1, 2))
+        value[4] = 0.5 * (_relative(poses, at, k, 0, 2) - _relative(poses, at, k, 2, 0))
+        value[5] = 0.5 * (_relative(poses, at, k, 1, 0) - _relative(poses, at, k, 0, 1))
+        s0 += w
+        s1 += w * t
+        s2 += w * t * t
+        y0 += w * value
+        y1 += (w * t) * value
+    if hi - lo < 3 or positive < 2:
+        return out
+    # weighted least-squares line a + b·t at t = 0: the intercept
+    # a = (S2·Y0 − S1·Y1) / (S0·S2 − S1²), positive for two distinct t of weight > 0
+    out[:] = (s2 * y0 - s1 * y1) / (s0 * s2 - s1 * s1)
+    return out
 
 
 class PoseSmoother:
@@ -102,29 +158,10 @@ class PoseSmoother:
         reference = poses[at]
         if self.half_window_ns == 0:
             return reference.copy()
-        lo = int(np.searchsorted(stamps, stamp_ns - self.half_window_ns))
-        hi = int(np.searchsorted(stamps, stamp_ns + self.half_window_ns, side="right"))
-        t = (stamps[lo:hi] - stamp_ns) / self.half_window_ns  # in [-1, 1]
-        weight = (1.0 - np.abs(t) ** 3) ** 3
-        # a line needs two poses of positive weight (one exactly half_window_ns away weighs 0)
-        if hi - lo < 3 or np.count_nonzero(weight > 0.0) < 2:
+        intercept = _local_line(stamps, poses, at, self.half_window_ns)
+        if np.isnan(intercept[0]):
             result = reference.copy()
         else:
-            window = poses[lo:hi]
-            relative = reference[:3, :3].T @ window[:, :3, :3]
-            # the rotations within a window differ by a few degrees: the
-            # small-angle logarithm vee(R − Rᵀ)/2 is exact to O(θ³)
-            values = np.empty((hi - lo, 6))
-            values[:, :3] = window[:, :3, 3]
-            values[:, 3] = 0.5 * (relative[:, 2, 1] - relative[:, 1, 2])
-            values[:, 4] = 0.5 * (relative[:, 0, 2] - relative[:, 2, 0])
-            values[:, 5] = 0.5 * (relative[:, 1, 0] - relative[:, 0, 1])
-            # weighted least-squares line a + b·t, evaluated at t = 0: the
-            # intercept a = (S2·Y0 − S1·Y1) / (S0·S2 − S1²); two distinct t of
-            # positive weight make the determinant positive
-            wt = weight * t
-            s0, s1, s2 = weight.sum(), wt.sum(), (wt * t).sum()
-            intercept = (s2 * (weight @ values) - s1 * (wt @ values)) / (s0 * s2 - s1 * s1)
             result = rigid_transform(intercept[3:], intercept[:3])
             result[:3, :3] = reference[:3, :3] @ result[:3, :3]
         if stamps[-1] - stamp_ns >= self.half_window_ns:
