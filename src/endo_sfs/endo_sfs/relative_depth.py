@@ -19,8 +19,8 @@ Conventions:
 from __future__ import annotations
 
 from collections.abc import Iterator
-from contextlib import contextmanager
-from dataclasses import dataclass
+from contextlib import contextmanager, suppress
+from dataclasses import dataclass, replace
 
 import cv2
 import numba
@@ -42,6 +42,15 @@ from endo_sfs.orthographic import SolveInfo, solve_orthographic
 
 #: The settings a solve uses when none are given.
 DEFAULT_OPTIONS = SfsOptions()
+#: A near-light solve with no warm start at solve_scale >= COARSE_START_MIN_SCALE
+#: starts from a solve of the same frame at COARSE_START_FACTOR of that scale.
+#: From flat start values the value-ordered first pass costs ~7 node solves per
+#: node; from the coarse solution the sweeps cost ~3.2. On the 640x480 phantom
+#: at full resolution: 10 + 47-81 ms instead of ~290 ms, the depth within
+#: 7.5e-4 (relative, largest pixel) of the cold solve's at the default tolerance
+#: (bench: a node's first frame, and every frame with warm_start off).
+COARSE_START_FACTOR = 0.25
+COARSE_START_MIN_SCALE = 0.5
 
 
 @dataclass(frozen=True)
@@ -285,6 +294,13 @@ def solve(
     if not isinstance(options, SfsOptions):
         raise SfsInputError(f"options must be an SfsOptions, got {type(options).__name__}")
     model = options.model
+    if model == "near_light" and warm_start is None and (
+        options.solve_scale >= COARSE_START_MIN_SCALE
+    ):
+        coarse = replace(options, solve_scale=options.solve_scale * COARSE_START_FACTOR)
+        # nothing usable that coarse: solve cold
+        with suppress(NoValidPixelsError, SolutionRangeError):
+            warm_start = solve(irradiance, camera, coarse, mask=mask)
     # numba's thread count is per calling thread: set it for this call only.
     with _numba_threads(options.threads):
         image = _check_inputs(irradiance, camera, mask)
@@ -385,7 +401,9 @@ def reconstruct(
             built.
         mask: optional (H, W) bool of pixels to use (e.g. the circular FOV).
         warm_start: the previous frame's :class:`SfsSolution` (cheapest) or
-            its (H, W) depth, or None. Used by the near-light model only.
+            its (H, W) depth, or None (near-light at solve_scale >= 0.5: a
+            solve at a quarter of the scale first, :data:`COARSE_START_FACTOR`).
+            Used by the near-light model only.
         boundary_depth: orthographic model only: (H, W) relative depth
             where known, NaN elsewhere; the Eikonal's sources instead of the
             singular points (see

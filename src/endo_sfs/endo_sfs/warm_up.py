@@ -26,6 +26,7 @@ from pathlib import Path
 import numba
 import numpy as np
 
+from endo_io.camera import CameraModel
 from endo_io.kernel_cache import kernel_cache_dir
 from endo_sfs.options import SfsOptions
 from endo_sfs.relative_depth import solve, surface_normals
@@ -98,6 +99,31 @@ def warm_up_kernels(*, announce: Callable[[str], None] | None = None) -> float:
         _stamp().write_text(kernel_fingerprint() + "\n", encoding="utf-8")
     except OSError:
         pass  # an unwritable cache: numba compiles beside the source, we just cannot remember
+    return time.perf_counter() - start
+
+
+def warm_up_frame(camera: CameraModel, options: SfsOptions) -> float:
+    """Solve a synthetic frame of ``camera`` with ``options``: cold, then warm-started.
+
+    What a first real frame pays once per process and camera besides the
+    kernels: the solve grids of this camera (built and cached,
+    :func:`endo_sfs.grid.solve_grid`; the cold solve's coarse start has its
+    own), frame-sized buffers, the highlight detection. A node calls it
+    before it subscribes, so that its first frame costs what any later one
+    does.
+
+    Args:
+        camera: the camera of the frames to come (its size and intrinsics).
+        options: the solver settings the frames will be solved with.
+
+    Returns:
+        Seconds taken.
+    """
+    start = time.perf_counter()
+    image = render_near_light(camera, near_light_surface("tube")).irradiance
+    image = image.astype(np.float32)
+    previous = solve(image, camera, options)
+    solve(image, camera, options, warm_start=previous)
     return time.perf_counter() - start
 
 
