@@ -122,6 +122,7 @@ def run_once(bag: Path, configuration: Configuration, rate: float, work: Path,
     settings = replace(graph_settings_for(bag, rate, configuration.solve_scale),
                        node_parameters=configuration.node_parameters)
     processes = planned_graph(bag, photometric, handeye, out, settings)
+    settings = replace(settings, listeners=GraphMonitor.played_listeners(processes))
     with GraphMonitor(processes, env) as monitor, ProcessSampler(processes) as sampler:
         run = run_live_graph(bag, photometric, handeye, out, env, settings)
     figures = graph_figures(run.processes, monitor, sampler, run.played)

@@ -179,7 +179,7 @@ def test_the_command_lines_carry_the_params_file_namespace_and_remaps(small_bag,
     assert plan.source is not None
     source = plan.source.command()
     assert source[1:3] == [str(bag), "--topics"]
-    for flag in ("--clock", "--loop", "--wait-for-subscribers"):
+    for flag in ("--clock", "--loop", "--wait-topics"):
         assert flag in source
     assert source[source.index("--rate") + 1] == "0.5"
     assert f"{topics.IMAGE_RAW}:=/camera/image_raw" in source

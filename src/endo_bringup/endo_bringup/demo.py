@@ -478,6 +478,8 @@ def run_graph_stage(
     graph_env, report.dds_note = with_large_frame_profile(env, out_dir)
     settings = graph_settings_for(phantom, rate, solve_scale)
     processes = planned_graph(phantom, calibrate.result, handeye.result, out_dir, settings)
+    # the replay starts once the monitor's subscription matched too
+    settings = dataclasses.replace(settings, listeners=GraphMonitor.played_listeners(processes))
     try:
         with GraphMonitor(processes, graph_env) as monitor, ProcessSampler(processes) as sampler:
             report.run = run_live_graph(

@@ -35,8 +35,9 @@ from pathlib import Path
 import numpy as np
 
 from endo_bringup.process_group import ProcessGroup, console_script
-from endo_io.bag import BagReader
+from endo_io.bag import BagReader, deserialize
 from endo_io.bag.streams import count_messages
+from endo_io.camera import CameraModel
 from endo_io.topics import (
     CAMERA_INFO,
     CAMERA_POSE,
@@ -263,15 +264,51 @@ def recorder_process(topics: Sequence[str], output: Path) -> GraphProcess:
     )
 
 
-def replay_process(bag: Path, topics: Sequence[str], rate: float) -> GraphProcess:
-    """``endo-replay`` of ``topics`` of ``bag`` at ``rate``, once a subscriber is there."""
+def replay_process(
+    bag: Path, topics: Sequence[str], rate: float, subscribers: Mapping[str, int] | None = None
+) -> GraphProcess:
+    """``endo-replay`` of ``topics`` of ``bag`` at ``rate``.
+
+    It plays once every topic has a subscriber, or, given ``subscribers``
+    (topic -> count), once each of those topics has that many: every
+    subscription of the graph matched, so that no one misses the first
+    frames to discovery.
+    """
     arguments = (str(bag), "--topics", *topics, "--rate", repr(float(rate)))
-    return GraphProcess(
-        PLAYER,
-        "endo-replay",
-        arguments=(*arguments, "--wait-for-subscribers", "1"),
-        publishes=tuple(topics),
-    )
+    waited = {t: n for t, n in (subscribers or {}).items() if n > 0}
+    wait = (
+        ("--wait-topics", *(f"{t}={n}" for t, n in waited.items()), "--wait-timeout",
+         repr(REPLAY_WAIT_TIMEOUT_S))
+        if waited else ("--wait-for-subscribers", "1")
+    )  # fmt: skip
+    return GraphProcess(PLAYER, "endo-replay", arguments=(*arguments, *wait),
+                        publishes=tuple(topics))  # fmt: skip
+
+
+def subscriber_counts(
+    processes: Sequence[GraphProcess], topics: Sequence[str],
+    listeners: Mapping[str, int] | None = None,
+) -> dict[str, int]:
+    """Topic -> subscriptions it has in the table (plus ``listeners``: outside it)."""
+    extra = listeners or {}
+    return {
+        t: sum(t in p.subscribes for p in processes) + int(extra.get(t, 0)) for t in topics
+    }
+
+
+def write_camera_file(bag: Path, path: Path) -> Path | None:
+    """The bag's first camera_info as a camera_calibration YAML at ``path`` (None: it has none).
+
+    The nodes' ``warm_up_camera_file``: they warm up on a frame of that camera.
+    """
+    with BagReader(bag) as reader:
+        if CAMERA_INFO not in reader.topics:
+            return None
+        first = next(reader.messages(topics=[CAMERA_INFO]), None)
+    if first is None:
+        return None
+    CameraModel.from_camera_info(deserialize(first)).save_yaml(path)
+    return path
 
 
 @dataclass
@@ -287,6 +324,8 @@ class GraphSettings:
     drain_timeout_s: how long to wait for the outputs after the replay ends.
     node_parameters: extra ROS parameters per process name, added to that
     row's (a benchmark's configuration, e.g. ``{"endo-sfs": {"warm_start": "false"}}``).
+    listeners: played topic -> subscriptions outside the table the replay
+    waits for too (a :class:`~endo_bringup.graph_monitor.GraphMonitor`).
     """
 
     rate: float = 0.25
@@ -297,6 +336,7 @@ class GraphSettings:
     startup_timeout_s: float = 90.0
     drain_timeout_s: float = 20.0
     node_parameters: Mapping[str, Mapping[str, str]] = field(default_factory=dict)
+    listeners: Mapping[str, int] = field(default_factory=dict)
 
 
 def _float_list(values: np.ndarray) -> str:
@@ -323,29 +363,37 @@ def graph_processes(
         recording: where the recorder writes the nodes' outputs and the truth.
         settings: the nodes' parameters and the playback rate.
     """
+    # the nodes warm up on a frame of the bag's camera (run_live_graph writes the file)
+    camera = {"warm_up_camera_file": str(camera_file_path(recording))} if (
+        CAMERA_INFO in played) else {}
     rows: dict[str, Mapping[str, str]] = {
         "endo-photometric-correction": {"calibration_file": str(photometric)},
         "endo-sfs": {
             "model": settings.model,
             "roughness": repr(float(settings.roughness)),
             "solve_scale": repr(float(settings.solve_scale)),
+            **camera,
         },
         "endo-tracker-bridge": {
             "source": "ros",
             "handeye_file": str(handeye),
             "T_world_tracker": _float_list(settings.T_world_tracker),
         },
+        "endo-flow": camera,
     }
     nodes = graph_nodes({
         name: {**rows.get(name, {}), **settings.node_parameters.get(name, {})}
         for name in {*rows, *settings.node_parameters}
     })
     recorded = [*node_outputs(nodes), CAMERA_INFO, TRUE_DEPTH, TRUE_CAMERA_POSE]
-    return [
-        recorder_process(recorded, recording),
-        *nodes,
-        replay_process(bag, played, settings.rate),
-    ]
+    recorder = recorder_process(recorded, recording)
+    subscribers = subscriber_counts([recorder, *nodes], played, settings.listeners)
+    return [recorder, *nodes, replay_process(bag, played, settings.rate, subscribers)]
+
+
+def camera_file_path(recording: Path) -> Path:
+    """Where a graph run keeps its bag's camera (beside the recording)."""
+    return recording.with_name("camera.yaml")
 
 
 def describe_graph(processes: Sequence[GraphProcess]) -> str:
@@ -447,6 +495,12 @@ def stage_counts(run: GraphRun, recorded: Mapping[str, int]) -> list[StageCount]
 
 
 _SUBSCRIBED = re.compile(r"subscribed to (\S+) \[")
+#: Every node logs its DDS settings once its executor exists, after its
+#: constructor returned (:func:`endo_io.process.run_node`): its warm-up is done
+#: and its publishers and subscriptions exist.
+NODE_UP = re.compile(r"DDS: domain \d+")
+#: How long the replay waits for its subscribers to match (the nodes are up by then).
+REPLAY_WAIT_TIMEOUT_S = 30.0
 
 
 def _wait_for_recorder(group: ProcessGroup, topics: list[str], timeout_s: float) -> None:
@@ -467,6 +521,25 @@ def _wait_for_recorder(group: ProcessGroup, topics: list[str], timeout_s: float)
                 raise GraphError(f"{name} exited early:\n{group.log(name)}")
         if time.monotonic() > deadline:
             raise GraphError(f"no publisher of {', '.join(missing)} after {timeout_s:g} s")
+        time.sleep(0.1)
+
+
+def wait_for_nodes(group: ProcessGroup, names: Sequence[str], timeout_s: float) -> None:
+    """Wait until each of ``names`` has logged :data:`NODE_UP` (warmed up, subscribed).
+
+    Raises:
+        GraphError: one exited first, or ``timeout_s`` passed.
+    """
+    deadline = time.monotonic() + timeout_s
+    while True:
+        waiting = [name for name in names if not NODE_UP.search(group.log(name))]
+        if not waiting:
+            return
+        for name in waiting:
+            if not group.running(name):
+                raise GraphError(f"{name} exited early:\n{group.log(name)}")
+        if time.monotonic() > deadline:
+            raise GraphError(f"{', '.join(waiting)} not up after {timeout_s:g} s")
         time.sleep(0.1)
 
 
@@ -552,9 +625,12 @@ def run_live_graph(
     child_env = dict(env, RCUTILS_LOGGING_BUFFERED_STREAM="0", PYTHONUNBUFFERED="1")
     start = time.monotonic()
     with ProcessGroup(child_env, log_dir) as group:
+        if CAMERA_INFO in played:
+            write_camera_file(bag, camera_file_path(recording))
         for process in (_process(processes, RECORDER), *nodes):
             group.start(process.name, process.command())
         _wait_for_recorder(group, node_outputs(processes), settings.startup_timeout_s)
+        wait_for_nodes(group, [node.name for node in nodes], settings.startup_timeout_s)
         play_and_record(
             group,
             _process(processes, PLAYER),

@@ -133,9 +133,18 @@ class GraphMonitor:
 
     def watched_topics(self) -> list[str]:
         """The player's first topic (the images) and every topic a node publishes."""
-        player = next(p for p in self.processes if p.name == PLAYER)
         nodes = [p for p in self.processes if p.name not in (PLAYER, RECORDER)]
-        return list(dict.fromkeys([player.publishes[0], *(t for n in nodes for t in n.publishes)]))
+        return list(dict.fromkeys([*self.played_listeners(self.processes),
+                                   *(t for n in nodes for t in n.publishes)]))
+
+    @staticmethod
+    def played_listeners(processes: Sequence[GraphProcess]) -> dict[str, int]:
+        """Played topic -> the monitor's subscriptions to it (the replay waits for them too).
+
+        For :attr:`endo_bringup.graph.GraphSettings.listeners`.
+        """
+        player = next(p for p in processes if p.name == PLAYER)
+        return {player.publishes[0]: 1}
 
     def __enter__(self) -> GraphMonitor:
         import rclpy

@@ -16,8 +16,11 @@ started through :class:`~endo_bringup.process_group.ProcessGroup`, with
   cleanly; a node that dies reported with its exit code and its last log
   lines, then the graph stopped (exit 1), or restarted with a growing
   backoff under ``--respawn``;
-* the source started only once ``endo-sfs`` has loaded (or compiled) its
-  kernels and every other node is up, so no frame is lost to start-up;
+* the source started only once every node is up, warmed up before it
+  subscribed (``endo-sfs`` has loaded or compiled its kernels; with
+  ``replay``, ``endo-sfs`` and ``endo-flow`` have run a frame of the bag's
+  camera), and a replay plays once every subscription of each played topic
+  has matched, so no frame is lost to start-up;
 * ``--record OUT.mcap``: ``endo-record`` of every node output and the
   camera_info beside the images (plus the ground truth a replayed bag has).
 
@@ -42,13 +45,17 @@ from typing import NoReturn, TextIO
 import yaml
 
 from endo_bringup.graph import (
+    NODE_UP,
     PLAYED_TOPICS,
     PLAYER,
+    REPLAY_WAIT_TIMEOUT_S,
     GraphProcess,
     GraphRun,
     graph_nodes,
     node_outputs,
     stage_counts,
+    subscriber_counts,
+    write_camera_file,
 )
 from endo_bringup.params_file import write as write_params
 from endo_bringup.process_group import ProcessGroup
@@ -64,8 +71,8 @@ PROGRAM = "endo-launch"
 SOURCE, RECORDER = "source", "endo-record"
 #: The SFS node's line once its kernels are loaded (endo_sfs.node).
 KERNELS_READY = re.compile(r"shape-from-shading kernels ready")
-#: Every node logs its DDS settings once its executor exists (endo_io.process).
-NODE_UP = re.compile(r"DDS: domain \d+")
+#: The nodes that warm up on a frame of the stream's camera (``warm_up_camera_file``).
+WARMED_ON_THE_CAMERA = ("endo-sfs", "endo-flow")
 #: Respawn backoff: first delay, factor, cap (seconds); a node that ran this
 #: long before dying starts again from the first delay.
 BACKOFF_FIRST_S, BACKOFF_FACTOR, BACKOFF_MAX_S, BACKOFF_RESET_S = 1.0, 2.0, 30.0, 60.0
@@ -95,6 +102,8 @@ class LaunchPlan:
     recorder: GraphProcess | None
     ends: bool  # the source ends by itself (a replay without --loop)
     warnings: list[str] = field(default_factory=list)
+    #: replay: the bag's camera, written here before the nodes start (they warm up on it)
+    camera_file: Path | None = None
 
     @property
     def processes(self) -> list[GraphProcess]:
@@ -236,8 +245,8 @@ def plan_launch(options: argparse.Namespace) -> LaunchPlan:
             kept = {"__ns": options.namespace, **kept}
         nodes.append(replace(node, remaps=kept))
     source: GraphProcess | None = None
-    recorded_extra: list[str] = []
-    ends = False
+    camera_file: Path | None = None
+    played: list[str] = []
     if options.preset == "replay":
         if not options.bag.exists():
             raise LaunchError(f"no bag {options.bag}")
@@ -245,12 +254,29 @@ def plan_launch(options: argparse.Namespace) -> LaunchPlan:
             played = [t for t in PLAYED_TOPICS if t in reader.topics]
         if IMAGE_RAW not in played:
             raise LaunchError(f"{options.bag} has no {IMAGE_RAW}: nothing to play into the graph")
-        # Wait only for the topics a node reads (not /clock, not the truth: nobody may read them).
-        read = {t for node in nodes for t in node.subscribes}
-        waited = [t for t in played if rules.get(t, t) in read]
+        if CAMERA_INFO in played and options.log_dir is not None:
+            # the nodes warm up on a frame of the bag's camera
+            camera_file = Path(options.log_dir) / "camera.yaml"
+            warm = {"warm_up_camera_file": str(camera_file)}
+            nodes = [replace(n, parameters={**warm, **n.parameters})
+                     if n.name in WARMED_ON_THE_CAMERA else n for n in nodes]  # fmt: skip
+    recorder = None
+    if options.record is not None:
+        recorded_extra = [rules.get(t, t) for t in (TRUE_DEPTH, TRUE_CAMERA_POSE) if t in played]
+        recorded = [*node_outputs(nodes), rules.get(CAMERA_INFO, CAMERA_INFO), *recorded_extra]
+        recorder = GraphProcess(RECORDER, "endo-record", arguments=(
+            "--topics", *recorded, "-o", str(options.record), "--flush-period", "0.5"),
+            subscribes=tuple(recorded))  # fmt: skip
+    ends = False
+    if options.preset == "replay":
+        # Play once every subscription of each played topic has matched (not /clock, not a
+        # topic nobody reads), so that no node or recorder misses the first frames.
+        readers = [*nodes, *([recorder] if recorder else [])]
+        counts = subscriber_counts(readers, [rules.get(t, t) for t in played])
+        waited = [f"{t}={counts[rules.get(t, t)]}" for t in played if counts[rules.get(t, t)]]
         arguments = [str(options.bag), "--topics", *played, "--rate", repr(options.rate),
-                     "--clock", "--wait-for-subscribers", "1", "--wait-topics", *waited,
-                     "--wait-timeout", "30"]  # fmt: skip
+                     "--clock", "--wait-topics", *waited,
+                     "--wait-timeout", repr(REPLAY_WAIT_TIMEOUT_S)]  # fmt: skip
         if options.loop:
             arguments.append("--loop")
         for topic in played:
@@ -259,7 +285,6 @@ def plan_launch(options: argparse.Namespace) -> LaunchPlan:
         _check_replay_arguments(arguments)
         source = GraphProcess(SOURCE, "endo-replay", arguments=tuple(arguments),
                               publishes=tuple(rules.get(t, t) for t in played))  # fmt: skip
-        recorded_extra = [rules.get(t, t) for t in (TRUE_DEPTH, TRUE_CAMERA_POSE) if t in played]
         ends = not options.loop
     elif options.preset == "sim":
         _check_sim_arguments(["live", options.scene, *options.sim_arg])
@@ -268,13 +293,8 @@ def plan_launch(options: argparse.Namespace) -> LaunchPlan:
         source = GraphProcess(SOURCE, "endo-sim", arguments=("live", options.scene,
                               *options.sim_arg), remaps=sim_rules,
                               publishes=tuple(rules.get(t, t) for t in inputs))  # fmt: skip
-    recorder = None
-    if options.record is not None:
-        recorded = [*node_outputs(nodes), rules.get(CAMERA_INFO, CAMERA_INFO), *recorded_extra]
-        recorder = GraphProcess(RECORDER, "endo-record", arguments=(
-            "--topics", *recorded, "-o", str(options.record), "--flush-period", "0.5"),
-            subscribes=tuple(recorded))  # fmt: skip
-    return LaunchPlan(nodes, source, recorder, ends, _missing_calibrations(nodes))
+    return LaunchPlan(nodes, source, recorder, ends, _missing_calibrations(nodes),
+                      camera_file=camera_file)
 
 
 def _check_replay_arguments(arguments: Sequence[str]) -> None:
@@ -544,6 +564,10 @@ def output_counts(plan: LaunchPlan, played: dict[str, int], recording: Path
 
 def run(options: argparse.Namespace) -> int:
     """Start the plan of ``options``, watch it, stop it; the exit code."""
+    if options.log_dir is None and not options.dry_run:
+        import tempfile
+
+        options.log_dir = Path(tempfile.mkdtemp(prefix="endo-launch-"))
     plan = plan_launch(options)
     if options.dry_run:
         for process in plan.processes:
@@ -553,10 +577,9 @@ def run(options: argparse.Namespace) -> int:
         raise LaunchError(f"{options.record} exists; endo-record does not overwrite")
     if not options.allow_shared_domain:
         _refuse_a_shared_domain(plan)
-    if options.log_dir is None:
-        import tempfile
-
-        options.log_dir = Path(tempfile.mkdtemp(prefix="endo-launch-"))
+    if plan.camera_file is not None:
+        Path(options.log_dir).mkdir(parents=True, exist_ok=True)
+        write_camera_file(options.bag, plan.camera_file)
     width = max(len(p.name) for p in plan.processes)
     echo = _Echo(sys.stdout, options.quiet, width)
     echo.say(f"logs in {options.log_dir}")

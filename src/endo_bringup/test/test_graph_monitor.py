@@ -51,7 +51,9 @@ def test_node_parameters_of_a_configuration_are_added_to_their_rows(tmp_path: Pa
     rows = {p.name: p for p in _table(tmp_path, settings)}
     assert rows["endo-sfs"].parameters["warm_start"] == "false"
     assert rows["endo-sfs"].parameters["model"] == "near_light"  # the table's own stay
-    assert rows["endo-flow"].command()[1:] == ["--ros-args", "-p", "newest_frame:=false"]
+    camera = f"warm_up_camera_file:={tmp_path / 'camera.yaml'}"
+    assert rows["endo-flow"].command()[1:] == ["--ros-args", "-p", camera,
+                                               "-p", "newest_frame:=false"]
     assert "newest_frame" not in rows["endo-photometric-correction"].parameters
 
 

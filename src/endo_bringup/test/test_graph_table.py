@@ -49,8 +49,11 @@ def test_command_lines_come_from_the_table(tmp_path: Path) -> None:
     sfs = commands["endo-sfs"][1:]
     assert sfs[0] == "--ros-args"
     assert sfs[1:7] == ["-p", "model:=near_light", "-p", "roughness:=0.3", "-p", "solve_scale:=1.0"]
+    # sfs and flow warm up on the bag's camera (written beside the recording by the run)
+    camera = f"warm_up_camera_file:={tmp_path / 'camera.yaml'}"
+    assert sfs[7:9] == ["-p", camera]
     # the nodes take every topic by its absolute name (endo_io.topics): no remaps
-    assert sfs[7:] == []
+    assert sfs[9:] == []
     assert not any("-r" in p.command() for p in processes)
     bridge = commands["endo-tracker-bridge"]
     # the bridge listens on the driver's /tracker/pose by default: no ros_topic, no remap
@@ -61,13 +64,17 @@ def test_command_lines_come_from_the_table(tmp_path: Path) -> None:
     # the player plays the bag's topics as they are
     player = commands[PLAYER][1:]
     assert player[:6] == [str(tmp_path / "phantom.mcap"), "--topics", *PLAYED]
-    assert player[6:] == ["--rate", "0.5", "--wait-for-subscribers", "1"]
+    # it plays once every subscription of each played topic matched: the correction's of the
+    # images; sfs's, flow's and the recorder's of camera_info; the bridge's; the recorder's
+    assert player[6:] == ["--rate", "0.5", "--wait-topics", f"{topics.IMAGE_RAW}=1",
+                          f"{topics.CAMERA_INFO}=3", f"{topics.TRACKER_POSE}=1",
+                          f"{topics.TRUE_DEPTH}=1", "--wait-timeout", "30.0"]
     # the recorder keeps what the nodes publish and the ground truth; no --ros-args
     outputs = [topics.IMAGE_CORRECTED, topics.DEPTH_RELATIVE, topics.CAMERA_POSE]
     outputs += [topics.MARKER_POSE, topics.SCALE, topics.DEPTH, topics.POINTS, topics.MAP]
     assert node_outputs(processes) == outputs
-    # the flow node takes every topic by its absolute name: no --ros-args at all
-    assert commands["endo-flow"][1:] == []
+    # the flow node takes every topic by its absolute name: its one parameter is the camera
+    assert commands["endo-flow"][1:] == ["--ros-args", "-p", camera]
     recorder = commands[RECORDER][1:]
     assert recorder == [
         "--topics", *outputs, topics.CAMERA_INFO, topics.TRUE_DEPTH, topics.TRUE_CAMERA_POSE,

@@ -10,6 +10,10 @@ NaN. The calibration comes from the ``calibration_file`` parameter
 restart. Images of another resolution with the calibration's aspect ratio
 (binned or scaled streams) are corrected with a resampled light map.
 
+Before it subscribes, the node corrects a synthetic raw frame of the
+calibration's size (first-call costs: buffers, the light map's resampling
+check), so its first real frame is as fast as any later one.
+
 A missing or corrupt calibration (a light map or light model that is not
 positive over the field of view, such as all coefficients 0, is refused at
 load), an image that does not match it, a bad encoding or undecodable CDR:
@@ -24,6 +28,7 @@ line and exit code 2, and is refused as a run-time change.
 from __future__ import annotations
 
 import sys
+import time
 from collections.abc import Mapping
 from typing import Any
 
@@ -39,7 +44,7 @@ from endo_io.diagnostics import HEALTH_PARAMETERS, InputHealth
 from endo_io.errors import ParameterValidationError
 from endo_io.image import array_to_image, image_to_array
 from endo_io.parameters import NodeParameters, ParameterSpec
-from endo_io.process import run_node
+from endo_io.process import describing_only, run_node
 from endo_io.provenance import provenance_summary
 from endo_io.qos import NEWEST_FRAME_QOS, create_reliable_publisher
 from endo_io.stamp import stamp_to_ns
@@ -111,6 +116,8 @@ class PhotometricCorrectionNode(Node):
                 self.calibration = calibration
                 self._report_loaded(path)
         self.parameters.on_change(self._apply_parameters)
+        if self.calibration is not None and not describing_only():
+            self._warm_up(self.calibration)
         self.subscription = self.health.subscribe(
             Image, topics.IMAGE_RAW, self._on_image, NEWEST_FRAME_QOS, gaps=True, newest=True
         )
@@ -168,19 +175,44 @@ class PhotometricCorrectionNode(Node):
             self.calibration = calibration
             self._report_loaded(values["calibration_file"])
 
+    def _warm_up(self, calibration: PhotometricCalibration) -> None:
+        """Correct a synthetic raw frame of the calibration's size, as a real one will be."""
+        start = time.perf_counter()
+        colour = len(calibration.channel_names) == 3
+        if colour and calibration.bit_depth > 8:
+            return  # no colour encoding of more than 8 bits comes in (see to_raw_frame)
+        encoding = "rgb8" if colour else "mono8" if calibration.bit_depth <= 8 else "mono16"
+        size = (calibration.height, calibration.width)
+        shape = (*size, 3) if colour else size
+        code = (1 << calibration.bit_depth) // 2
+        dtype = np.uint8 if calibration.bit_depth <= 8 else np.uint16
+        raw = array_to_image(np.full(shape, code, dtype), encoding, 0, "warm_up")
+        try:
+            self._correct(calibration, raw)
+        except CalibrationError:
+            return  # a calibration that does not fit its own size: the frames will say so
+        self.get_logger().info(
+            f"warmed up on a {calibration.width}x{calibration.height} {encoding} frame in "
+            f"{time.perf_counter() - start:.2f} s"
+        )
+
+    def _correct(self, calibration: PhotometricCalibration, msg: Image) -> tuple[Image, Any]:
+        """(the corrected image message, the raw frame) of one raw image message."""
+        frame = to_raw_frame(image_to_array(msg), msg.encoding)
+        mask = bool(self.parameters["mask_extrapolated"])
+        corrected = calibration.correct(frame, mask_extrapolated=mask)
+        output = select_channel(calibration, corrected, self.channel)
+        encoding = "32FC3" if output.ndim == 3 else "32FC1"
+        stamp = stamp_to_ns(msg.header.stamp)
+        return array_to_image(output, encoding, stamp, msg.header.frame_id), frame
+
     def _on_image(self, msg: Image) -> None:
         calibration = self.calibration
         if calibration is None:
             raise CalibrationNotLoadedError(f"no calibration loaded ({self.load_error})")
-        frame = to_raw_frame(image_to_array(msg), msg.encoding)
-        mask = bool(self.parameters["mask_extrapolated"])
-        corrected = calibration.correct(frame, mask_extrapolated=mask)
+        output, frame = self._correct(calibration, msg)
         self._count_extrapolated(calibration, frame)
-        output = select_channel(calibration, corrected, self.channel)
-        encoding = "32FC3" if output.ndim == 3 else "32FC1"
-        self.publisher.publish(
-            array_to_image(output, encoding, stamp_to_ns(msg.header.stamp), msg.header.frame_id)
-        )
+        self.publisher.publish(output)
 
 
 def main(args: list[str] | None = None) -> int:

@@ -43,6 +43,11 @@ Publications (reliable, QoS overridable):
 Services (std_srvs/Trigger): ``~/reset_map`` empties the map; ``~/export_map``
 writes it to ``ply_path`` as binary PLY (:func:`endo_flow.voxel_map.write_ply`).
 
+Before its publishers and subscriptions exist, the node runs the pipeline's
+first-frame work on synthetic frames of the ``warm_up_camera_file`` camera
+(:func:`endo_flow.warm_up.warm_up_pipeline`), so its first real frames are
+not slow; ``--help`` skips that.
+
 Bad input (one log line, counted, that frame dropped, the node keeps
 running): an image that is not 32FC1, a depth_relative or image of another
 size than camera_info, a NaN pose (rejected by the pose buffer), a
@@ -74,6 +79,7 @@ from endo_flow.pipeline import FlowFrame, FlowOptions, FlowOutput, FlowPipeline
 from endo_flow.scale import ScaleFilterOptions
 from endo_flow.shape_correction import SHAPE_CORRECTION_MODES, ShapeCorrectionOptions
 from endo_flow.tracking import TrackingOptions
+from endo_flow.warm_up import warm_up_pipeline
 from endo_io import topics
 from endo_io.camera import CameraModel
 from endo_io.clock_jump import ClockJumpDetector
@@ -81,6 +87,7 @@ from endo_io.diagnostics import HEALTH_PARAMETERS, InputHealth
 from endo_io.errors import (
     ClockJumpError,
     Endo3dError,
+    ParameterValidationError,
     PoseBeforeStreamError,
     PoseLookupError,
     PoseNotYetError,
@@ -89,7 +96,7 @@ from endo_io.image import array_to_image, image_to_array
 from endo_io.parameters import NodeParameters, ParameterSpec
 from endo_io.pose import pose_to_matrix
 from endo_io.pose_buffer import PoseBuffer
-from endo_io.process import run_node
+from endo_io.process import describing_only, run_node
 from endo_io.qos import (
     NEWEST_FRAME_QOS,
     SENSOR_DATA_QOS,
@@ -98,6 +105,10 @@ from endo_io.qos import (
 )
 from endo_io.stamp import NS_PER_S, stamp_to_ns
 from endo_io.stamp_matching import StampMatcher
+
+#: The camera warmed up on when ``warm_up_camera_file`` is empty (small: only
+#: the map's kernels matter then).
+WARM_UP_DEFAULT_CAMERA = CameraModel.pinhole(160, 120, 140.0, 140.0, 79.5, 59.5)
 
 PARAMETERS: tuple[ParameterSpec, ...] = (
     ParameterSpec("world_frame", topics.WORLD_FRAME,
@@ -154,6 +165,12 @@ PARAMETERS: tuple[ParameterSpec, ...] = (
     ParameterSpec("map_min_count", 1, "voxels fused from fewer points are not published or "
                   "exported", range=(1, 1000)),
     ParameterSpec("ply_path", "endo3d_map.ply", "file ~/export_map writes"),
+    ParameterSpec("warm_up_camera_file", "",
+                  "camera_calibration YAML of the camera whose frames will come: before it "
+                  "subscribes, the node tracks synthetic frames of that size and fuses a "
+                  "synthetic cloud (OpenCV buffers, the map's kernels), so that its first "
+                  "frames cost what later ones do; empty: the map's kernels only",
+                  read_only=True),
     *HEALTH_PARAMETERS,
 )
 
@@ -196,7 +213,10 @@ class FlowNode(Node):
         self.parameters = NodeParameters(self, PARAMETERS)
         values = self.parameters.values()
         self.parameters.on_change(self._apply)
-        self.pipeline = FlowPipeline(pipeline_options(values))
+        options = pipeline_options(values)
+        if not describing_only():  # --help lists parameters and must not warm up
+            self._warm_up(options, values["warm_up_camera_file"])
+        self.pipeline = FlowPipeline(options)
         tolerance_ns = round(values["stamp_tolerance"] * NS_PER_S)
         self._images: StampMatcher[Image, CameraInfo] = StampMatcher(
             values["queue_size"], tolerance_ns)
@@ -235,6 +255,29 @@ class FlowNode(Node):
             f"flow: {topics.IMAGE_CORRECTED} + {topics.DEPTH_RELATIVE} + {topics.CAMERA_INFO} "
             f"+ {topics.CAMERA_POSE} -> {topics.DEPTH}, {topics.POINTS}, {topics.MAP}, "
             f"{topics.SCALE}; shape_correction={values['shape_correction']}"
+        )
+
+    def _warm_up(self, options: FlowOptions, path: str) -> None:
+        """Run the pipeline's first-frame work on synthetic frames (see :mod:`endo_flow.warm_up`).
+
+        Raises:
+            ParameterValidationError: ``path`` does not load as a camera.
+        """
+        camera = WARM_UP_DEFAULT_CAMERA
+        if path:
+            try:
+                camera = CameraModel.load_yaml(path)
+            except (OSError, Endo3dError) as error:
+                raise ParameterValidationError(
+                    f"parameter warm_up_camera_file: {path} is not a camera_calibration YAML: "
+                    f"{error}"
+                ) from None
+        seconds = warm_up_pipeline(options, camera)
+        grey_cloud(np.zeros((1, 3), np.float32), np.zeros(1, np.uint8), 0,
+                   self.parameters["world_frame"])
+        self.get_logger().info(
+            f"warmed up on a {camera.width}x{camera.height} frame"
+            f"{f' of {path}' if path else ''} in {seconds:.2f} s"
         )
 
     # ------------------------------------------------------------------ parameters

@@ -125,7 +125,7 @@ def build_parser() -> argparse.ArgumentParser:
         default=None,
         metavar="TOPIC",
         help="wait only for these bag topics' subscribers (default: every played topic "
-        "and /clock)",
+        "and /clock); TOPIC=N waits for N subscribers of that topic instead",
     )
     parser.add_argument(
         "--wait-timeout",
@@ -318,20 +318,23 @@ class ReplayNode(Node):
             self._clock_publisher.publish(Clock(clock=ns_to_stamp(self._player.bag_time_ns())))
 
     def _wait_for_subscribers(self) -> None:
-        wanted = self._options.wait_for_subscribers
-        chosen = self._options.wait_topics
-        publishers = [p for t, p in self._bag_publishers.items() if chosen is None or t in chosen]
+        default = self._options.wait_for_subscribers
+        counts = wait_counts(self._options.wait_topics, default)
+        chosen = None if self._options.wait_topics is None else counts
+        wanted = {p: default if chosen is None else chosen[t]
+                  for t, p in self._bag_publishers.items() if chosen is None or t in chosen}
         if self._clock_publisher is not None and chosen is None:
-            publishers.append(self._clock_publisher)
-        if wanted <= 0 or not publishers:
+            wanted[self._clock_publisher] = default
+        if max(wanted.values(), default=0) <= 0:
             return
         deadline = time.monotonic() + self._options.wait_timeout
-        while not all(p.get_subscription_count() >= wanted for p in publishers):
+        while not all(p.get_subscription_count() >= n for p, n in wanted.items()):
             if time.monotonic() >= deadline:
-                lacking = [p.topic_name for p in publishers if p.get_subscription_count() < wanted]
+                lacking = [f"{p.topic_name} ({p.get_subscription_count()} of {n})"
+                           for p, n in wanted.items() if p.get_subscription_count() < n]
                 self.get_logger().warning(
-                    f"playing although {', '.join(lacking)} did not reach {wanted} subscriber(s) "
-                    f"within {self._options.wait_timeout:g} s"
+                    f"playing although {', '.join(lacking)} did not reach their subscriber "
+                    f"count within {self._options.wait_timeout:g} s"
                 )
                 return
             if self._stop.wait(0.01):
@@ -412,6 +415,21 @@ class ReplayNode(Node):
             print(f"endo-replay: error: {report.error}", file=sys.stderr, flush=True)
 
 
+def wait_counts(wait_topics: Sequence[str] | None, default: int) -> dict[str, int]:
+    """Bag topic -> subscribers to wait for, from ``--wait-topics`` (``TOPIC`` or ``TOPIC=N``).
+
+    Raises:
+        ValueError: an N that is not a whole number >= 0.
+    """
+    counts = {}
+    for item in wait_topics or ():
+        topic, _, number = item.partition("=")
+        if number and not number.isdigit():
+            raise ValueError(f"--wait-topics {item}: expected TOPIC or TOPIC=N with N >= 0")
+        counts[topic] = int(number) if number else default
+    return counts
+
+
 def check_options(options: argparse.Namespace) -> None:
     """Refuse options ``endo-replay`` cannot play with (``endo-launch`` checks them first).
 
@@ -426,7 +444,8 @@ def check_options(options: argparse.Namespace) -> None:
         raise ValueError(f"--start-offset must be >= 0, got {options.start_offset}")
     if options.wait_timeout < 0 or options.delay < 0 or options.ack_timeout < 0:
         raise ValueError("--wait-timeout, --delay and --ack-timeout must be >= 0")
-    unknown = set(options.wait_topics or ()) - set(options.topics or options.wait_topics or ())
+    waited = wait_counts(options.wait_topics, options.wait_for_subscribers)
+    unknown = set(waited) - set(options.topics or waited)
     if unknown:
         raise ValueError(f"--wait-topics {' '.join(sorted(unknown))} not among --topics")
 

@@ -19,8 +19,12 @@ highlights are masked by :func:`endo_sfs.highlights.detect_highlights`.
 The near-light solve is warm-started from the previous frame. The numba
 kernels are loaded (compiled on the very first run, which the node says up
 front, then from the kernel cache) by :func:`endo_sfs.warm_up.warm_up_kernels`
-before the subscriptions exist, so the first real frame is not slow;
-``--help`` skips that.
+before the publishers and subscriptions exist, and with
+``warm_up_camera_file`` a synthetic frame of the stream's camera is solved
+too (:func:`endo_sfs.warm_up.warm_up_frame`: its solve grids, frame-sized
+buffers), so the first real frame is not slow; ``--help`` skips that. A
+frame with no warm start (the first, or after a reset) starts from a coarse
+solve (:data:`endo_sfs.relative_depth.COARSE_START_FACTOR`).
 
 Bad input never stops the node: a wrong encoding, a camera_info of another
 size, undecodable CDR, a frame with no usable pixel (all dark, all
@@ -58,7 +62,7 @@ from endo_io import topics
 from endo_io.camera import CameraModel
 from endo_io.clock_jump import ClockJumpDetector
 from endo_io.diagnostics import HEALTH_PARAMETERS, InputHealth
-from endo_io.errors import ParameterValidationError
+from endo_io.errors import Endo3dError, ParameterValidationError
 from endo_io.image import array_to_image, image_to_array
 from endo_io.parameters import NodeParameters, ParameterSpec
 from endo_io.process import describing_only, run_node
@@ -87,10 +91,7 @@ from endo_sfs.options import (
 )
 from endo_sfs.relative_depth import solve, surface_normals
 from endo_sfs.warm_start import FrameDealer, WarmStartChain
-from endo_sfs.warm_up import warm_up_kernels
-
-#: Side of the synthetic image solved at start-up to load the kernels.
-
+from endo_sfs.warm_up import warm_up_frame, warm_up_kernels
 
 #: Every parameter of the node.
 PARAMETERS: tuple[ParameterSpec, ...] = (
@@ -185,6 +186,14 @@ PARAMETERS: tuple[ParameterSpec, ...] = (
         read_only=True,
     ),
     ParameterSpec(
+        "warm_up_camera_file", "",
+        "camera_calibration YAML of the camera whose frames will come: before it subscribes, "
+        "the node solves a synthetic frame of that camera (its solve grids, frame-sized "
+        "buffers), so that its first frame costs what later ones do; empty: the kernels only "
+        "(the first frame then also builds the grids, ~0.1 s at 640x480)",
+        read_only=True,
+    ),
+    ParameterSpec(
         "frame_period_s", 1.0 / 30.0,
         "the camera's frame period, seconds: frames are dealt to workers by their stamp "
         "rounded to it (every worker must use the same value)",
@@ -233,6 +242,7 @@ class SfsNode(Node):
             )
         if not describing_only():  # --help lists parameters and must not compile
             seconds = warm_up_kernels(announce=self.get_logger().info)
+            self._warm_up_on_camera(str(self.parameters["warm_up_camera_file"]))
             self.get_logger().info(f"shape-from-shading kernels ready in {seconds:.2f} s")
 
         self.health = InputHealth(self, "image input", settings=self.parameters)
@@ -273,6 +283,25 @@ class SfsNode(Node):
             )
             self.health.set_value("worker", f"{self._worker_index} of {self._worker_count}")
         self.parameters.on_change(self._apply_parameters)
+
+    def _warm_up_on_camera(self, path: str) -> None:
+        """Solve a synthetic frame of the camera in ``path`` (nothing when empty).
+
+        Raises:
+            ParameterValidationError: the file does not load as a camera.
+        """
+        if not path:
+            return
+        try:
+            camera = CameraModel.load_yaml(path)
+        except (OSError, Endo3dError) as error:
+            raise ParameterValidationError(
+                f"parameter warm_up_camera_file: {path} is not a camera_calibration YAML: {error}"
+            ) from None
+        seconds = warm_up_frame(camera, self._options)
+        self.get_logger().info(
+            f"warmed up on a {camera.width}x{camera.height} frame of {path} in {seconds:.2f} s"
+        )
 
     # ------------------------------------------------------------------ parameters
 
