@@ -36,6 +36,8 @@ from endo_io import topics
 pytestmark = [pytest.mark.ros, pytest.mark.timeout(180)]
 
 BAGS = Path(__file__).resolve().parents[1] / "bags"
+#: The stages run with newest_frame off here.
+IN_ORDER = ("endo-photometric-correction", "endo-sfs", "endo-flow")
 
 #: Smoke bound on the median-scaled AbsRel of depth_relative (measured ≤ 0.083).
 ABS_REL_BOUND = 0.2
@@ -58,7 +60,11 @@ def test_graph_on_the_sample_bags(tmp_path: Path) -> None:
     env.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
     assert "ROS_DOMAIN_ID" in env, "run with the test's own ROS_DOMAIN_ID"
 
-    report = run_graph_stage(BAGS, tmp_path, env, rate=GRAPH_RATE, solve_scale=0.5)
+    # Every frame in order (no newest-frame skips): a loaded machine delays the frames (up to
+    # the 8-deep input queues) instead of skipping the three with ground truth.
+    in_order = {name: {"newest_frame": "false"} for name in IN_ORDER}
+    report = run_graph_stage(BAGS, tmp_path, env, rate=GRAPH_RATE, solve_scale=0.5,
+                             node_parameters=in_order)
 
     assert report.failures() == []
     # offline calibrations, against the simulator's truth

@@ -43,6 +43,7 @@ import sys
 import tempfile
 import time
 from collections import defaultdict
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -458,12 +459,15 @@ def run_graph_stage(
     env: dict[str, str],
     rate: float = GRAPH_RATE,
     solve_scale: float = GRAPH_SOLVE_SCALE,
+    *,
+    node_parameters: Mapping[str, Mapping[str, str]] | None = None,
 ) -> GraphReport:
     """Offline calibrations, then the live graph on the phantom bag, then the scores.
 
     bags_dir holds graycard.mcap, handeye.mcap and phantom_colon.mcap with
     their ground truth; everything is written under ``out_dir``. Every child
-    process has ended when this returns.
+    process has ended when this returns. node_parameters: extra ROS
+    parameters per process name (:attr:`GraphSettings.node_parameters`).
     """
     # endo_process scores endo-process's output the same way; it depends on
     # endo_bringup, so it is imported here, when the graph part runs.
@@ -476,7 +480,8 @@ def run_graph_stage(
         return report
     report.scores = score_calibrations(calibrate.result, handeye.result, graycard, handeye_bag)
     graph_env, report.dds_note = with_large_frame_profile(env, out_dir)
-    settings = graph_settings_for(phantom, rate, solve_scale)
+    settings = dataclasses.replace(graph_settings_for(phantom, rate, solve_scale),
+                                   node_parameters=dict(node_parameters or {}))
     processes = planned_graph(phantom, calibrate.result, handeye.result, out_dir, settings)
     # the replay starts once the monitor's subscription matched too
     settings = dataclasses.replace(settings, listeners=GraphMonitor.played_listeners(processes))
