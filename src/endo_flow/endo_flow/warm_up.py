@@ -2,8 +2,8 @@
 
 A process's first frames pay for what later ones find ready: OpenCV's
 feature detection and pyramidal Lucas–Kanade buffers at the frame's size, and
-the numba kernels of the world cloud and of the voxel map, loaded from the
-kernel cache at the first cloud (the map's insert alone took 154 ms on the
+the numba kernels of triangulation, of the world cloud and of the voxel map,
+loaded from the kernel cache at their first use (the map's insert alone took 154 ms on the
 phantom's first cloud in a fresh process; at 0.25× playback the node skipped
 the 4 frames after it).
 :func:`warm_up_pipeline` runs that work on synthetic frames of the stream's
