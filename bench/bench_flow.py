@@ -13,17 +13,32 @@
    cloud (every 4th pixel: 19 200 points), a camera advancing 10 mm/s along a
    22 mm tube (a colon), 1 mm voxels: insert time per frame and memory.
 
-Usage: ``bench/bench_flow.py [--frames 150] [--map-minutes 10]``.
+3. With ``--reference DIR`` (an older endo_flow source tree, e.g.
+   ``git archive main src/endo_flow | tar -x -C DIR``): the default step alone
+   in one process, as the live node runs it, for the reference and for this
+   tree in alternating child processes (``--rounds`` each), on the same
+   frames: CPU per frame and the ratio new / reference per round.
+4. With ``--rss-loops N``: the step with the map on over the frames played N
+   times as a looping bag plays them (each loop a clock jump: every state and
+   the map reset), the process's RSS after every frame.
+
+Usage: ``bench/bench_flow.py [--frames 150] [--map-minutes 10] [--cache FILE]
+[--reference DIR --rounds 2] [--rss-loops 0] [--skip-configs]``.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import datetime
+import json
 import os
+import pickle
+import subprocess
 import sys
 import time
+from pathlib import Path
 
 import numpy as np
 from machine import cpu_model  # bench/ is on sys.path when run as bench/bench_flow.py
@@ -123,22 +138,144 @@ def map_bench(minutes: float, max_voxels: int) -> dict[str, float]:
             "memory_mb": voxel_map.nbytes / 2**20, "max_voxels": max_voxels}
 
 
+def load_frames(frames: int, cache: str | None) -> list[FlowFrame]:
+    """The rendered frames, from ``cache`` if it holds them (written there otherwise)."""
+    if cache and Path(cache).is_file():
+        with Path(cache).open("rb") as stream:
+            held: list[FlowFrame] = pickle.load(stream)
+        if len(held) >= frames:
+            return held[:frames]
+    rendered, _ = render(frames)
+    if cache:
+        with Path(cache).open("wb") as stream:
+            pickle.dump(rendered, stream)
+    return rendered
+
+
+def step_alone(frames: list[FlowFrame], warmup: int) -> dict[str, float]:
+    """The default step (map off) alone in this process: CPU and wall per frame."""
+    pipe = FlowPipeline(FlowOptions(map_enabled=False))
+    cpu, wall = [], []
+    stages: dict[str, list[float]] = {}
+    out = None
+    for k, frame in enumerate(frames):
+        start, start_cpu = time.perf_counter(), time.process_time()
+        out = pipe.process(frame)
+        elapsed, elapsed_cpu = time.perf_counter() - start, time.process_time() - start_cpu
+        if k >= warmup:
+            wall.append(elapsed)
+            cpu.append(elapsed_cpu)
+            for stage, ms in out.diagnostics.timings_ms.items():
+                stages.setdefault(stage, []).append(ms)
+    assert out is not None
+    row = {"cpu_ms": 1e3 * float(np.mean(cpu)), "cpu_max_ms": 1e3 * float(np.max(cpu)),
+           "wall_median_ms": 1e3 * float(np.median(wall)),
+           "wall_p90_ms": 1e3 * float(np.percentile(wall, 90)),
+           "scale_error": out.scale.value / S - 1.0}
+    for stage, values in stages.items():
+        row[f"{stage}_ms"] = float(np.mean(values))
+    return row
+
+
+def compare_reference(reference: str, cache: str, frames: int, warmup: int, rounds: int
+                      ) -> list[tuple[dict[str, float], dict[str, float]]]:
+    """Alternate child processes of the reference tree and this one; their step_alone rows."""
+    source = Path(reference) / "src" / "endo_flow"
+    if not (source / "endo_flow" / "pipeline.py").is_file():
+        raise SystemExit(f"{source} holds no endo_flow package")
+    command = [sys.executable, __file__, "--worker", "--cache", cache, "--frames", str(frames),
+               "--warmup", str(warmup)]
+    results = []
+    for _ in range(rounds):
+        pair = []
+        for path in (str(source), None):
+            env = dict(os.environ)
+            if path:  # ahead of the editable install of this tree
+                env["PYTHONPATH"] = os.pathsep.join(filter(None, [path,
+                                                                   env.get("PYTHONPATH")]))
+            done = subprocess.run(command, env=env, capture_output=True, text=True, check=True)
+            pair.append(json.loads(done.stdout.strip().splitlines()[-1]))
+        results.append((pair[0], pair[1]))
+    return results
+
+
+def rss_mb() -> float:
+    """Resident set size of this process, MB."""
+    resident = int(Path("/proc/self/statm").read_text().split()[1])
+    return resident * os.sysconf("SC_PAGE_SIZE") / 2**20
+
+
+def rss_over_loops(frames: list[FlowFrame], loops: int) -> list[float]:
+    """The step with the map on over ``loops`` plays of the frames; RSS after every frame."""
+    from endo_io.errors import ClockJumpError
+
+    pipe = FlowPipeline(FlowOptions())
+    samples = []
+    for _ in range(loops):
+        for frame in frames:
+            # the loop's first frame: every state reset, as the node does
+            with contextlib.suppress(ClockJumpError):
+                pipe.process(frame)
+            samples.append(rss_mb())
+    return samples
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--frames", type=int, default=150)
     parser.add_argument("--warmup", type=int, default=20)
     parser.add_argument("--map-minutes", type=float, default=10.0)
+    parser.add_argument("--cache", help="pickle of the rendered frames (read, or written)")
+    parser.add_argument("--reference", help="an older tree holding src/endo_flow to compare")
+    parser.add_argument("--rounds", type=int, default=2)
+    parser.add_argument("--rss-loops", type=int, default=0)
+    parser.add_argument("--skip-configs", action="store_true")
+    parser.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
     args = parser.parse_args()
+    if args.worker:  # one child of --reference: the step alone, one JSON line
+        print(json.dumps(step_alone(load_frames(args.frames, args.cache), args.warmup)))
+        return 0
     print(f"# bench_flow {datetime.date.today()} on {cpu_model()}, {os.cpu_count()} cores, "
           f"load average {os.getloadavg()[0]:.1f}", flush=True)
-    frames, _ = render(args.frames)
+    frames = load_frames(args.frames, args.cache)
+    alone = step_alone(frames, args.warmup)
+    print(f"default step alone ({len(frames) - args.warmup} frames after {args.warmup}): CPU "
+          f"{alone['cpu_ms']:.2f} ms per frame (max {alone['cpu_max_ms']:.1f}), wall median "
+          f"{alone['wall_median_ms']:.2f} ms, p90 {alone['wall_p90_ms']:.2f} ms; stages (wall, "
+          "mean ms): " + ", ".join(f"{k[:-3]} {v:.2f}" for k, v in alone.items()
+                                   if k.endswith("_ms") and not k.startswith(("cpu", "wall")))
+          + f"; scale error at the end {100 * alone['scale_error']:+.3f} %", flush=True)
+    if args.reference:
+        cache = args.cache or "/tmp/bench_flow_frames.pkl"
+        if not Path(cache).is_file():
+            with Path(cache).open("wb") as stream:
+                pickle.dump(frames, stream)
+        print(f"reference {args.reference} against this tree, alternated, {args.rounds} rounds:")
+        print("| round | reference CPU ms | this tree CPU ms | ratio | reference wall median |"
+              " this tree wall median | scale error reference / this tree |")
+        print("|---|---|---|---|---|---|---|")
+        for k, (old, new) in enumerate(compare_reference(args.reference, cache, args.frames,
+                                                          args.warmup, args.rounds), 1):
+            print(f"| {k} | {old['cpu_ms']:.2f} | {new['cpu_ms']:.2f} | "
+                  f"{new['cpu_ms'] / old['cpu_ms']:.2f} | {old['wall_median_ms']:.2f} | "
+                  f"{new['wall_median_ms']:.2f} | {100 * old['scale_error']:+.4f} % / "
+                  f"{100 * new['scale_error']:+.4f} % |", flush=True)
+    if args.rss_loops > 0:
+        samples = np.array(rss_over_loops(frames, args.rss_loops))
+        n = len(frames)
+        per_loop = samples.reshape(args.rss_loops, n)
+        print(f"RSS with the map on over {args.rss_loops} loops of {n} frames (MB): first frame "
+              f"{samples[0]:.0f}; per loop min/max "
+              + ", ".join(f"{lo:.0f}/{hi:.0f}" for lo, hi in zip(per_loop.min(axis=1),
+                                                                per_loop.max(axis=1),
+                                                                strict=True)), flush=True)
     base = FlowOptions(map_enabled=False)
 
     def tracking(**changes: object) -> FlowOptions:
         return dataclasses.replace(base, tracking=dataclasses.replace(TrackingOptions(),
                                                                       **changes))
 
-    configs = {
+    configs: dict[str, FlowOptions] = {} if args.skip_configs else {
         "default (200 tracks, half res, 2 levels, reseed/10)": base,
         "100 tracks": tracking(max_tracks=100),
         "400 tracks": tracking(max_tracks=400),
@@ -146,10 +283,11 @@ def main() -> int:
         "seeds not checked for highlights": tracking(mask_highlights=False),
         "cloud every 8th pixel": dataclasses.replace(base, cloud_decimation=8),
     }
-    results = per_frame(frames, configs, args.warmup)
-    print("| configuration | CPU ms (mean) | wall median ms | p90 ms | tracking | triangulation |"
-          " scale | depth | cloud | scale error at the end |")
-    print("|---|---|---|---|---|---|---|---|---|---|")
+    results = per_frame(frames, configs, args.warmup) if configs else {}
+    if results:
+        print("| configuration | CPU ms (mean) | wall median ms | p90 ms | tracking |"
+              " triangulation | scale | depth | cloud | scale error at the end |")
+        print("|---|---|---|---|---|---|---|---|---|---|")
     for name, row in results.items():
         print(f"| {name} | {row['cpu_ms']:.1f} | {row['median_ms']:.1f} | {row['p90_ms']:.1f} | "
               f"{row.get('tracking_ms', 0):.1f} | {row.get('triangulation_ms', 0):.1f} | "
