@@ -651,6 +651,53 @@ def phantom(bag: str, calibration: str, roughness: float, mask_highlights: bool,
           f"{1e3 * np.percentile(wall, 90):.1f} ms; {np.mean(updates):.2f} node solves per node")
 
 
+def breakdown(bag: str, calibration: str, frames: int, threads: int, downsample: int) -> None:
+    """Where the wall time of a warm phantom frame goes, stage by stage, at solve_scale 1 and 0.5.
+
+    Every frame of the bag in order, warm-started as the node does, highlights
+    masked; the median over the frames after the first of each stage of
+    :attr:`endo_sfs.relative_depth.SfsSolution.timings` and of the whole
+    ``solve`` call (wall and process CPU). With an ``endo_sfs`` that records
+    no timings (an older tree on PYTHONPATH) only the totals are printed.
+    """
+    sequence, camera, _ = phantom_sequence(bag, calibration, np.random.default_rng(0))
+    sequence = sequence[:frames]
+    mask = camera.fov_mask(240.0)
+    extra: dict[str, int] = {}
+    if "highlight_downsample" in SfsOptions.__dataclass_fields__:
+        extra["highlight_downsample"] = downsample
+    print(f"\nbreakdown, {bag} ({len(sequence)} frames), threads {threads}, {extra}")
+    for scale in (1.0, 0.5):
+        options = SfsOptions(roughness=0.3, solve_scale=scale, mask_highlights=True,
+                             threads=threads, **extra)
+        previous = solve(sequence[0][0], camera, options, mask=mask)
+        walls: list[float] = []
+        cpus: list[float] = []
+        work: list[float] = []
+        stages: dict[str, list[float]] = {}
+        for irradiance, _, _ in sequence[1:]:
+            start, start_cpu = time.perf_counter(), time.process_time()
+            previous = solve(irradiance, camera, options, mask=mask, warm_start=previous)
+            walls.append(time.perf_counter() - start)
+            cpus.append(time.process_time() - start_cpu)
+            work.append(previous.info.updates / np.isfinite(previous.node_solution).sum())
+            for name, seconds in getattr(previous, "timings", {}).items():
+                stages.setdefault(name, []).append(seconds)
+        nodes = int(np.isfinite(previous.node_solution).sum())
+        print(f"solve_scale {scale:g}: {nodes} nodes, {np.mean(work):.2f} node solves per node; "
+              f"whole solve median {1e3 * np.median(walls):.1f} ms wall (p90 "
+              f"{1e3 * np.percentile(walls, 90):.1f}), {1e3 * np.median(cpus):.1f} ms CPU")
+        if stages:
+            print("| stage | median ms | p90 ms |")
+            print("|---|---|---|")
+            for name, values in stages.items():
+                print(f"| {name} | {1e3 * np.median(values):.2f} | "
+                      f"{1e3 * np.percentile(values, 90):.2f} |")
+            rest = np.array(walls) - np.sum([np.array(v) for v in stages.values()], axis=0)
+            print(f"| (rest of solve: checks, warm-start lookup, Python) | "
+                  f"{1e3 * np.median(rest):.2f} | {1e3 * np.percentile(rest, 90):.2f} |")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--frames", type=int, default=30)
@@ -678,8 +725,20 @@ def main() -> None:
                         help="only run one endo-sfs process against two workers on the "
                         "phantom (--phantom-bag, --calibration; ROS_DOMAIN_ID from the "
                         "environment)")
+    parser.add_argument("--breakdown", action="store_true",
+                        help="only time the stages of a warm phantom frame at solve_scale 1 and "
+                        "0.5 (--phantom-bag, --calibration, --threads, --frames)")
+    parser.add_argument("--highlight-downsample", type=int, default=1,
+                        help="--breakdown: SfsOptions.highlight_downsample")
     args = parser.parse_args()
     print(f"machine: {machine()}")
+    if args.breakdown:
+        if not (args.phantom_bag and args.calibration):
+            parser.error("--breakdown needs --phantom-bag and --calibration")
+        breakdown(args.phantom_bag, args.calibration, args.frames, args.threads,
+                  args.highlight_downsample)
+        print(f"machine after: {machine()}")
+        return
     if args.workers:
         if not (args.phantom_bag and args.calibration):
             parser.error("--workers needs --phantom-bag and --calibration")

@@ -53,6 +53,7 @@ class SolveGrid:
         pixel_node_x, pixel_node_y: (H, W) float64 node coordinates of every
             pixel (NaN for pixels without a chart position).
         pixel_rays: (H, W, 3) float64 unit ray of every pixel.
+        pixel_ray_z: (H, W) float64 its z component, contiguous (depth = r·ω_z).
         pixel_has_ray: (H, W) bool pixels whose ray is finite.
         identity: True when nodes and pixels coincide (no resampling).
     """
@@ -67,6 +68,7 @@ class SolveGrid:
     pixel_node_x: np.ndarray
     pixel_node_y: np.ndarray
     pixel_rays: np.ndarray
+    pixel_ray_z: np.ndarray
     pixel_has_ray: np.ndarray
     identity: bool
 
@@ -81,8 +83,10 @@ class SolveGrid:
         if self.identity:
             values = np.where(valid, image, np.nan).astype(np.float64)
             return values, valid.copy()
+        # float32 (the corrected image) is read as it is: no float64 copy.
+        dtype = np.float32 if np.asarray(image).dtype == np.float32 else np.float64
         return resampling.sample_strict(
-            np.ascontiguousarray(image, dtype=np.float64),
+            np.ascontiguousarray(image, dtype=dtype),
             np.ascontiguousarray(valid),
             self.node_pixel_x,
             self.node_pixel_y,
@@ -192,6 +196,7 @@ def build_solve_grid(camera: CameraModel, projection: Projection, solve_scale: f
         pixel_node_x=np.ascontiguousarray(pixel_node_x),
         pixel_node_y=np.ascontiguousarray(pixel_node_y),
         pixel_rays=rays,
+        pixel_ray_z=np.ascontiguousarray(rays[..., 2]),
         pixel_has_ray=np.all(np.isfinite(rays), axis=-1),
         identity=identity,
     )

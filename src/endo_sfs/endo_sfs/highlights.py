@@ -45,6 +45,7 @@ from __future__ import annotations
 
 import cv2
 import numpy as np
+from numba import njit, prange
 from scipy import ndimage
 
 from endo_sfs.errors import SfsInputError
@@ -61,7 +62,7 @@ DEFAULT_SHOULDER_EXCESS = 0.3
 #: excess to be measured (about 0.4 radii from a straight edge of the data).
 DEFAULT_MIN_SUPPORT = 0.85
 #: Gaussian σ (pixels) of ln I before it is compared with the baseline.
-_FINE_SIGMA = 1.5
+FINE_SIGMA = 1.5
 #: Stand-in for ±∞ in the float32 morphology (cells that take no part).
 _NO_PART = np.float32(1e30)
 
@@ -95,6 +96,7 @@ def diffuse_excess(
     opening_radius: float = DEFAULT_OPENING_RADIUS,
     closing_radius: float = DEFAULT_CLOSING_RADIUS,
     min_support: float = DEFAULT_MIN_SUPPORT,
+    fine_sigma: float = FINE_SIGMA,
 ) -> tuple[np.ndarray, np.ndarray]:
     """ln I minus its morphological diffuse baseline (step 2–3 of the module docstring).
 
@@ -105,12 +107,11 @@ def diffuse_excess(
     0 where not ``data``; (H, W) bool pixels whose baseline has that support).
     """
     height, width = irradiance.shape
-    log_i = np.log(np.where(data, irradiance, 1.0)).astype(np.float32)
-    weight = data.astype(np.float32)
+    weighted_log, weight = _log_and_weight(np.ascontiguousarray(irradiance), data)
     factor = max(1, round(height / BASELINE_ROWS))
     size = (max(1, width // factor), max(1, height // factor))
     cell_weight = cv2.resize(weight, size, interpolation=cv2.INTER_AREA)
-    cell_log = cv2.resize(log_i * weight, size, interpolation=cv2.INTER_AREA)
+    cell_log = cv2.resize(weighted_log, size, interpolation=cv2.INTER_AREA)
     has_data = cell_weight > 0.5
     cell_log = np.where(has_data, cell_log / np.maximum(cell_weight, 1e-6), 0.0)
     cell_saturated = (
@@ -134,9 +135,100 @@ def diffuse_excess(
         part.astype(np.float32), -1, disc / disc.sum(), borderType=cv2.BORDER_CONSTANT
     )
     support = cv2.resize(support, (width, height), interpolation=cv2.INTER_LINEAR)
-    fine = _normalised_blur(log_i, weight, _FINE_SIGMA)
-    excess = np.where(data, fine - baseline, 0.0).astype(np.float32)
-    return excess, data & (support >= min_support)
+    # The fine image is the normalised blur of ln I over the data.
+    blurred_log = cv2.GaussianBlur(weighted_log, (0, 0), fine_sigma,
+                                   borderType=cv2.BORDER_CONSTANT)  # fmt: skip
+    blurred_weight = cv2.GaussianBlur(weight, (0, 0), fine_sigma, borderType=cv2.BORDER_CONSTANT)
+    return _excess(blurred_log, blurred_weight, baseline, support, data, np.float32(min_support))
+
+
+@njit(cache=True, nogil=True, error_model="numpy", parallel=True)
+def _log_and_weight(irradiance: np.ndarray, data: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(ln I where ``data`` else 0, ``data`` as 0/1), both (H, W) float32, in one pass."""
+    height, width = irradiance.shape
+    weighted_log = np.zeros((height, width), dtype=np.float32)
+    weight = np.zeros((height, width), dtype=np.float32)
+    for r in prange(height):
+        for c in range(width):
+            if data[r, c]:
+                weighted_log[r, c] = np.log(np.float32(irradiance[r, c]))
+                weight[r, c] = 1.0
+    return weighted_log, weight
+
+
+@njit(cache=True, nogil=True, error_model="numpy", parallel=True)
+def _excess(
+    blurred_log: np.ndarray,
+    blurred_weight: np.ndarray,
+    baseline: np.ndarray,
+    support: np.ndarray,
+    data: np.ndarray,
+    min_support: np.float32,
+) -> tuple[np.ndarray, np.ndarray]:
+    """The excess of the fine ln I over the baseline, and where the baseline has support.
+
+    fine = blurred_log / max(blurred_weight, 1e-6) (the normalised blur);
+    all (H, W) float32 but ``data`` (bool). Returns ((H, W) float32 excess,
+    0 outside ``data``; (H, W) bool data pixels with support ≥ min_support).
+    """
+    height, width = data.shape
+    excess = np.zeros((height, width), dtype=np.float32)
+    supported = np.zeros((height, width), dtype=np.bool_)
+    floor = np.float32(1e-6)
+    for r in prange(height):
+        for c in range(width):
+            if data[r, c]:
+                fine = blurred_log[r, c] / max(blurred_weight[r, c], floor)
+                excess[r, c] = fine - baseline[r, c]
+                supported[r, c] = support[r, c] >= min_support
+    return excess, supported
+
+
+@njit(cache=True, nogil=True, error_model="numpy", parallel=True)
+def block_means(
+    image: np.ndarray, region: np.ndarray, saturation: float, factor: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """``image`` reduced by ``factor`` in both directions, for detection on fewer pixels.
+
+    image: (H, W) float; region: (H, W) bool; saturation: values at or
+    above it are saturated (inf: none). A block of factor × factor pixels
+    (the last row and column of blocks may be partial) is in the small
+    region when at least half of its pixels are in ``region``. Its value is
+    NaN (saturated) when any of its region pixels is NaN or saturated,
+    else the mean of its region pixels that are > 0 (0 when there are none:
+    dark, not saturated). Returns ((h, w) float32, (h, w) bool) with
+    h = ceil(H / factor), w = ceil(W / factor).
+    """
+    height, width = image.shape
+    rows = (height + factor - 1) // factor
+    columns = (width + factor - 1) // factor
+    small = np.zeros((rows, columns), dtype=np.float32)
+    inside = np.zeros((rows, columns), dtype=np.bool_)
+    for r in prange(rows):
+        for c in range(columns):
+            total = 0.0
+            count = 0
+            in_region = 0
+            pixels = 0
+            saturated = False
+            for y in range(r * factor, min((r + 1) * factor, height)):
+                for x in range(c * factor, min((c + 1) * factor, width)):
+                    pixels += 1
+                    if not region[y, x]:
+                        continue
+                    in_region += 1
+                    value = image[y, x]
+                    if not (value < saturation):  # NaN or saturated
+                        saturated = True
+                    elif value > 0.0:
+                        total += value
+                        count += 1
+            inside[r, c] = 2 * in_region >= pixels
+            if saturated:
+                small[r, c] = np.nan
+            elif count > 0:
+                small[r, c] = total / count
+    return small, inside
 
 
 def detect_highlights(
@@ -148,6 +240,8 @@ def detect_highlights(
     opening_radius: float = DEFAULT_OPENING_RADIUS,
     closing_radius: float = DEFAULT_CLOSING_RADIUS,
     min_support: float = DEFAULT_MIN_SUPPORT,
+    *,
+    downsample: int = 1,
 ) -> np.ndarray:
     """Pixels of specular highlights (saturated or not) and their shoulders.
 
@@ -167,6 +261,12 @@ def detect_highlights(
             the image height (> 0).
         min_support: fraction of the opening's disc that must hold data
             for an excess core (see the module docstring).
+        downsample: detect on the image reduced by this factor
+            (:func:`block_means`: a block with a saturated pixel is
+            saturated) and give each pixel its block's answer. The filters'
+            radii are fractions of the height, so the result is the same
+            detection on a coarser grid; a solve on a coarser grid
+            (``solve_scale`` 0.5) cannot use finer detail anyway.
 
     Returns:
         (H, W) bool, True on highlight pixels (inside ``mask`` if given).
@@ -185,29 +285,132 @@ def detect_highlights(
         )
     if not (opening_radius > 0.0 and closing_radius > 0.0):
         raise SfsInputError("opening_radius and closing_radius must be > 0")
+    if downsample < 1:
+        raise SfsInputError(f"downsample must be >= 1, got {downsample}")
     region = np.ones(image.shape, dtype=bool) if mask is None else np.asarray(mask, dtype=bool)
-    finite = np.isfinite(image)
-    with np.errstate(invalid="ignore"):
-        saturated = ~finite
-        if saturation is not None:
-            saturated |= image >= saturation
-        data = finite & (image > 0.0) & region & ~saturated
+    if downsample > 1:
+        if mask is None:
+            # NaN holes enclosed by data are saturated: the same as a mask around them.
+            region = ndimage.binary_fill_holes(np.isfinite(image))
+        small, small_region = block_means(
+            np.ascontiguousarray(image, dtype=np.float64), np.ascontiguousarray(region),
+            np.inf if saturation is None else float(saturation), downsample,
+        )
+        found = _detect(
+            small, small_region, None, core_excess, shoulder_excess, opening_radius,
+            closing_radius, min_support, FINE_SIGMA / downsample,
+        )
+        height, width = image.shape
+        full = np.repeat(np.repeat(found, downsample, axis=0), downsample, axis=1)
+        return full[:height, :width] & region
+    return _detect(
+        image, mask, saturation, core_excess, shoulder_excess, opening_radius, closing_radius,
+        min_support, FINE_SIGMA,
+    )
+
+
+def _detect(
+    image: np.ndarray,
+    mask: np.ndarray | None,
+    saturation: float | None,
+    core_excess: float,
+    shoulder_excess: float,
+    opening_radius: float,
+    closing_radius: float,
+    min_support: float,
+    fine_sigma: float,
+) -> np.ndarray:
+    """:func:`detect_highlights` on checked arguments, at the image's own resolution."""
+    region = np.ones(image.shape, dtype=bool) if mask is None else np.asarray(mask, dtype=bool)
+    region = np.ascontiguousarray(region)
+    saturated, data = _classify(
+        np.ascontiguousarray(image), region, np.inf if saturation is None else float(saturation)
+    )
     if mask is None:
-        saturated &= ndimage.binary_fill_holes(finite)
-    saturated &= region
+        saturated &= ndimage.binary_fill_holes(np.isfinite(image))
     if saturated.any():
         margin = max(1, round(image.shape[0] / 240))
         saturated = cv2.dilate(saturated.astype(np.uint8), _disc(margin)).astype(bool) & region
         data &= ~saturated
     excess, supported = diffuse_excess(
-        image, data, saturated, opening_radius, closing_radius, min_support
+        image, data, saturated, opening_radius, closing_radius, min_support, fine_sigma
     )
-    core = saturated | ((excess > core_excess) & supported)
-    if not core.any():
+    core, candidate, cores = _cores(
+        excess, supported, saturated, np.float32(core_excess), np.float32(shoulder_excess)
+    )
+    if cores == 0:
         return np.zeros(image.shape, dtype=bool)
-    candidate = (core | (excess > shoulder_excess)).astype(np.uint8)
     count, labels = cv2.connectedComponents(candidate, connectivity=8)
-    keep = np.zeros(count, dtype=bool)
-    keep[labels[core]] = True
+    return _regions_with_a_core(labels, core, region, count)
+
+
+@njit(cache=True, nogil=True, error_model="numpy", parallel=True)
+def _classify(
+    image: np.ndarray, region: np.ndarray, saturation: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Saturated pixels of ``region`` (not finite, or ≥ ``saturation``) and data pixels (> 0).
+
+    Returns two (H, W) bool arrays, in one pass.
+    """
+    height, width = image.shape
+    saturated = np.zeros((height, width), dtype=np.bool_)
+    data = np.zeros((height, width), dtype=np.bool_)
+    for r in prange(height):
+        for c in range(width):
+            if not region[r, c]:
+                continue
+            value = image[r, c]
+            if not np.isfinite(value) or value >= saturation:
+                saturated[r, c] = True
+            elif value > 0.0:
+                data[r, c] = True
+    return saturated, data
+
+
+@njit(cache=True, nogil=True, error_model="numpy", parallel=True)
+def _cores(
+    excess: np.ndarray,
+    supported: np.ndarray,
+    saturated: np.ndarray,
+    core_excess: np.float32,
+    shoulder_excess: np.float32,
+) -> tuple[np.ndarray, np.ndarray, int]:
+    """Highlight cores (saturated, or excess above ``core_excess`` with support) and candidates.
+
+    Returns ((H, W) bool cores; (H, W) uint8 candidates: cores and every
+    pixel of excess above ``shoulder_excess``; the number of cores).
+    """
+    height, width = excess.shape
+    core = np.zeros((height, width), dtype=np.bool_)
+    candidate = np.zeros((height, width), dtype=np.uint8)
+    counts = np.zeros(height, dtype=np.int64)
+    for r in prange(height):
+        count = 0
+        for c in range(width):
+            is_core = saturated[r, c] or (excess[r, c] > core_excess and supported[r, c])
+            if is_core:
+                core[r, c] = True
+                count += 1
+            if is_core or excess[r, c] > shoulder_excess:
+                candidate[r, c] = 1
+        counts[r] = count
+    return core, candidate, int(counts.sum())
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _regions_with_a_core(
+    labels: np.ndarray, core: np.ndarray, region: np.ndarray, count: int
+) -> np.ndarray:
+    """The pixels of ``region`` whose connected candidate region (label > 0) holds a core."""
+    height, width = labels.shape
+    keep = np.zeros(count, dtype=np.bool_)
+    for r in range(height):
+        for c in range(width):
+            if core[r, c]:
+                keep[labels[r, c]] = True
     keep[0] = False
-    return keep[labels] & region
+    out = np.zeros((height, width), dtype=np.bool_)
+    for r in range(height):
+        for c in range(width):
+            out[r, c] = keep[labels[r, c]] and region[r, c]
+    return out

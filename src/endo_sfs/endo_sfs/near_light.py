@@ -31,6 +31,10 @@ recovered to discretisation accuracy.
 
 from __future__ import annotations
 
+import threading
+import time
+from collections import OrderedDict
+
 import numpy as np
 
 from endo_sfs import kernels
@@ -49,6 +53,34 @@ MAX_ROUGHNESS = 0.6
 #: Below this many nodes the first pass is not split across threads (the
 #: thread start-up and the seam cost more than they save).
 MIN_PARALLEL_NODES = 20000
+
+#: Padded work arrays kept per (grid shape, thread), so that a stream of
+#: frames on one grid allocates them once: (v, node, valid, key).
+_WORKSPACES: OrderedDict[
+    tuple[int, int, int], tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]
+] = OrderedDict()
+_WORKSPACE_COUNT = 4
+
+
+def _workspace(shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The padded arrays of :func:`endo_sfs.kernels.near_light_inputs_into` for ``shape``."""
+    ny, nx = shape
+    slot = (ny, nx, threading.get_ident())
+    arrays = _WORKSPACES.get(slot)
+    if arrays is None:
+        arrays = (
+            np.empty((ny + 4, nx + 4)),
+            np.empty((ny + 4, nx + 4, 4)),
+            np.empty((ny + 4, nx + 4), dtype=np.uint8),
+            np.empty((ny + 4, nx + 4)),
+        )
+        _WORKSPACES[slot] = arrays
+        while len(_WORKSPACES) > _WORKSPACE_COUNT:
+            _WORKSPACES.popitem(last=False)
+    else:
+        _WORKSPACES.move_to_end(slot)
+    return arrays
+
 
 def global_shift(
     previous: np.ndarray,
@@ -91,6 +123,7 @@ def solve_near_light(
     warm_start_slope: np.ndarray | None = None,
     threads: int = 1,
     first_pass: bool = True,
+    timings: dict[str, float] | None = None,
 ) -> tuple[np.ndarray, np.ndarray, SolveInfo]:
     """Log-distance v = ln r per node of a stereographic solve grid.
 
@@ -110,7 +143,9 @@ def solve_near_light(
     first_pass: solve every node once in predicted value order before
     sweeping (orders 1 and 2); False sweeps from the start, which is
     cheaper when the predicted order is poor (see
-    :func:`endo_sfs.relative_depth.solve`, which chooses).
+    :func:`endo_sfs.relative_depth.solve`, which chooses). timings: if
+    given, receives the wall seconds of the stages ("inputs", "order",
+    "sweeps", "outputs").
     Returns ((ny, nx) float64 v, NaN at invalid nodes; (ny, nx) float64
     F = tan θ, the angle between surface normal and ray, NaN at invalid
     nodes; info).
@@ -119,6 +154,7 @@ def solve_near_light(
         raise SfsInputError(f"order must be 1, 2 or 3, got {order}")
     if not 0.0 <= roughness <= MAX_ROUGHNESS:
         raise SfsInputError(f"roughness must be in [0, {MAX_ROUGHNESS}] rad, got {roughness}")
+    start = time.perf_counter()
     intensity = np.asarray(intensity, dtype=np.float64)
     valid = np.asarray(valid, dtype=bool) & np.isfinite(intensity) & (intensity > 0.0)
     if not valid.any():
@@ -140,10 +176,14 @@ def solve_near_light(
     # The sweeps start from v*, above the solution, so values only fall and
     # the scheme stays causal; the previous frame orders the first pass and
     # seeds each node's Newton solve.
-    v, node, valid_p, key = kernels.near_light_inputs(
+    v, node, valid_p, key = _workspace(intensity.shape)
+    kernels.near_light_inputs_into(
         intensity, valid, np.asarray(conformal_factor_sq, dtype=np.float64), previous,
-        previous_slope, shift, reflectance,
+        previous_slope, shift, reflectance, v, node, valid_p, key,
     )
+    stages: dict[str, float] = {} if timings is None else timings
+    stages["inputs"] = (now := time.perf_counter()) - start
+    start = now
     hx, hy = spacing
     eps = _WENO_EPS_REL * hx * hy
     updates = 0
@@ -166,16 +206,17 @@ def solve_near_light(
     elif order != 3 and parallel:
         # Sweeps alone: two halves of equal node count, split by rows.
         sweep_split = int(np.searchsorted(np.cumsum(valid_p.sum(axis=1)), nodes // 2))
+    stages["order"] = (now := time.perf_counter()) - start
+    start = now
     iterations, change, more = kernels.near_light_sweep(
         v, node, valid_p, hx, hy, reflectance, order, tolerance, max_iterations, eps, table,
         ordered, split, seam, sweep_split,
     )
+    stages["sweeps"] = (now := time.perf_counter()) - start
+    start = now
     info = SolveInfo(
         int(iterations), float(change), bool(change <= tolerance), int(updates + more)
     )
-    inside = (slice(2, -2), slice(2, -2))
-    return (
-        np.where(valid, v[inside], np.nan),
-        np.where(valid, node[(*inside, kernels.NODE_SEED)], np.nan),
-        info,
-    )
+    log_r, slope = kernels.near_light_outputs(v, node, valid)
+    stages["outputs"] = time.perf_counter() - start
+    return log_r, slope, info

@@ -18,9 +18,10 @@ Conventions:
 
 from __future__ import annotations
 
+import time
 from collections.abc import Iterator
 from contextlib import contextmanager, suppress
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 import cv2
 import numba
@@ -34,11 +35,12 @@ from endo_sfs.errors import (
     SfsInputError,
     SolutionRangeError,
 )
-from endo_sfs.grid import Projection, SolveGrid, solve_grid
+from endo_sfs.grid import SolveGrid, solve_grid
 from endo_sfs.highlights import detect_highlights
 from endo_sfs.near_light import solve_near_light
 from endo_sfs.options import SfsOptions
 from endo_sfs.orthographic import SolveInfo, solve_orthographic
+from endo_sfs.resampling import depth_from_log_distance, usable_pixels
 
 #: The settings a solve uses when none are given.
 DEFAULT_OPTIONS = SfsOptions()
@@ -69,7 +71,8 @@ class SfsSolution:
     ordered_work: near-light only, node solves per node the last time a
     frame of this warm-start chain was solved with the value-ordered first
     pass; frames_since_ordered: frames since then (see
-    :func:`_use_first_pass`).
+    :func:`_use_first_pass`). timings: wall seconds of the solve's stages
+    (:data:`STAGES`; near-light only, empty otherwise).
     """
 
     depth: np.ndarray
@@ -82,6 +85,16 @@ class SfsSolution:
     node_slope: np.ndarray | None = None
     ordered_work: float | None = None
     frames_since_ordered: int = 0
+    timings: dict[str, float] = field(default_factory=dict)
+
+
+#: The stages of a near-light solve timed in :attr:`SfsSolution.timings`:
+#: the validity pass (finite, dark, saturated, mask, brightest value),
+#: highlight detection, resampling to the nodes, the solver's inputs
+#: (global shift, padded arrays), ordering and splitting, the sweeps (and
+#: first pass), unpadding, and the resampling back to depth.
+STAGES = ("validity", "highlights", "to_nodes", "inputs", "order", "sweeps", "outputs",
+          "to_pixels")
 
 
 @dataclass(frozen=True)
@@ -304,12 +317,14 @@ def solve(
     # numba's thread count is per calling thread: set it for this call only.
     with _numba_threads(options.threads):
         image = _check_inputs(irradiance, camera, mask)
+        if model == "near_light":
+            return _solve_near_light(image, camera, options, mask, warm_start)
         _check_irradiance_range(image, options.max_irradiance)
         valid = valid_pixels(image, mask, options.dark_level, options.saturation)
         if options.mask_highlights:
-            valid &= ~detect_highlights(image, mask, options.saturation)
-        projection: Projection = "stereographic" if model == "near_light" else "gnomonic"
-        grid = solve_grid(camera, projection, options.solve_scale)
+            valid &= ~detect_highlights(image, mask, options.saturation,
+                                        downsample=options.highlight_downsample)
+        grid = solve_grid(camera, "gnomonic", options.solve_scale)
         valid &= grid.pixel_has_ray
         if not valid.any():
             raise NoValidPixelsError(
@@ -320,58 +335,113 @@ def solve(
         )
         if not node_valid.any():
             raise NoValidPixelsError("no usable pixel survives resampling to the solve grid")
-        ordered_work: float | None = None
-        frames_since_ordered = 0
-        if model == "near_light":
-            warm_log_r, warm_irradiance, warm_slope = _warm_nodes(warm_start, grid)
-            first_pass = _use_first_pass(warm_start)
-            log_r, node_slope, info = solve_near_light(
-                nodes, node_valid, grid.conformal_factor_sq, grid.spacing,
-                roughness=options.roughness, order=options.order,
-                tolerance=options.tolerance, max_iterations=options.max_iterations,
-                warm_start=warm_log_r, warm_start_intensity=warm_irradiance,
-                warm_start_slope=warm_slope, threads=options.threads, first_pass=first_pass,
-            )
-            if first_pass:
-                ordered_work = info.updates / max(1, int(node_valid.sum()))
-            elif isinstance(warm_start, SfsSolution | PredictedStart):
-                ordered_work = warm_start.ordered_work
-                frames_since_ordered = warm_start.frames_since_ordered + 1
-            with np.errstate(invalid="ignore"):
-                depth = np.exp(grid.to_pixels(log_r, valid)) * grid.pixel_rays[..., 2]
-            node_solution = log_r
-        else:
-            node_slope = None
-            boundary_nodes = None
-            if boundary_depth is not None:
-                if boundary_depth.shape != image.shape:
-                    raise SfsInputError(
-                        f"boundary_depth has shape {boundary_depth.shape}, expected {image.shape}"
-                    )
-                known = np.isfinite(boundary_depth)
-                values, ok = grid.to_nodes(np.nan_to_num(boundary_depth), known)
-                boundary_nodes = np.where(ok, values, np.nan)
-            node_solution, info = solve_orthographic(
-                nodes, node_valid, grid.spacing, roughness=options.roughness,
-                order=options.order, singular_tolerance=options.singular_tolerance,
-                boundary_depth=boundary_nodes, concave=options.concave,
-                tolerance=options.tolerance, max_iterations=options.max_iterations,
-            )
-            depth = grid.to_pixels(node_solution, valid)
-        depth = depth.astype(np.float32)
+        boundary_nodes = None
+        if boundary_depth is not None:
+            if boundary_depth.shape != image.shape:
+                raise SfsInputError(
+                    f"boundary_depth has shape {boundary_depth.shape}, expected {image.shape}"
+                )
+            known = np.isfinite(boundary_depth)
+            values, ok = grid.to_nodes(np.nan_to_num(boundary_depth), known)
+            boundary_nodes = np.where(ok, values, np.nan)
+        node_solution, info = solve_orthographic(
+            nodes, node_valid, grid.spacing, roughness=options.roughness,
+            order=options.order, singular_tolerance=options.singular_tolerance,
+            boundary_depth=boundary_nodes, concave=options.concave,
+            tolerance=options.tolerance, max_iterations=options.max_iterations,
+        )
+        depth = grid.to_pixels(node_solution, valid).astype(np.float32)
         _check_solution(depth, model)
         return SfsSolution(
-            depth=depth,
-            node_solution=node_solution,
-            node_irradiance=nodes,
-            grid=grid,
-            valid=valid,
-            info=info,
-            model=model,
-            node_slope=node_slope,
-            ordered_work=ordered_work,
-            frames_since_ordered=frames_since_ordered,
+            depth=depth, node_solution=node_solution, node_irradiance=nodes, grid=grid,
+            valid=valid, info=info, model=model,
         )
+
+
+def _solve_near_light(
+    image: np.ndarray,
+    camera: CameraModel,
+    options: SfsOptions,
+    mask: np.ndarray | None,
+    warm_start: WarmStart | None,
+) -> SfsSolution:
+    """:func:`solve` for the near-light model, every per-pixel pass fused where it can be.
+
+    The same arithmetic as the orthographic path's separate steps
+    (valid_pixels, to_nodes, to_pixels), in fewer passes over the image;
+    the stages' wall times go to :attr:`SfsSolution.timings`.
+    """
+    timings: dict[str, float] = {}
+    start = time.perf_counter()
+    grid = solve_grid(camera, "stereographic", options.solve_scale)
+    region = np.empty((0, 0), dtype=bool) if mask is None else np.ascontiguousarray(mask, bool)
+    saturation = np.inf if options.saturation is None else options.saturation
+    valid, peak = usable_pixels(image, region, grid.pixel_has_ray, options.dark_level,
+                                saturation)  # fmt: skip
+    if peak > options.max_irradiance:
+        raise IrradianceRangeError(
+            f"irradiance reaches {peak:.3g}, above max_irradiance "
+            f"{options.max_irradiance:.3g}: not linear irradiance from the photometric "
+            "correction (frame refused)"
+        )
+    timings["validity"] = (now := time.perf_counter()) - start
+    start = now
+    if options.mask_highlights:
+        valid &= ~detect_highlights(image, mask, options.saturation,
+                                    downsample=options.highlight_downsample)
+    timings["highlights"] = (now := time.perf_counter()) - start
+    start = now
+    if not valid.any():
+        raise NoValidPixelsError(
+            "no usable pixel: the frame is all dark, saturated, NaN or masked"
+        )
+    data = image if options.smoothing <= 0.0 else smooth_irradiance(
+        image, valid, options.smoothing
+    )
+    nodes, node_valid = grid.to_nodes(data, valid)
+    if not node_valid.any():
+        raise NoValidPixelsError("no usable pixel survives resampling to the solve grid")
+    timings["to_nodes"] = time.perf_counter() - start
+    warm_log_r, warm_irradiance, warm_slope = _warm_nodes(warm_start, grid)
+    first_pass = _use_first_pass(warm_start)
+    log_r, node_slope, info = solve_near_light(
+        nodes, node_valid, grid.conformal_factor_sq, grid.spacing,
+        roughness=options.roughness, order=options.order,
+        tolerance=options.tolerance, max_iterations=options.max_iterations,
+        warm_start=warm_log_r, warm_start_intensity=warm_irradiance,
+        warm_start_slope=warm_slope, threads=options.threads, first_pass=first_pass,
+        timings=timings,
+    )
+    ordered_work: float | None = None
+    frames_since_ordered = 0
+    if first_pass:
+        ordered_work = info.updates / max(1, int(node_valid.sum()))
+    elif isinstance(warm_start, SfsSolution | PredictedStart):
+        ordered_work = warm_start.ordered_work
+        frames_since_ordered = warm_start.frames_since_ordered + 1
+    start = time.perf_counter()
+    depth, overflowed = depth_from_log_distance(
+        log_r, grid.pixel_node_x, grid.pixel_node_y, valid, grid.pixel_ray_z
+    )
+    if overflowed:
+        raise SolutionRangeError(
+            f"the near_light solve overflowed: {overflowed} pixels of depth are infinite or "
+            "not positive (frame refused)"
+        )
+    timings["to_pixels"] = time.perf_counter() - start
+    return SfsSolution(
+        depth=depth,
+        node_solution=log_r,
+        node_irradiance=nodes,
+        grid=grid,
+        valid=valid,
+        info=info,
+        model="near_light",
+        node_slope=node_slope,
+        ordered_work=ordered_work,
+        frames_since_ordered=frames_since_ordered,
+        timings=timings,
+    )
 
 
 def reconstruct(

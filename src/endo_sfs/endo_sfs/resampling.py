@@ -1,4 +1,7 @@
-"""Bilinear resampling between the pixel grid and a solve grid (numba, parallel over rows)."""
+"""Bilinear resampling between the pixels and a solve grid, and the passes beside it.
+
+Numba kernels, parallel over rows.
+"""
 
 from __future__ import annotations
 
@@ -89,3 +92,114 @@ def sample_weighted(
             if weight > 1e-6:
                 out[r, c] = total / weight
     return out
+
+
+@njit(cache=True, nogil=True, error_model="numpy", parallel=True)
+def usable_pixels(
+    image: np.ndarray,
+    mask: np.ndarray,
+    has_ray: np.ndarray,
+    dark_level: float,
+    saturation: float,
+) -> tuple[np.ndarray, float]:
+    """Data pixels and the brightest finite value of a frame, in one pass.
+
+    image: (H, W) float; mask: (H, W) bool, or (0, 0) for none; has_ray:
+    (H, W) bool pixels with a viewing direction. A pixel is data when it is
+    finite, above ``dark_level``, below ``saturation`` (inf: no limit), in
+    ``mask`` and has a ray (``endo_sfs.relative_depth.valid_pixels`` and the
+    grid's ray table together). Returns ((H, W) bool, the largest finite
+    value of the whole image, -inf when there is none).
+    """
+    height, width = image.shape
+    masked = mask.size > 0
+    out = np.zeros((height, width), dtype=np.bool_)
+    peaks = np.full(height, -np.inf)
+    for r in prange(height):
+        peak = -np.inf
+        for c in range(width):
+            value = image[r, c]
+            if not np.isfinite(value):
+                continue
+            if value > peak:
+                peak = value
+            out[r, c] = (value > dark_level and value < saturation and has_ray[r, c]
+                         and (not masked or mask[r, c]))
+        peaks[r] = peak
+    return out, peaks.max() if height > 0 else -np.inf
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _depth_row(
+    log_r: np.ndarray,
+    map_x: np.ndarray,
+    map_y: np.ndarray,
+    wanted: np.ndarray,
+    ray_z: np.ndarray,
+    out: np.ndarray,
+    r: int,
+) -> int:
+    """Row ``r`` of :func:`depth_from_log_distance`; returns its overflowed pixels."""
+    gh, gw = log_r.shape
+    bad = 0
+    for c in range(map_x.shape[1]):
+        if not wanted[r, c]:
+            continue
+        x = map_x[r, c]
+        y = map_y[r, c]
+        if not (x > -1.0 and y > -1.0 and x < gw and y < gh):
+            continue
+        xf = np.floor(x)
+        yf = np.floor(y)
+        x0 = int(xf)
+        y0 = int(yf)
+        fx = x - xf
+        fy = y - yf
+        total = 0.0
+        weight = 0.0
+        for dy in range(2):
+            yy = y0 + dy
+            if yy < 0 or yy >= gh:
+                continue
+            wy = fy if dy == 1 else 1.0 - fy
+            for dx in range(2):
+                xx = x0 + dx
+                if xx < 0 or xx >= gw:
+                    continue
+                value = log_r[yy, xx]
+                if not np.isfinite(value):
+                    continue
+                w = wy * (fx if dx == 1 else 1.0 - fx)
+                total += w * value
+                weight += w
+        if weight > 1e-6:
+            depth = np.float32(np.exp(total / weight) * ray_z[r, c])
+            out[r, c] = depth
+            if depth == np.inf or depth <= 0.0:
+                bad += 1
+    return bad
+
+
+@njit(cache=True, nogil=True, error_model="numpy", parallel=True)
+def depth_from_log_distance(
+    log_r: np.ndarray,
+    map_x: np.ndarray,
+    map_y: np.ndarray,
+    wanted: np.ndarray,
+    ray_z: np.ndarray,
+) -> tuple[np.ndarray, int]:
+    """Depth along the optical axis per pixel from ln r on the solve grid, in one pass.
+
+    :func:`sample_weighted` of ``log_r`` (the bilinear interpolation over
+    the finite nodes), then z = e^{ln r}·ω_z with ``ray_z`` (H, W) the
+    pixels' ray z components. log_r: (h, w) float64, NaN unknown; map_x,
+    map_y: (H, W) node coordinates; wanted: (H, W) bool. Returns ((H, W)
+    float32 depth, NaN where not wanted or unknown; the number of pixels
+    whose depth is infinite or not positive: an overflowed solve).
+    """
+    height, width = map_x.shape
+    out = np.full((height, width), np.nan, dtype=np.float32)
+    bad = np.zeros(height, dtype=np.int64)
+    for r in prange(height):
+        bad[r] = _depth_row(log_r, map_x, map_y, wanted, ray_z, out, r)
+    return out, int(bad.sum())

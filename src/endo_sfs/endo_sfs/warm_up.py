@@ -90,10 +90,15 @@ def warm_up_kernels(*, announce: Callable[[str], None] | None = None) -> float:
         solve(image, camera, near_light, warm_start=previous)
         solve(image, camera, SfsOptions(model="orthographic", order=order, solve_scale=0.5))
     surface_normals(previous.depth, camera)
-    # The two-thread first pass only runs on grids of near_light.MIN_PARALLEL_NODES+.
+    # The two-thread first pass only runs on grids of near_light.MIN_PARALLEL_NODES+;
+    # highlight detection, and float32 (the corrected image) beside float64.
     camera = scene_camera(_WARM_UP_PARALLEL_SIZE)
     image = render_near_light(camera, near_light_surface("tilted_plane")).irradiance
-    solve(image, camera, SfsOptions(model="near_light", threads=2))
+    fov = camera.fov_mask(0.48 * _WARM_UP_PARALLEL_SIZE)
+    options = SfsOptions(model="near_light", threads=2, mask_highlights=True)
+    for data in (image.astype(np.float32), image):
+        previous = solve(data, camera, options, mask=fov)
+        solve(data, camera, options, mask=fov, warm_start=previous)
     try:
         _stamp().parent.mkdir(parents=True, exist_ok=True)
         _stamp().write_text(kernel_fingerprint() + "\n", encoding="utf-8")

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from endo_sfs.errors import SfsInputError
-from endo_sfs.highlights import detect_highlights
+from endo_sfs.highlights import block_means, detect_highlights
 from endo_sfs.synthetic import SCENE_NAMES, near_light_surface, render_near_light, scene_camera
 
 SIZE = 240
@@ -92,3 +92,31 @@ def test_bad_arguments_raise_named_errors():
         detect_highlights(image, fov, core_excess=0.2, shoulder_excess=0.5)
     with pytest.raises(SfsInputError):
         detect_highlights(image, fov, opening_radius=0.0)
+    with pytest.raises(SfsInputError):
+        detect_highlights(image, fov, downsample=0)
+
+
+@pytest.mark.parametrize("use_mask", [True, False])
+def test_detection_on_the_halved_image_finds_the_same_lobes(use_mask):
+    image, ratio, fov = _wall(np.random.default_rng(3))
+    full = detect_highlights(image, fov if use_mask else None)
+    half = detect_highlights(image, fov if use_mask else None, downsample=2)
+    assert half.shape == image.shape and not half[~fov].any()
+    assert np.all(half[fov & np.isnan(image)])  # every saturated pixel
+    assert half[fov & (ratio > 1.0)].mean() > 0.99
+    assert half[fov & (ratio > 0.5)].mean() > 0.9
+    assert half[fov & (ratio < 0.01)].mean() < 0.01
+    # The two masks differ only along the lobes' edges (blocks of 2 × 2 pixels).
+    assert np.mean(half != full) < 0.01
+
+
+def test_block_means_average_the_data_and_keep_saturation():
+    image = np.array([[1.0, 3.0, 5.0], [np.nan, 7.0, 0.0], [2.0, 2.0, 9.0]])
+    region = np.array([[True, True, True], [True, True, True], [True, True, False]])
+    small, inside = block_means(image, region, 8.0, 2)
+    # Block (0, 0) holds a NaN (saturated); (0, 1) averages 5 (0 is dark, not data);
+    # (1, 0) averages 2 and 2; (1, 1) is out of the region (its one pixel is not in it).
+    assert np.isnan(small[0, 0]) and small[0, 1] == 5.0 and small[1, 0] == 2.0
+    np.testing.assert_array_equal(inside, [[True, True], [True, False]])
+    small, _ = block_means(np.full((2, 2), 9.0), np.ones((2, 2), bool), 8.0, 2)
+    assert np.isnan(small[0, 0])  # at or above the saturation level

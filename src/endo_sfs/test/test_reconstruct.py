@@ -120,3 +120,24 @@ def test_surface_normals_of_the_tilted_plane_match_its_normal(scene):
     assert inner.sum() > 0.9 * mask.sum()
     np.testing.assert_allclose(normals[inner], np.broadcast_to(expected, normals[inner].shape),
                                atol=1e-4)
+
+
+def test_a_near_light_solve_times_its_stages_and_reuses_its_buffers_exactly(scene):
+    from endo_sfs import near_light
+    from endo_sfs.relative_depth import STAGES, solve
+
+    camera, mask, rendering = scene
+    image = rendering.irradiance.astype(np.float32)
+    options = endo_sfs.SfsOptions(mask_highlights=True, solve_scale=0.5)
+    first = solve(image, camera, options, mask=mask)
+    assert set(first.timings) == set(STAGES)
+    assert all(seconds >= 0.0 for seconds in first.timings.values())
+    # A frame of another grid in between, then the same frame again on the
+    # reused buffers, then on fresh ones: the same depth bit for bit (one thread).
+    solve(image, camera, dataclasses.replace(options, solve_scale=1.0), mask=mask)
+    again = solve(image, camera, options, mask=mask, warm_start=first)
+    near_light._WORKSPACES.clear()
+    fresh = solve(image, camera, options, mask=mask, warm_start=first)
+    np.testing.assert_array_equal(again.depth, fresh.depth)
+    np.testing.assert_array_equal(again.node_solution, fresh.node_solution)
+    assert depth_error(again.depth, rendering.depth, mask).abs_rel < 0.01
