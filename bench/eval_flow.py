@@ -74,12 +74,59 @@ class Sequence:
     poses: dict[int, np.ndarray | None]
 
 
+#: How the photometric calibration is made wrong by ``--light-error e``.
+LIGHT_ERRORS = ("radial", "rim", "tilt", "response")
+
+
+def miscalibrated(image: np.ndarray, camera: CameraModel, fov_radius_px: float, error: float,
+                  kind: str) -> np.ndarray:
+    """The corrected image as a calibration wrong by ``error`` would give it.
+
+    * ``radial``: the light map too dark by ``error`` at the rim, growing as
+      ρ² (ρ the radius over the field of view's): image / (1 − e·ρ²);
+    * ``rim``: the same growing as ρ⁴ (the error where the fall-off is
+      steepest): image / (1 − e·ρ⁴);
+    * ``tilt``: the light map tilted across the field of view (a light
+      guide off axis): image · (1 + e·x / R), x to the right of the centre;
+    * ``response``: the inverse response's exponent wrong by ``e``:
+      image^(1 + e) (a linear image raised to a power; the constant is the
+      scale's).
+
+    Args:
+        image: (H, W) float32 corrected linear irradiance, NaN invalid.
+        camera: its camera model.
+        fov_radius_px: radius R of the field of view, pixels.
+        error: e (0: the image unchanged).
+        kind: one of :data:`LIGHT_ERRORS`.
+    """
+    if error == 0.0:
+        return image
+    v, u = np.mgrid[0:camera.height, 0:camera.width]
+    x = (u - camera.cx) / fov_radius_px
+    rho2 = (x**2 + ((v - camera.cy) / fov_radius_px) ** 2)
+    if kind == "radial":
+        factor = 1.0 / (1.0 - error * rho2)
+    elif kind == "rim":
+        factor = 1.0 / (1.0 - error * rho2**2)
+    elif kind == "tilt":
+        factor = 1.0 + error * x
+    elif kind == "response":
+        with np.errstate(invalid="ignore"):
+            return np.power(np.maximum(image, 0.0), 1.0 + error).astype(np.float32)
+    else:
+        raise ValueError(f"light error kind must be one of {LIGHT_ERRORS}, got {kind!r}")
+    return (image * factor.astype(np.float32)).astype(np.float32)
+
+
 def read_bag(path: Path, calibration: PhotometricCalibration, light_error: float,
-             cache: Path | None, solve_scale: float, handeye_error: bool = True) -> Sequence:
+             cache: Path | None, solve_scale: float, handeye_error: bool = True,
+             light_error_kind: str = "radial") -> Sequence:
     """Correct, solve SFS (cached) and compose the tracker poses of one bag.
 
     ``handeye_error`` False composes with the true hand–eye (a diagnosis of
-    the share of the scale error that the calibration error causes).
+    the share of the scale error that the calibration error causes);
+    ``light_error`` and ``light_error_kind`` make the photometric correction
+    wrong (:func:`miscalibrated`).
     """
     truth = yaml.safe_load(path.with_suffix(".ground_truth.yaml").read_text())
     tracker = truth["tracker"]
@@ -121,19 +168,17 @@ def read_bag(path: Path, calibration: PhotometricCalibration, light_error: float
         except Endo3dError:
             poses[stamp] = None
     mask = camera.fov_mask(fov)
-    # a light map wrong by `light_error` at the rim of the field of view, radially
-    v, u = np.mgrid[0:camera.height, 0:camera.width]
-    rho2 = ((u - camera.cx) ** 2 + (v - camera.cy) ** 2) / fov**2
-    light_factor = (1.0 / (1.0 - light_error * rho2)).astype(np.float32)
     images, relative = {}, {}
     options = SfsOptions(roughness=0.3, mask_highlights=True, threads=2,
                          solve_scale=solve_scale)
-    name = f"{path.stem}_le{light_error:g}_ss{solve_scale:g}"
+    kind = "" if light_error == 0.0 or light_error_kind == "radial" else light_error_kind
+    name = f"{path.stem}_le{light_error:g}{kind}_ss{solve_scale:g}"
     cached = cache / f"{name}.npz" if cache else None
     stored = dict(np.load(cached)) if cached and cached.exists() else None
     previous = None
     for stamp in stamps:
-        image = calibration.luminance(calibration.correct(raw[stamp])) * light_factor
+        image = miscalibrated(calibration.luminance(calibration.correct(raw[stamp])), camera,
+                              fov, light_error, light_error_kind)
         images[stamp] = image
         if stored is not None:
             relative[stamp] = stored[str(stamp)].astype(np.float32)
@@ -319,6 +364,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--calibration", type=Path, required=True)
     parser.add_argument("--light-error", type=float, default=0.0,
                         help="light map wrong by this fraction at the field-of-view rim")
+    parser.add_argument("--light-error-kind", choices=LIGHT_ERRORS, default="radial",
+                        help="how the light map or response is wrong (radial: 1/(1-e*rho^2))")
     parser.add_argument("--shape", nargs="+", default=["none", "smooth"])
     parser.add_argument("--range-mm", nargs=2, type=float, default=(20.0, 80.0))
     parser.add_argument("--solve-scale", type=float, default=1.0)
@@ -351,11 +398,13 @@ def main(argv: list[str] | None = None) -> int:
     results = []
     for bag in args.bags:
         seq = read_bag(bag, calibration, args.light_error, args.cache, args.solve_scale,
-                       handeye_error=not args.no_handeye_error)
+                       handeye_error=not args.no_handeye_error,
+                       light_error_kind=args.light_error_kind)
         for mode in args.shape:
             options = dataclasses.replace(FlowOptions(shape=ShapeCorrectionOptions(mode=mode)),
                                           **overrides)
-            label = (f"{bag.stem} light_error={args.light_error:g} shape={mode}"
+            label = (f"{bag.stem} light_error={args.light_error:g}"
+                     f"{'' if args.light_error == 0 else ' ' + args.light_error_kind} shape={mode}"
                      + "".join(f" {item}" for item in args.set))
             result = evaluate(seq, options, (args.range_mm[0] / 1e3, args.range_mm[1] / 1e3),
                               label, args.trace, true_poses=args.true_poses)
