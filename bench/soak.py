@@ -10,7 +10,12 @@ phantom bag (the simulator's true calibration, hand–eye and registration
 from its ground truth, so no fitting step runs first). Each ``--interval``
 seconds the script samples
 
-* every process's resident memory (``VmRSS`` of ``/proc/<pid>/status``);
+* every process's resident memory (``VmRSS`` of ``/proc/<pid>/status``), and
+  how much of it is private (``RssAnon``: the heap, Python's and the
+  libraries') and shared memory (``RssShmem``: the pages of Fast DDS's
+  shared-memory segments this process has touched, its own and its peers'
+  16 MB segments; they fill as frames cycle through the segments and stop at
+  their size);
 * the output rate of each stage as this process receives it:
   ``/endoscope/depth_relative`` (sfs), ``/endoscope/scale`` (flow, one per
   frame) and ``/endoscope/pose`` (bridge);
@@ -21,17 +26,28 @@ seconds the script samples
   offset). The stamps repeat on every pass; each output is matched with the
   latest input of its stamp. Only header stamps are read (raw subscriptions,
   the stamp parsed from the CDR bytes), so listening costs next to nothing;
-* the nodes' ``/diagnostics`` (dropped, lost in transport, clock jumps).
+* the nodes' ``/diagnostics`` (dropped, lost in transport, clock jumps);
+* at the end, every process's ``[ERROR]`` and ``[WARN]`` log lines, counted
+  by cause (normal operation, loops included, should log no error).
 
 Targets (issue 16): RSS growth ≤ 5 % after the first minute, no drift of
 rate or latency (the first full minute after warm-up against the last), and
 nothing stuck after any loop (every interval has output of every stage).
+
+``--twin-flow-env NAME=VALUE[,NAME=VALUE...]`` compares allocator settings
+inside one run: each occurrence starts one more ``endo-flow`` (``flow_b``,
+``flow_c``, ...) on the same inputs, its outputs remapped under
+``/flow_b/...``, with those environment variables (e.g.
+``MALLOC_ARENA_MAX=2``) or, written ``name:=value``, parameters (e.g.
+``map_enabled:=false``); every flow's memory is sampled side by side.
+``--node-env NODE:NAME=VALUE`` sets a variable for one node of the graph.
 """
 
 from __future__ import annotations
 
 import argparse
 import os
+import re
 import signal
 import statistics
 import struct
@@ -40,7 +56,7 @@ import sys
 import tempfile
 import threading
 import time
-from collections import defaultdict
+from collections import Counter, defaultdict
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
@@ -95,14 +111,21 @@ def _stamp_of(data: bytes) -> int:
     return sec * 1_000_000_000 + nanosec
 
 
-def _rss_kb(pid: int) -> int:
+#: Fields of /proc/<pid>/status sampled (kB there, MB here): VmRSS = RssAnon + RssFile + RssShmem.
+MEMORY_FIELDS = ("VmRSS", "RssAnon", "RssShmem")
+
+
+def _memory_mb(pid: int) -> dict[str, float]:
+    """VmRSS, RssAnon and RssShmem of ``pid`` in MB (0 when it is gone)."""
+    found = dict.fromkeys(MEMORY_FIELDS, 0.0)
     try:
         for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-            if line.startswith("VmRSS:"):
-                return int(line.split()[1])
+            key = line.split(":", 1)[0]
+            if key in found:
+                found[key] = int(line.split()[1]) / 1024
     except OSError:
         pass
-    return 0
+    return found
 
 
 @dataclass
@@ -148,13 +171,19 @@ class Listener:
 
 @dataclass
 class Sample:
-    """One interval: elapsed s, load average, RSS (MB) per process, rate (1/s) and latency."""
+    """One interval: elapsed s, load average, memory (MB) per process, rate (1/s) and latency.
+
+    ``rss_mb`` is VmRSS; ``anon_mb`` and ``shmem_mb`` its private and
+    shared-memory parts (:data:`MEMORY_FIELDS`).
+    """
 
     t_s: float
     load: float
     rss_mb: dict[str, float]
     rate: dict[str, float]
     latency_ms: dict[str, tuple[float, float]]  # (median, p95)
+    anon_mb: dict[str, float] = field(default_factory=dict)
+    shmem_mb: dict[str, float] = field(default_factory=dict)
 
 
 def _setup(out: Path, solve_scale: float, bag: Path = BAG) -> tuple[Path, Path, Path]:
@@ -176,20 +205,71 @@ def _setup(out: Path, solve_scale: float, bag: Path = BAG) -> tuple[Path, Path, 
     return photometric, handeye, params
 
 
-def _commands(photometric: Path, handeye: Path, params: Path, rate: float) -> dict[str, list[str]]:
+#: flow's outputs, remapped under /<twin name> for the extra flows of --twin-flow-env
+FLOW_OUTPUTS = (topics.DEPTH, topics.POINTS, topics.MAP, topics.SCALE)
+
+
+def _twin_names(count: int) -> list[str]:
+    return [f"flow_{chr(ord('b') + k)}" for k in range(count)]
+
+
+def _commands(photometric: Path, handeye: Path, params: Path, rate: float, *,
+              twins: int = 0, twin_params: list[list[str]] | None = None
+              ) -> dict[str, list[str]]:
     def ros(*extra: str) -> list[str]:
         return ["--ros-args", "--params-file", str(params), *extra]
 
-    return {
+    commands = {
         "correction": [str(BIN / "endo-photometric-correction"),
                        *ros("-p", f"calibration_file:={photometric}")],
         "sfs": [str(BIN / "endo-sfs"), *ros()],
         "bridge": [str(BIN / "endo-tracker-bridge"), *ros("-p", f"handeye_file:={handeye}")],
         "flow": [str(BIN / "endo-flow"), *ros()],
-        "replay": [str(BIN / "endo-replay"), str(BAG), "--loop", "--rate", f"{rate:g}",
-                   "--topics", topics.IMAGE_RAW, topics.CAMERA_INFO, topics.TRACKER_POSE,
-                   "--wait-for-subscribers", "1", "--wait-timeout", "120"],
     }
+    for k, twin in enumerate(_twin_names(twins)):
+        remaps = [arg for topic in FLOW_OUTPUTS for arg in ("-r", f"{topic}:=/{twin}{topic}")]
+        overrides = [arg for value in (twin_params or [[]] * twins)[k] for arg in ("-p", value)]
+        # the same parameters under its own name: the file's /** section is for every node
+        commands[twin] = [str(BIN / "endo-flow"),
+                          *ros("-r", f"__node:={twin}", *remaps, *overrides)]
+    commands["replay"] = [
+        str(BIN / "endo-replay"), str(BAG), "--loop", "--rate", f"{rate:g}",
+        "--topics", topics.IMAGE_RAW, topics.CAMERA_INFO, topics.TRACKER_POSE,
+        "--wait-for-subscribers", "1", "--wait-timeout", "120",
+    ]
+    return commands
+
+
+def _assignments(values: list[str], what: str) -> dict[str, str]:
+    """``NAME=VALUE`` strings as a dict (exit 2 on a malformed one)."""
+    found = {}
+    for value in values:
+        name, sep, setting = value.partition("=")
+        if not sep or not name:
+            raise SystemExit(f"soak: {what} {value!r} is not NAME=VALUE")
+        found[name] = setting
+    return found
+
+
+def log_causes(text: str) -> Counter[str]:
+    """``[ERROR]``/``[WARN]`` lines of a node's log, counted as ``"ERROR <cause>"``.
+
+    The cause: the exception class of ``dropped message (N so far): <Cause>: ...``
+    and of ``<Cause> (N so far): ...``, else the line's words before its first
+    parenthesis or colon (``clock jump``, ``lost in transport``).
+    """
+    found: Counter[str] = Counter()
+    for line in text.splitlines():
+        level = "ERROR" if line.startswith("[ERROR]") else "WARN" if line.startswith(
+            "[WARN]") else None
+        if level is None:
+            continue
+        body = line.split("]: ", 1)[-1]
+        dropped = re.match(r"dropped message \(\d+ so far\): (\w+)", body)
+        words = re.match(r"([^(:]{1,60})", body)
+        cause = dropped.group(1) if dropped else (words.group(1).strip() if words else body)
+        found[f"{level} {cause}"] += 1
+    return found
 
 
 def _summarise(values: list[float]) -> tuple[float, float]:
@@ -199,9 +279,20 @@ def _summarise(values: list[float]) -> tuple[float, float]:
     return 1e3 * statistics.median(ordered), 1e3 * ordered[int(0.95 * (len(ordered) - 1))]
 
 
-def run(minutes: float, interval_s: float, rate: float, solve_scale: float
-        ) -> tuple[list[Sample], dict[str, dict[str, str]], dict[str, int]]:
-    """Run the graph for ``minutes``; returns the samples, final diagnostics, exit codes."""
+def run(minutes: float, interval_s: float, rate: float, solve_scale: float, *,
+        node_env: dict[str, dict[str, str]] | None = None,
+        twin_envs: list[dict[str, str]] | None = None,
+        twin_params: list[list[str]] | None = None,
+        ) -> tuple[list[Sample], dict[str, dict[str, str]], dict[str, int],
+                   dict[str, Counter[str]]]:
+    """Run the graph for ``minutes``: samples, final diagnostics, exit codes, log causes.
+
+    The log causes: each process's error and warning lines (:func:`log_causes`).
+
+    ``node_env``: node name -> extra environment variables of that node;
+    ``twin_envs``: one more flow per entry, with its variables, and ``twin_params`` its
+    ``name:=value`` parameters (see the module docstring).
+    """
     work = Path(tempfile.mkdtemp(prefix="endo3d_soak_"))
     photometric, handeye, params = _setup(work, solve_scale)
     env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST", PYTHONUNBUFFERED="1")
@@ -228,10 +319,16 @@ def run(minutes: float, interval_s: float, rate: float, solve_scale: float
     logs = {}
     samples: list[Sample] = []
     try:
-        for name, argv in _commands(photometric, handeye, params, rate).items():
+        extra = dict(node_env or {})
+        twin_envs = twin_envs or []
+        for twin, twin_env in zip(_twin_names(len(twin_envs)), twin_envs, strict=True):
+            extra[twin] = {**extra.get("flow", {}), **twin_env}
+        commands = _commands(photometric, handeye, params, rate, twins=len(twin_envs),
+                             twin_params=twin_params)
+        for name, argv in commands.items():
             logs[name] = (work / f"{name}.log").open("wb")
-            processes[name] = subprocess.Popen(argv, env=env, stdout=logs[name],
-                                               stderr=subprocess.STDOUT)
+            processes[name] = subprocess.Popen(argv, env={**env, **extra.get(name, {})},
+                                               stdout=logs[name], stderr=subprocess.STDOUT)
         start = time.monotonic()
         listener.take()
         end = start + 60.0 * minutes
@@ -240,18 +337,22 @@ def run(minutes: float, interval_s: float, rate: float, solve_scale: float
             time.sleep(max(0.0, next_sample - time.monotonic()))
             next_sample += interval_s
             counts, latencies = listener.take()
+            memory = {n: _memory_mb(p.pid) for n, p in processes.items()}
             sample = Sample(
                 t_s=time.monotonic() - start,
                 load=os.getloadavg()[0],
-                rss_mb={n: _rss_kb(p.pid) / 1024 for n, p in processes.items()},
+                rss_mb={n: m["VmRSS"] for n, m in memory.items()},
                 rate={name: counts.get(name, 0) / interval_s for _, name in OUTPUTS.values()},
                 latency_ms={name: _summarise(latencies.get(name, []))
                             for _, name in OUTPUTS.values()},
+                anon_mb={n: m["RssAnon"] for n, m in memory.items()},
+                shmem_mb={n: m["RssShmem"] for n, m in memory.items()},
             )
             samples.append(sample)
             dead = [n for n, p in processes.items() if p.poll() is not None]
             print(f"{sample.t_s:6.0f} s load {sample.load:5.1f} "
-                  + " ".join(f"{n} {sample.rss_mb[n]:.0f}MB" for n in processes)
+                  + " ".join(f"{n} {sample.rss_mb[n]:.0f}MB (anon {sample.anon_mb[n]:.0f}, "
+                             f"shm {sample.shmem_mb[n]:.0f})" for n in processes)
                   + " | " + " ".join(f"{k} {v:.1f}/s {sample.latency_ms[k][0]:.0f}ms"
                                      for k, v in sample.rate.items())
                   + (f" | DEAD {dead}" if dead else ""), flush=True)
@@ -269,7 +370,11 @@ def run(minutes: float, interval_s: float, rate: float, solve_scale: float
         executor.shutdown()
         node.destroy_node()
         rclpy.try_shutdown()
-    return samples, dict(listener.status), codes
+    for log in logs.values():
+        log.close()
+    causes = {name: log_causes((work / f"{name}.log").read_text(errors="replace"))
+              for name in logs}
+    return samples, dict(listener.status), codes, causes
 
 
 def _steady(r0: float, r1: float, l0: float, l1: float) -> bool:
@@ -286,7 +391,7 @@ def _minute(samples: list[Sample], first_s: float, last_s: float) -> list[Sample
 
 
 def report(samples: list[Sample], status: dict[str, dict[str, str]], codes: dict[str, int],
-           args: argparse.Namespace) -> str:
+           args: argparse.Namespace, log_lines: dict[str, Counter[str]] | None = None) -> str:
     """One run's subsection of docs/benchmarks.md: verdicts first, then every sample."""
     names = list(samples[0].rss_mb)
     streams = list(samples[0].rate)
@@ -296,16 +401,20 @@ def report(samples: list[Sample], status: dict[str, dict[str, str]], codes: dict
     first = _minute(samples, 60.0, 120.0)
     last = _minute(samples, total - 60.0, total)
     loads = [s.load for s in samples]
+    cores = os.cpu_count() or 1
+    settings = "".join(f" --node-env {v}" for v in args.node_env) + "".join(
+        f" --twin-flow-env {v}" for v in args.twin_flow_env)
+    busy = statistics.median(loads) > cores
     lines = [
         f"{RUN_HEADING}{datetime.now(UTC):%Y-%m-%d %H:%M} UTC: `bench/soak.py --minutes "
         f"{args.minutes:g} --rate {args.rate:g} --solve-scale {args.solve_scale:g} --interval "
-        f"{args.interval:g}`",
+        f"{args.interval:g}{settings}`",
         "",
-        f"{cpu_model()}, {os.cpu_count()} cores, Python {sys.version.split()[0]}. "
-        f"**The machine was shared with other helpers' test suites and benchmarks: load "
-        f"average {min(loads):.1f}–{max(loads):.1f} (median {statistics.median(loads):.1f}) "
-        f"on {os.cpu_count()} cores during the run**, so rates and latencies measure the load "
-        "as much as the graph.",
+        f"{cpu_model()}, {cores} cores, Python {sys.version.split()[0]}. "
+        f"**Load average {min(loads):.1f}–{max(loads):.1f} (median "
+        f"{statistics.median(loads):.1f}) on {cores} cores during the run"
+        + ("**: a shared machine, so rates and latencies measure the load as much as the graph."
+           if busy else "**."),
         "",
         "| target | measured | met |",
         "|---|---|---|",
@@ -319,6 +428,15 @@ def report(samples: list[Sample], status: dict[str, dict[str, str]], codes: dict
                     for n in names)
         + f" | {'yes' if growth[worst] <= 5.0 else 'no'} |"
     )
+    if samples[-1].anon_mb:  # where the growth is: the heap, or shared-memory pages touched
+        lines.append(
+            "| (not a target: VmRSS = private (RssAnon) + shared memory (RssShmem) + files; "
+            "each part after the first minute → at the end, MB) | "
+            + ", ".join(f"{n} anon {base.anon_mb[n]:.0f}→{samples[-1].anon_mb[n]:.0f}, "
+                        f"shm {base.shmem_mb[n]:.0f}→{samples[-1].shmem_mb[n]:.0f}"
+                        for n in names)
+            + " | — |"
+        )
     if first and last:  # a sawtooth (heap high water) against a steady climb (a leak)
         floors = {n: (min(s.rss_mb[n] for s in first), min(s.rss_mb[n] for s in last))
                   for n in names}
@@ -360,15 +478,23 @@ def report(samples: list[Sample], status: dict[str, dict[str, str]], codes: dict
         lines.append(f"| {name} | {values.get('received')} | {values.get('processed')} | "
                      f"{values.get('dropped')} ({causes}) | {values.get('lost')} | "
                      f"{values.get('clock_jumps')} |")
+    if log_lines is not None:
+        lines += ["", "Log lines of each process over the run, `[ERROR]` and `[WARN]` by cause "
+                  "(normal operation should log no error):", ""]
+        for name, found in log_lines.items():
+            text = ", ".join(f"{k} {v}" for k, v in sorted(found.items())) or "none"
+            lines.append(f"* {name}: {text}")
     lines += ["", f"Exit codes after SIGINT: {', '.join(f'{n} {c}' for n, c in codes.items())}.",
-              "", "Every sample (RSS in MB; rate in messages/s; latency median/p95 in ms):", "",
-              "| t (s) | load | " + " | ".join(f"RSS {n}" for n in names) + " | "
+              "", "Every sample (RSS in MB, with its private (anon) and shared-memory (shm) "
+              "parts; rate in messages/s; latency median/p95 in ms):", "",
+              "| t (s) | load | " + " | ".join(f"RSS {n} (anon/shm)" for n in names) + " | "
               + " | ".join(f"{s} /s | {s} ms" for s in streams) + " |",
               "|" + "---|" * (2 + len(names) + 2 * len(streams))]
     for s in samples:
         lines.append(
             f"| {s.t_s:.0f} | {s.load:.1f} | "
-            + " | ".join(f"{s.rss_mb[n]:.0f}" for n in names) + " | "
+            + " | ".join(f"{s.rss_mb[n]:.0f} ({s.anon_mb.get(n, 0):.0f}/{s.shmem_mb.get(n, 0):.0f})"
+                         for n in names) + " | "
             + " | ".join(f"{s.rate[k]:.1f} | {s.latency_ms[k][0]:.0f}/{s.latency_ms[k][1]:.0f}"
                          for k in streams) + " |"
         )
@@ -397,12 +523,30 @@ def main() -> int:
     parser.add_argument("--no-write", action="store_true", help="do not edit docs/benchmarks.md")
     parser.add_argument("--keep", type=int, default=1,
                         help="earlier runs kept in docs/benchmarks.md below this one (1)")
+    parser.add_argument("--node-env", action="append", default=[], metavar="NODE:NAME=VALUE",
+                        help="an environment variable for one node (repeatable)")
+    parser.add_argument("--twin-flow-env", action="append", default=[],
+                        metavar="NAME=VALUE[,NAME=VALUE]",
+                        help="one more flow (flow_b, flow_c, ...; outputs under /flow_b/...) "
+                        "with these variables, to compare memory inside one run (repeatable)")
     args = parser.parse_args()
-    samples, status, codes = run(args.minutes, args.interval, args.rate, args.solve_scale)
+    node_env: dict[str, dict[str, str]] = defaultdict(dict)
+    for value in args.node_env:
+        node, sep, assignment = value.partition(":")
+        if not sep or node not in (*NODES, "replay"):
+            parser.error(f"--node-env {value!r}: NODE:NAME=VALUE with NODE one of "
+                         f"{', '.join(NODES)}, replay")
+        node_env[node].update(_assignments([assignment], "--node-env"))
+    groups = [group.split(",") for group in args.twin_flow_env]
+    twins = [_assignments([v for v in g if ":=" not in v], "--twin-flow-env") for g in groups]
+    twin_params = [[v for v in g if ":=" in v] for g in groups]
+    samples, status, codes, causes = run(args.minutes, args.interval, args.rate, args.solve_scale,
+                                 node_env=dict(node_env), twin_envs=twins,
+                                 twin_params=twin_params)
     if not samples:
         print("soak: no sample taken", file=sys.stderr)
         return 2
-    run_text = report(samples, status, codes, args)
+    run_text = report(samples, status, codes, args, causes)
     print(run_text)
     if not args.no_write:
         section = "\n".join([TITLE, "", INTRO, "", run_text, *previous_runs(args.keep)])
