@@ -36,6 +36,7 @@ import platform
 import subprocess
 import time
 from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 import skfmm
@@ -651,51 +652,110 @@ def phantom(bag: str, calibration: str, roughness: float, mask_highlights: bool,
           f"{1e3 * np.percentile(wall, 90):.1f} ms; {np.mean(updates):.2f} node solves per node")
 
 
-def breakdown(bag: str, calibration: str, frames: int, threads: int, downsample: int) -> None:
+def load_reference(tree: str) -> Any:
+    """An older ``endo_sfs`` source tree, importable beside this one, as a package of its own.
+
+    tree: a checkout holding ``src/endo_sfs/endo_sfs`` (e.g. ``git worktree add
+    /tmp/ref main``). Its files are copied to ``out/bench_sfs_reference/`` with
+    every ``endo_sfs`` import renamed ``endo_sfs_reference``, so both solve in one
+    process (their numba kernels are cached apart). Returns the reference's
+    ``relative_depth`` module.
+    """
+    import importlib
+    import re
+    import shutil
+    import sys
+    from pathlib import Path
+
+    source = Path(tree) / "src" / "endo_sfs" / "endo_sfs"
+    if not source.is_dir():
+        raise SystemExit(f"--reference: no src/endo_sfs/endo_sfs under {tree}")
+    root = Path(__file__).resolve().parents[1] / "out" / "bench_sfs_reference"
+    target = root / "endo_sfs_reference"
+    shutil.rmtree(target, ignore_errors=True)
+    target.mkdir(parents=True)
+    for path in source.glob("*.py"):
+        text = re.sub(r"\bendo_sfs\b", "endo_sfs_reference", path.read_text(encoding="utf-8"))
+        (target / path.name).write_text(text, encoding="utf-8")
+        shutil.copystat(path, target / path.name)  # numba's cache checks the stamp
+    sys.path.insert(0, str(root))
+    return importlib.import_module("endo_sfs_reference.relative_depth")
+
+
+def breakdown(bag: str, calibration: str, frames: int, threads: int, downsample: int,
+              reference: str | None) -> None:
     """Where the wall time of a warm phantom frame goes, stage by stage, at solve_scale 1 and 0.5.
 
     Every frame of the bag in order, warm-started as the node does, highlights
     masked; the median over the frames after the first of each stage of
     :attr:`endo_sfs.relative_depth.SfsSolution.timings` and of the whole
-    ``solve`` call (wall and process CPU). With an ``endo_sfs`` that records
-    no timings (an older tree on PYTHONPATH) only the totals are printed.
+    ``solve`` call (wall and process CPU). With ``reference`` (an older tree,
+    :func:`load_reference`) its chain is solved too, frame by frame in
+    alternating order, so that load hits both alike: per-frame ratios of this
+    tree's wall and CPU time to the reference's, and the largest relative
+    depth difference between the two.
     """
     sequence, camera, _ = phantom_sequence(bag, calibration, np.random.default_rng(0))
     sequence = sequence[:frames]
     mask = camera.fov_mask(240.0)
-    extra: dict[str, int] = {}
-    if "highlight_downsample" in SfsOptions.__dataclass_fields__:
-        extra["highlight_downsample"] = downsample
-    print(f"\nbreakdown, {bag} ({len(sequence)} frames), threads {threads}, {extra}")
+    chains: dict[str, Any] = {"this tree": relative_depth}
+    if reference:
+        chains["reference"] = load_reference(reference)
+    print(f"\nbreakdown, {bag} ({len(sequence)} frames), threads {threads}, "
+          f"highlight_downsample {downsample}, chains: {', '.join(chains)}")
     for scale in (1.0, 0.5):
-        options = SfsOptions(roughness=0.3, solve_scale=scale, mask_highlights=True,
-                             threads=threads, **extra)
-        previous = solve(sequence[0][0], camera, options, mask=mask)
-        walls: list[float] = []
-        cpus: list[float] = []
+        options = {}
+        for name, module in chains.items():
+            extra: dict[str, int] = {}
+            if "highlight_downsample" in module.SfsOptions.__dataclass_fields__:
+                extra["highlight_downsample"] = downsample
+            options[name] = module.SfsOptions(roughness=0.3, solve_scale=scale,
+                                              mask_highlights=True, threads=threads, **extra)
+        previous = {name: module.solve(sequence[0][0], camera, options[name], mask=mask)
+                    for name, module in chains.items()}
+        walls: dict[str, list[float]] = {name: [] for name in chains}
+        cpus: dict[str, list[float]] = {name: [] for name in chains}
         work: list[float] = []
         stages: dict[str, list[float]] = {}
-        for irradiance, _, _ in sequence[1:]:
-            start, start_cpu = time.perf_counter(), time.process_time()
-            previous = solve(irradiance, camera, options, mask=mask, warm_start=previous)
-            walls.append(time.perf_counter() - start)
-            cpus.append(time.process_time() - start_cpu)
-            work.append(previous.info.updates / np.isfinite(previous.node_solution).sum())
-            for name, seconds in getattr(previous, "timings", {}).items():
-                stages.setdefault(name, []).append(seconds)
-        nodes = int(np.isfinite(previous.node_solution).sum())
-        print(f"solve_scale {scale:g}: {nodes} nodes, {np.mean(work):.2f} node solves per node; "
-              f"whole solve median {1e3 * np.median(walls):.1f} ms wall (p90 "
-              f"{1e3 * np.percentile(walls, 90):.1f}), {1e3 * np.median(cpus):.1f} ms CPU")
-        if stages:
-            print("| stage | median ms | p90 ms |")
-            print("|---|---|---|")
-            for name, values in stages.items():
-                print(f"| {name} | {1e3 * np.median(values):.2f} | "
-                      f"{1e3 * np.percentile(values, 90):.2f} |")
-            rest = np.array(walls) - np.sum([np.array(v) for v in stages.values()], axis=0)
-            print(f"| (rest of solve: checks, warm-start lookup, Python) | "
-                  f"{1e3 * np.median(rest):.2f} | {1e3 * np.percentile(rest, 90):.2f} |")
+        difference = 0.0
+        for k, (irradiance, _, _) in enumerate(sequence[1:]):
+            names = list(chains) if k % 2 == 0 else list(chains)[::-1]
+            for name in names:
+                start, start_cpu = time.perf_counter(), time.process_time()
+                previous[name] = chains[name].solve(irradiance, camera, options[name], mask=mask,
+                                                    warm_start=previous[name])
+                walls[name].append(time.perf_counter() - start)
+                cpus[name].append(time.process_time() - start_cpu)
+            ours = previous["this tree"]
+            work.append(ours.info.updates / np.isfinite(ours.node_solution).sum())
+            for stage, seconds in ours.timings.items():
+                stages.setdefault(stage, []).append(seconds)
+            if "reference" in previous:
+                theirs = previous["reference"].depth
+                both = np.isfinite(theirs) & np.isfinite(ours.depth)
+                difference = max(difference, float(np.max(np.abs(ours.depth[both] / theirs[both]
+                                                                  - 1.0), initial=0.0)))
+        nodes = int(np.isfinite(ours.node_solution).sum())
+        print(f"solve_scale {scale:g}: {nodes} nodes, {np.mean(work):.2f} node solves per node")
+        for name in chains:
+            print(f"  {name}: whole solve median {1e3 * np.median(walls[name]):.1f} ms wall (p90 "
+                  f"{1e3 * np.percentile(walls[name], 90):.1f}), "
+                  f"{1e3 * np.median(cpus[name]):.1f} ms CPU")
+        if "reference" in chains:
+            wall_ratio = np.array(walls["this tree"]) / np.array(walls["reference"])
+            cpu_ratio = np.array(cpus["this tree"]) / np.array(cpus["reference"])
+            print(f"  this tree / reference, median of per-frame ratios: wall "
+                  f"{np.median(wall_ratio):.3f}, CPU {np.median(cpu_ratio):.3f}; largest "
+                  f"relative depth difference {difference:.1e}")
+        print("| stage | median ms | p90 ms |")
+        print("|---|---|---|")
+        for stage, values in stages.items():
+            print(f"| {stage} | {1e3 * np.median(values):.2f} | "
+                  f"{1e3 * np.percentile(values, 90):.2f} |")
+        rest = np.array(walls["this tree"]) - np.sum([np.array(v) for v in stages.values()],
+                                                      axis=0)
+        print(f"| (rest: checks, warm-start lookup, Python) | {1e3 * np.median(rest):.2f} | "
+              f"{1e3 * np.percentile(rest, 90):.2f} |")
 
 
 def main() -> None:
@@ -730,13 +790,16 @@ def main() -> None:
                         "0.5 (--phantom-bag, --calibration, --threads, --frames)")
     parser.add_argument("--highlight-downsample", type=int, default=1,
                         help="--breakdown: SfsOptions.highlight_downsample")
+    parser.add_argument("--reference", metavar="TREE",
+                        help="--breakdown: also solve with the endo_sfs of this older checkout, "
+                        "frame by frame in one process (ratios)")
     args = parser.parse_args()
     print(f"machine: {machine()}")
     if args.breakdown:
         if not (args.phantom_bag and args.calibration):
             parser.error("--breakdown needs --phantom-bag and --calibration")
         breakdown(args.phantom_bag, args.calibration, args.frames, args.threads,
-                  args.highlight_downsample)
+                  args.highlight_downsample, args.reference)
         print(f"machine after: {machine()}")
         return
     if args.workers:

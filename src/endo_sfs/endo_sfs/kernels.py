@@ -16,9 +16,19 @@ upwind of it). The near-light solver first solves every node once in
 sweeps only repair. All kernels use numpy's error model: no Python exception
 checks on divisions inside the loops; an infinite or NaN result is handled
 by the bracketing logic instead.
+
+Per-node cost: numba reference-counts an array each time it is passed to a
+function that is not inlined, with atomic increments and decrements. In the
+sweep loops that was eight such calls around every node solve (v, node,
+reflectance, table), about a fifth of the sweeps' time. So every function a
+node solve calls is ``inline="always"``, and the loops that allocate nothing
+(:func:`_sweeps`, :func:`_ordered_pass`, :func:`_repair_steps`) are compiled
+without reference counting at all (``_nrt=False``).
 """
 
 from __future__ import annotations
+
+from typing import Any
 
 import numpy as np
 from numba import njit, prange
@@ -30,6 +40,10 @@ from endo_sfs.visit_order import FIRST_PASS_BUCKETS, value_order
 #: LLVM fast-math flags that keep IEEE infinities and NaNs (the kernels rely
 #: on +inf for invalid nodes): contraction, reciprocal, reassociation.
 _FAST = {"contract", "arcp", "reassoc", "afn"}
+
+#: numba's (private) option that compiles a kernel without reference counting;
+#: only for kernels that allocate nothing (see the module docstring).
+_NO_REFCOUNTS: dict[str, Any] = {"_nrt": False}
 
 #: Below this cosine a surface is taken as grazing: the data term is infinite.
 _MIN_COSINE = 1e-6
@@ -102,7 +116,7 @@ _TABLE_INV_STEP = TABLE_INTERVALS / TABLE_MAX_SLOPE
 REFLECTANCE_A, REFLECTANCE_B = 0, 1
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
 def _log_radiance_direct(f: float, reflectance: np.ndarray) -> tuple[float, float]:
     """g(F) = ½·ln R(c), c = 1/√(1+F²), and g'(F) = −½·R'(c)/R·F·c³.
 
@@ -148,7 +162,7 @@ def _log_radiance(f: float, table: np.ndarray, reflectance: np.ndarray) -> tuple
     return value, slope * _TABLE_INV_STEP
 
 
-@njit(cache=True, nogil=True, error_model="numpy", fastmath=_FAST)
+@njit(cache=True, nogil=True, error_model="numpy", fastmath=_FAST, inline="always")
 def near_light_update(
     a: float,
     b: float,
@@ -247,7 +261,7 @@ def near_light_update(
     return _log_radiance(f, table, reflectance)[0] - half_log_intensity, f
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
 def weno_neighbour(u: np.ndarray, i: int, j: int, di: int, dj: int, eps: float) -> float:
     """Third-order WENO stand-in for the upwind neighbour along one axis.
 
@@ -326,7 +340,7 @@ def initial_state(active: np.ndarray) -> np.ndarray:
     return state
 
 
-@njit(cache=True, nogil=True, error_model="numpy", fastmath=_FAST)
+@njit(cache=True, nogil=True, error_model="numpy", fastmath=_FAST, inline="always")
 def _unlock_stencil(
     state: np.ndarray,
     u: np.ndarray,
@@ -528,7 +542,7 @@ def _prefetch_stencil(
     prefetch(node, flat * node.shape[2])
 
 
-@njit(cache=True, nogil=True, error_model="numpy", fastmath=_FAST)
+@njit(cache=True, nogil=True, error_model="numpy", fastmath=_FAST, **_NO_REFCOUNTS)
 def _ordered_pass(
     v: np.ndarray,
     node: np.ndarray,
@@ -592,7 +606,6 @@ def _repair(
     number of node solves.
     """
     ny, nx = v.shape
-    reach = 1 if order == 1 else 2
     count = 0
     for i in range(ny):
         for j in range(nx):
@@ -607,7 +620,47 @@ def _repair(
             if state[i, j] == UNLOCKED:
                 size = heap_push(keys, items, size, v[i, j], i * nx + j)
     solves = 0
+    while True:
+        size, solves, full = _repair_steps(
+            v, node, state, keys, items, size, solves, budget, hx, hy, reflectance, order,
+            tolerance, eps, table,
+        )
+        if not full:
+            return solves
+        keys = np.concatenate((keys, np.empty(keys.size)))
+        items = np.concatenate((items, np.empty(items.size, dtype=np.int64)))
+
+
+@njit(cache=True, nogil=True, error_model="numpy", fastmath=_FAST, **_NO_REFCOUNTS)
+def _repair_steps(
+    v: np.ndarray,
+    node: np.ndarray,
+    state: np.ndarray,
+    keys: np.ndarray,
+    items: np.ndarray,
+    size: int,
+    solves: int,
+    budget: int,
+    hx: float,
+    hy: float,
+    reflectance: np.ndarray,
+    order: int,
+    tolerance: float,
+    eps: float,
+    table: np.ndarray,
+) -> tuple[int, int, bool]:
+    """The heap loop of :func:`_repair` until done or the heap might overflow.
+
+    Compiled without numba's reference counting (nothing here allocates), so
+    the hot loop makes no atomic reference-count calls per node. Returns
+    (heap size, solves so far, True if it stopped because a node's unlocks
+    might not fit: the caller grows the heap and calls again).
+    """
+    nx = v.shape[1]
+    reach = 1 if order == 1 else 2
     while size > 0 and solves < budget:
+        if keys.size - size < 4 * reach:
+            return size, solves, True
         flat, size = heap_pop(keys, items, size)
         i = flat // nx
         j = flat - i * nx
@@ -624,11 +677,8 @@ def _repair(
             for ni, nj in ((i - k, j), (i + k, j), (i, j - k), (i, j + k)):
                 if state[ni, nj] == LOCKED and v[ni, nj] > lowest:
                     state[ni, nj] = UNLOCKED
-                    if size == keys.size:
-                        keys = np.concatenate((keys, np.empty(keys.size)))
-                        items = np.concatenate((items, np.empty(items.size, dtype=np.int64)))
                     size = heap_push(keys, items, size, v[ni, nj], ni * nx + nj)
-    return solves
+    return size, solves, False
 
 
 @njit(cache=True, nogil=True, error_model="numpy", fastmath=_FAST, parallel=True)
@@ -780,7 +830,7 @@ def near_light_sweep(
     return iterations, change, updates + more
 
 
-@njit(cache=True, nogil=True, error_model="numpy", fastmath=_FAST)
+@njit(cache=True, nogil=True, error_model="numpy", fastmath=_FAST, **_NO_REFCOUNTS)
 def _sweeps(
     v: np.ndarray,
     node: np.ndarray,
