@@ -34,15 +34,23 @@ WARM_UP_VOXELS = 4096
 _STEP_M = 1e-3
 #: Image shift between synthetic frames, pixels.
 _SHIFT_PX = 2
+#: Peak gain of the synthetic highlight over the texture.
+_HIGHLIGHT_GAIN = 4.0
 
 
 def _texture(width: int, height: int, seed: int = 0) -> np.ndarray:
-    """(height, width + shifts) float32 smooth random texture in [0.1, 1]."""
+    """(height, width + shifts) float32 smooth random texture in [0.1, 1], one highlight."""
     rng = np.random.default_rng(seed)
     noise = rng.random((height, width + _SHIFT_PX * WARM_UP_FRAMES), dtype=np.float32)
     blurred = cv2.GaussianBlur(noise, (0, 0), 2.0)
     low, high = float(blurred.min()), float(blurred.max())
-    return (0.1 + 0.9 * (blurred - low) / max(high - low, 1e-6)).astype(np.float32)
+    texture = 0.1 + 0.9 * (blurred - low) / max(high - low, 1e-6)
+    # a specular highlight: the tracker masks it (endo_sfs.highlights labels its region)
+    y, x = np.mgrid[0:height, 0 : texture.shape[1]]
+    sigma = max(2.0, min(width, height) / 40.0)
+    texture *= 1.0 + _HIGHLIGHT_GAIN * np.exp(
+        -((x - width / 2) ** 2 + (y - height / 2) ** 2) / (2.0 * sigma**2))
+    return texture.astype(np.float32)
 
 
 def warm_up_pipeline(options: FlowOptions, camera: CameraModel) -> float:
