@@ -47,10 +47,10 @@ DEFAULT_OPTIONS = SfsOptions()
 #: A near-light solve with no warm start at solve_scale >= COARSE_START_MIN_SCALE
 #: starts from a solve of the same frame at COARSE_START_FACTOR of that scale.
 #: From flat start values the value-ordered first pass costs ~7 node solves per
-#: node; from the coarse solution the sweeps cost ~3.2. On the 640x480 phantom
-#: at full resolution: 10 + 47-81 ms instead of ~290 ms, the depth within
-#: 7.5e-4 (relative, largest pixel) of the cold solve's at the default tolerance
-#: (bench: a node's first frame, and every frame with warm_start off).
+#: node; from the coarse solution the sweeps cost ~3.0-3.2. On the 640x480 phantom
+#: with the node's settings: 80-87 ms instead of 182-237 ms, the depth within
+#: 3e-4-2.1e-3 (relative, largest pixel) of the cold solve's at the default
+#: tolerance (a node's first frame, and every frame with warm_start off).
 COARSE_START_FACTOR = 0.25
 COARSE_START_MIN_SCALE = 0.5
 
