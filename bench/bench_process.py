@@ -35,6 +35,7 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from machine import cpu_model
@@ -42,6 +43,8 @@ from machine import cpu_model
 ROOT = Path(__file__).resolve().parents[1]
 BAGS = ROOT / "bags"
 CONFIGS = [(0.5, 1), (0.5, 2), (0.5, 3), (1.0, 1), (1.0, 2)]
+#: The output compression endo-process uses by default (its --compression).
+COMPRESSION = "lz4"
 
 
 def machine() -> str:
@@ -52,6 +55,14 @@ def load() -> str:
     return " ".join(Path("/proc/loadavg").read_text().split()[:3])
 
 
+def reference_path(tree: Path) -> str:
+    """PYTHONPATH that puts every package of an older checkout before this tree's."""
+    packages = sorted(p for p in (Path(tree) / "src").iterdir() if (p / p.name).is_dir())
+    if not packages:
+        raise SystemExit(f"--reference: no packages under {tree}/src")
+    return os.pathsep.join(str(p) for p in packages)
+
+
 def one_run(args: argparse.Namespace) -> None:
     """One configuration in this process; prints its figures as one JSON line."""
     from endo_process.runner import ProcessOptions, process_bag
@@ -60,16 +71,23 @@ def one_run(args: argparse.Namespace) -> None:
     report = process_bag(ProcessOptions(
         bag=args.bag, output=args.out, calibration=args.photometric, handeye=args.handeye,
         params=args.params, solve_scale=args.scale, jobs=args.jobs, progress=False,
+        compression=COMPRESSION, max_frames=args.max_frames,
     ))  # fmt: skip
     after = os.times()
     main_cpu = (after[0] - before[0]) + (after[1] - before[1])
     workers_cpu = (after[2] - before[2]) + (after[3] - before[3])
+    frames = report.frames_in
     print(json.dumps({
         "fps": report.frames_per_second, "real_time": report.real_time_factor,
-        "frames": report.frames_in, "main_ms": main_cpu / report.frames_in * 1e3,
-        "workers_ms": workers_cpu / report.frames_in * 1e3,
-        "setup_s": report.setup_seconds, "solve_ms": report.median_solve_ms,
-        "mb_per_frame": args.out.stat().st_size / report.frames_in / 1e6,
+        "frames": frames, "main_ms": main_cpu / frames * 1e3,
+        "workers_ms": workers_cpu / frames * 1e3,
+        "setup_s": report.setup_seconds, "loop_s": report.seconds,
+        "solve_ms": report.median_solve_ms,
+        "mb_per_frame": args.out.stat().st_size / frames / 1e6,
+        "stages_ms": {k: v / frames * 1e3
+                      for k, v in getattr(report, "stage_seconds", {}).items()},
+        "shading_ms": {k: v / frames * 1e3
+                       for k, v in getattr(report, "shading_seconds", {}).items()},
     }))  # fmt: skip
 
 
@@ -127,12 +145,16 @@ def main() -> None:
     parser.add_argument("--configs", default=",".join(f"{s:g}:{j}" for s, j in CONFIGS),
                         help="solve_scale:jobs pairs, comma-separated")
     parser.add_argument("--no-writing", action="store_true", help="skip the writing table")
+    parser.add_argument("--reference", type=Path, metavar="TREE",
+                        help="also run every configuration on the packages of this older "
+                        "checkout (alternating with this tree's)")
     parser.add_argument("--writing-only", action="store_true", help="only the writing table")
     parser.add_argument("--one", action="store_true", help=argparse.SUPPRESS)
     for name in ("out", "photometric", "handeye", "params"):
         parser.add_argument(f"--{name}", type=Path, help=argparse.SUPPRESS)
     parser.add_argument("--scale", type=float, help=argparse.SUPPRESS)
     parser.add_argument("--jobs", type=int, help=argparse.SUPPRESS)
+    parser.add_argument("--max-frames", type=int, help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.one:
         one_run(args)
@@ -150,21 +172,42 @@ def main() -> None:
         BAGS / "graycard.mcap", BAGS / "handeye.mcap", work, dict(os.environ)
     )
     params = write_simulated_parameters(args.bag, work / "endo3d.yaml")
-    configs = [(float(c.split(":")[0]), int(c.split(":")[1])) for c in args.configs.split(",")]
-    results: dict[tuple[float, int], list[dict[str, float]]] = {c: [] for c in configs}
+    pairs = [(float(c.split(":")[0]), int(c.split(":")[1])) for c in args.configs.split(",")]
+    trees = ["this tree"] + (["reference"] if args.reference else [])
+    configs = [(tree, scale, jobs) for scale, jobs in pairs for tree in trees]
+    results: dict[tuple[str, float, int], list[dict[str, Any]]] = {c: [] for c in configs}
+    # One short unmeasured run per tree first: a tree's first run may compile its kernels.
+    for tree in trees:
+        env = dict(os.environ)
+        if tree == "reference":
+            env["PYTHONPATH"] = reference_path(args.reference)
+        out = work / "warm_up.mcap"
+        subprocess.run([
+            sys.executable, __file__, "--one", "--bag", str(args.bag), "--out", str(out),
+            "--photometric", str(photometric.result), "--handeye", str(handeye.result),
+            "--params", str(params), "--scale", str(pairs[0][0]), "--jobs", "2",
+            "--max-frames", "4",
+        ], capture_output=True, text=True, check=True, env=env)  # fmt: skip
+        out.unlink()
     loads = [load()]
     for round_index in range(args.rounds):
         order = configs if round_index % 2 == 0 else configs[::-1]
-        for scale, jobs in order:
+        for tree, scale, jobs in order:
             out = work / f"out_{scale}_{jobs}_{round_index}.mcap"
+            env = dict(os.environ)
+            if tree == "reference":
+                env["PYTHONPATH"] = reference_path(args.reference)
             done = subprocess.run([
                 sys.executable, __file__, "--one", "--bag", str(args.bag), "--out", str(out),
                 "--photometric", str(photometric.result), "--handeye", str(handeye.result),
                 "--params", str(params), "--scale", str(scale), "--jobs", str(jobs),
-            ], capture_output=True, text=True, check=True)  # fmt: skip
+            ], capture_output=True, text=True, check=True, env=env)  # fmt: skip
             figures = json.loads(done.stdout.strip().splitlines()[-1])
-            results[(scale, jobs)].append(figures)
-            print(f"round {round_index + 1} solve_scale {scale:g} jobs {jobs}: "
+            figures.setdefault("loop_s", figures["frames"] / figures["fps"])  # an older tree
+            figures.setdefault("stages_ms", {})
+            figures.setdefault("shading_ms", {})
+            results[(tree, scale, jobs)].append(figures)
+            print(f"round {round_index + 1} {tree} solve_scale {scale:g} jobs {jobs}: "
                   f"{figures['fps']:.1f} frames/s, {figures['real_time']:.2f}x real time, CPU "
                   f"main {figures['main_ms']:.0f} + workers {figures['workers_ms']:.0f} ms per "
                   f"frame, median solve {figures['solve_ms']:.1f} ms, load {load()}",
@@ -173,23 +216,55 @@ def main() -> None:
         loads.append(load())
     print()
     frames = int(results[configs[0]][0]["frames"])
+    label = "tree | " if args.reference else ""
     print(f"Machine: {machine()}; {datetime.date.today().isoformat()}; bag {args.bag.name} "
-          f"({frames} frames); output compression lz4; "
+          f"({frames} frames); output compression {COMPRESSION}; "
           f"load average before/after each round: {' | '.join(loads)}")  # fmt: skip
     print()
-    print("| solve_scale | jobs | frames/s (run 1, run 2) | × real time (run 1, run 2) | "
+    print(f"| {label}solve_scale | jobs | frames/s (run 1, run 2) | × real time (run 1, run 2) | "
+          "× real time with the set-up (run 1, run 2) | "
           "CPU ms per frame: main + workers = total (run 1; run 2) | median solve ms |")
-    print("|---|---|---|---|---|---|")
-    for scale, jobs in configs:
-        rows = results[(scale, jobs)]
+    print("|---" * (7 + bool(label)) + "|")
+    for tree, scale, jobs in configs:
+        rows = results[(tree, scale, jobs)]
         fps = ", ".join(f"{r['fps']:.1f}" for r in rows)
         rt = ", ".join(f"{r['real_time']:.2f}" for r in rows)
+        with_setup = ", ".join(
+            f"{r['real_time'] * r['loop_s'] / (r['loop_s'] + r['setup_s']):.2f}" for r in rows
+        )
         cpu = "; ".join(
             f"{r['main_ms']:.0f} + {r['workers_ms']:.0f} = {r['main_ms'] + r['workers_ms']:.0f}"
             for r in rows
         )
         solve = ", ".join(f"{r['solve_ms']:.0f}" for r in rows)
-        print(f"| {scale:g} | {jobs} | {fps} | {rt} | {cpu} | {solve} |")
+        first = f"{tree} | " if label else ""
+        print(f"| {first}{scale:g} | {jobs} | {fps} | {rt} | {with_setup} | {cpu} | {solve} |")
+    print()
+    print("Where the frame loop's wall time goes, ms per frame (run 1 / run 2): the main "
+          "process's steps (endo_process.runner.LOOP_STAGES; 'shading' is the wait for the "
+          "correction + SFS, or for the worker) and, beside them, the correction and SFS "
+          "steps themselves wherever they ran (ShadedFrame.timings):")
+    print()
+    stage_names = list(dict.fromkeys(
+        name for rows in results.values() for r in rows for name in r["stages_ms"]
+    ))  # fmt: skip
+    shading_names = ["correct", "solve", *sorted(
+        {name for rows in results.values() for r in rows for name in r["shading_ms"]}
+        - {"correct", "solve"}
+    )]  # fmt: skip
+    print(f"| {label}solve_scale | jobs | loop ms per frame | setup s | "
+          + " | ".join(stage_names + shading_names) + " |")
+    print("|---" * (4 + bool(label) + len(stage_names) + len(shading_names)) + "|")
+    for tree, scale, jobs in configs:
+        rows = results[(tree, scale, jobs)]
+        loop = " / ".join(f"{r['loop_s'] / r['frames'] * 1e3:.1f}" for r in rows)
+        setup = " / ".join(f"{r['setup_s']:.2f}" for r in rows)
+        cells = [" / ".join(f"{r['stages_ms'].get(n, 0.0):.1f}" for r in rows)
+                 for n in stage_names]
+        cells += [" / ".join(f"{r['shading_ms'].get(n, 0.0):.1f}" for r in rows)
+                  for n in shading_names]
+        first = f"{tree} | " if label else ""
+        print(f"| {first}{scale:g} | {jobs} | {loop} | {setup} | " + " | ".join(cells) + " |")
     if args.no_writing:
         return
     print()

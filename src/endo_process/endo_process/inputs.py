@@ -199,6 +199,23 @@ class CameraInfoPairing:
         return self._model, current
 
 
+def first_camera(inputs: RecordingInputs) -> CameraModel | None:
+    """The camera of the recording's first camera_info (or ``--camera-info``), to warm up for.
+
+    None when the first camera_info gives no usable model (the frame loop
+    then reports it per frame, as it would anyway).
+    """
+    if inputs.fixed_camera is not None:
+        return inputs.fixed_camera
+    first = next(_iter_decoded(inputs, inputs.topics.camera_info), None)
+    if first is None:
+        return None
+    try:
+        return CameraModel.from_camera_info(first)
+    except (CameraModelError, ValueError):
+        return None
+
+
 def iter_images(inputs: RecordingInputs) -> Iterator[Image]:
     """The image topic's messages in log order, decoded one at a time."""
     return _iter_decoded(inputs, inputs.topics.image)

@@ -43,8 +43,10 @@ from pathlib import Path
 from typing import Any
 
 from endo_calib.calibration import PhotometricCalibration
+from endo_io.camera import CameraModel
 from endo_process.errors import WorkerError
 from endo_process.shading import RawFrame, ShadedFrame, ShadingStage
+from endo_sfs.warm_up import warm_up_frame
 
 #: Frames per chunk when the recording is split over worker processes.
 DEFAULT_CHUNK_FRAMES = 32
@@ -70,11 +72,21 @@ class StageConfig:
                             mask_extrapolated=self.mask_extrapolated)  # fmt: skip
 
 
-def _worker(config: StageConfig, inbox: Any, outbox: Any) -> None:
-    """Worker process body: frames in, shaded frames out, None ends it."""
+def _worker(
+    config: StageConfig, inbox: Any, outbox: Any, camera: CameraModel | None = None
+) -> None:
+    """Worker process body: frames in, shaded frames out, None ends it.
+
+    With ``camera`` it first solves a synthetic frame of that camera
+    (:func:`endo_sfs.warm_up.warm_up_frame`: the kernels loaded, the solve
+    grids built), while the parent sets up; the first real frame then costs
+    what any other does.
+    """
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent decides when to stop
     try:
         stage = config.build()
+        if camera is not None:
+            warm_up_frame(camera, stage.options)
         while (frame := inbox.get()) is not None:
             outbox.put(stage.process(frame))
     except BaseException:  # reported to the parent, which raises WorkerError
@@ -89,6 +101,9 @@ class ShadingPool:
         jobs: worker processes (1: in this process).
         chunk_frames: consecutive frames per chunk with ``jobs`` > 1.
         stage: with ``jobs`` == 1, an already built stage to use.
+        warm_up_camera: with ``jobs`` > 1, the workers warm up for this camera
+            as soon as they start (see :func:`_worker`); with ``jobs`` == 1 the
+            caller warms up (:meth:`ShadingStage.warm_up`), when it suits it.
     """
 
     def __init__(
@@ -97,6 +112,7 @@ class ShadingPool:
         jobs: int = 1,
         chunk_frames: int = DEFAULT_CHUNK_FRAMES,
         stage: ShadingStage | None = None,
+        warm_up_camera: CameraModel | None = None,
     ) -> None:
         if jobs < 1 or chunk_frames < 1:
             raise ValueError("jobs and chunk_frames must be >= 1")
@@ -120,7 +136,7 @@ class ShadingPool:
         for _ in range(self.worker_count):
             inbox, outbox = context.Queue(), context.Queue()
             process = context.Process(
-                target=_worker, args=(worker_config, inbox, outbox), daemon=True
+                target=_worker, args=(worker_config, inbox, outbox, warm_up_camera), daemon=True
             )
             process.start()
             self._workers.append(process)

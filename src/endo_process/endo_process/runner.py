@@ -26,12 +26,13 @@ SIGTERM) ends the run after the current frame and the output is finalised.
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import itertools
 import statistics
 import threading
 import time
-from collections import Counter
+from collections import Counter, defaultdict
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -42,6 +43,7 @@ from sensor_msgs.msg import CameraInfo, Image
 
 from endo_calib.calibration import PhotometricCalibration
 from endo_calib.errors import CalibrationError
+from endo_flow.warm_up import warm_up_pipeline
 from endo_io import topics
 from endo_io.bag import BagMessage, BagReader
 from endo_io.errors import Endo3dError, PoseLookupError
@@ -56,6 +58,7 @@ from endo_process.flow_stage import FlowStage, flow_options, grey_cloud, scale_m
 from endo_process.inputs import (
     CameraInfoPairing,
     InputTopics,
+    first_camera,
     iter_ground_truth,
     iter_images,
     iter_tracker_poses,
@@ -98,6 +101,10 @@ class ProcessReport:
 
     Counters are per cause (error class name). ``seconds`` is the wall time
     of the frame loop, ``bag_seconds`` the recording time it covered.
+    ``stage_seconds``: wall seconds of the frame loop's steps in this
+    process, summed over the frames (:data:`LOOP_STAGES`); ``shading_seconds``:
+    the correction and SFS steps' own wall seconds, summed, wherever they ran
+    (this process or a worker; ``ShadedFrame.timings``).
     """
 
     frames_in: int = 0
@@ -120,6 +127,8 @@ class ProcessReport:
     setup_seconds: float = 0.0
     bag_seconds: float = 0.0
     solve_ms: list[float] = field(default_factory=list)
+    stage_seconds: defaultdict[str, float] = field(default_factory=lambda: defaultdict(float))
+    shading_seconds: defaultdict[str, float] = field(default_factory=lambda: defaultdict(float))
     damage: str | None = None
     interrupted: bool = False
     output: Path | None = None
@@ -138,6 +147,17 @@ class ProcessReport:
     def median_solve_ms(self) -> float:
         """Median SFS solve time per frame."""
         return statistics.median(self.solve_ms) if self.solve_ms else 0.0
+
+
+#: The steps of the frame loop timed in :attr:`ProcessReport.stage_seconds`:
+#: reading and decoding an image and pairing its camera ("read"); the
+#: correction and SFS, or with worker processes the wait for them and the
+#: frames' way there and back ("shading"); the pose lookup, with the poses
+#: it reads and queues ("poses"); ground truth copied through ("truth");
+#: camera_info, corrected image and relative depth written ("write"); the
+#: flow step ("flow") and its outputs written ("flow_write"); flushing the
+#: output ("flush").
+LOOP_STAGES = ("read", "shading", "poses", "truth", "write", "flow", "flow_write", "flush")
 
 
 def _load_calibrations(
@@ -250,6 +270,8 @@ def _raw_frames(
     the output; the frame loop takes it back out.
     """
     index = 0
+    clock = report.stage_seconds
+    start = time.perf_counter()
     for msg in images:
         if stop.is_set() or (max_frames is not None and report.frames_in >= max_frames):
             return
@@ -265,8 +287,11 @@ def _raw_frames(
             report.dropped[type(error).__name__] += 1
             continue
         camera, infos[index] = paired
+        clock["read"] += time.perf_counter() - start
         yield RawFrame(index, stamp_ns, msg.header.frame_id, raw, msg.encoding, camera)
+        start = time.perf_counter()
         index += 1
+    clock["read"] += time.perf_counter() - start
 
 
 def _write_frame(
@@ -298,6 +323,8 @@ def _write_frame(
         report.dropped[shaded.dropped[0]] += 1
     if shaded.solve_ms > 0.0:
         report.solve_ms.append(shaded.solve_ms)
+    for name, seconds in shaded.timings.items():
+        report.shading_seconds[name] += seconds
 
 
 def _flow_frame(
@@ -312,11 +339,14 @@ def _flow_frame(
     if shaded.irradiance is None or shaded.depth_relative is None or shaded.irradiance.ndim != 2:
         return
     stamp = shaded.stamp_ns
+    start = time.perf_counter()
     try:
         result = flow.process(shaded, T_world_camera)
     except Endo3dError as error:
         report.flow_dropped[type(error).__name__] += 1
         return
+    finally:
+        report.stage_seconds["flow"] += (now := time.perf_counter()) - start
     report.frames_flow += 1
     if result.depth is not None:
         output.write_image(topics.DEPTH, result.depth, "32FC1", stamp, shaded.frame_id)
@@ -325,6 +355,7 @@ def _flow_frame(
         output.write(topics.POINTS, grey_cloud(result.points, result.intensity, stamp,
                                                world_frame), stamp)  # fmt: skip
     output.write(topics.SCALE, scale_message(result.scale, stamp, shaded.frame_id), stamp)
+    report.stage_seconds["flow_write"] += time.perf_counter() - now
 
 
 def _write_map(
@@ -367,66 +398,91 @@ def process_bag(options: ProcessOptions, stop: threading.Event | None = None) ->
     settings = load_settings(options.params, solve_scale=options.solve_scale)
     photometric, handeye = _load_calibrations(options)
     inputs = open_recording(options.bag, options.topics, options.camera_info)
-    report = ProcessReport(frames_total=inputs.frame_count, output=options.output)
-    with BagReader(options.bag) as reader:
-        copied = {name: reader.topics[name] for name in inputs.ground_truth}
-    output = OutputBag(options.output, options.compression, copied)
-    world_frame = str(settings.flow["world_frame"])
-    poses = iter_camera_poses(iter_tracker_poses(inputs), settings, handeye, report)
-    first_pose = next(poses, None)
-    if first_pose is not None:
-        poses = itertools.chain([first_pose], poses)
-    static_ns = min(inputs.time_range_ns[0],
-                    first_pose.stamp_ns if first_pose is not None else inputs.time_range_ns[0])
-    output.hold_tf(
-        topics.TF_STATIC,
-        static_transforms(
-            T_world_tracker=settings.T_world_tracker,
-            T_marker_camera=handeye.T_marker_camera,
-            stamp_ns=static_ns,
-        ),
-        static_ns,
-    )  # fmt: skip
     config = StageConfig(options.calibration, settings.channel, settings.sfs,
                          settings.mask_extrapolated)  # fmt: skip
     stage = None
     if options.jobs == 1:  # the calibration loaded above, not a second time
         stage = ShadingStage(photometric, settings.channel, settings.sfs,
                              mask_extrapolated=settings.mask_extrapolated)  # fmt: skip
-    feed = _PoseFeed(
-        poses,
-        output,
-        (str(settings.bridge["world_frame"]), str(settings.bridge["tracker_frame"])),
-        round(float(settings.flow["pose_max_gap_s"]) * NS_PER_S),
-        report,
-    )
-    flow = FlowStage(flow_options(settings.flow), int(settings.flow["map_min_count"]))
-    truth: Iterator[BagMessage] = iter_ground_truth(inputs)
-    truth_pending: list[BagMessage] = []
-    total = inputs.frame_count if options.max_frames is None else min(
-        inputs.frame_count, options.max_frames
-    )
-    first_stamp: int | None = None
-    last_stamp: int | None = None
-    pool = ShadingPool(config, options.jobs, options.chunk_frames, stage)
-    progress = Progress(total, enabled=options.progress, description="endo-process")
+    camera = None
+    with contextlib.suppress(Endo3dError):  # a bad camera_info is the frame loop's to report
+        camera = first_camera(inputs)
+    # Workers start first: they load their kernels and build their solve grids
+    # (warm_up_camera) while this process sets up and warms up the flow step.
+    pool = ShadingPool(config, options.jobs, options.chunk_frames, stage,
+                       warm_up_camera=camera)  # fmt: skip
+    try:  # the workers are running: stop them if the set-up fails
+        report = ProcessReport(frames_total=inputs.frame_count, output=options.output)
+        with BagReader(options.bag) as reader:
+            copied = {name: reader.topics[name] for name in inputs.ground_truth}
+        output = OutputBag(options.output, options.compression, copied)
+        world_frame = str(settings.flow["world_frame"])
+        poses = iter_camera_poses(iter_tracker_poses(inputs), settings, handeye, report)
+        first_pose = next(poses, None)
+        if first_pose is not None:
+            poses = itertools.chain([first_pose], poses)
+        static_ns = min(inputs.time_range_ns[0],
+                        first_pose.stamp_ns if first_pose is not None else inputs.time_range_ns[0])
+        output.hold_tf(
+            topics.TF_STATIC,
+            static_transforms(
+                T_world_tracker=settings.T_world_tracker,
+                T_marker_camera=handeye.T_marker_camera,
+                stamp_ns=static_ns,
+            ),
+            static_ns,
+        )  # fmt: skip
+        feed = _PoseFeed(
+            poses,
+            output,
+            (str(settings.bridge["world_frame"]), str(settings.bridge["tracker_frame"])),
+            round(float(settings.flow["pose_max_gap_s"]) * NS_PER_S),
+            report,
+        )
+        flow = FlowStage(flow_options(settings.flow), int(settings.flow["map_min_count"]))
+        if camera is not None and pool.worker_count > 0:
+            # Overlapped with the workers' own warm-up; with one job it would only add.
+            warm_up_pipeline(flow.pipeline.options, camera)
+        truth: Iterator[BagMessage] = iter_ground_truth(inputs)
+        truth_pending: list[BagMessage] = []
+        total = inputs.frame_count if options.max_frames is None else min(
+            inputs.frame_count, options.max_frames
+        )
+        first_stamp: int | None = None
+        last_stamp: int | None = None
+        progress = Progress(total, enabled=options.progress, description="endo-process")
+    except BaseException:
+        pool.close()
+        raise
     report.setup_seconds = time.perf_counter() - setup_start
-    start = time.perf_counter()
+    loop_start = time.perf_counter()
     try:
         infos: dict[int, CameraInfo | None] = {}
         frames = _raw_frames(
             CameraInfoPairing(inputs), iter_images(inputs), infos, report, stop,
             options.max_frames,
         )  # fmt: skip
-        for count, shaded in enumerate(pool.map(frames), start=1):
+        clock = report.stage_seconds
+        shaded_frames = enumerate(pool.map(frames), start=1)
+        while True:
+            # "shading" is the wait for the next shaded frame less the reading it includes.
+            read_before, step = clock["read"], time.perf_counter()
+            item = next(shaded_frames, None)
+            clock["shading"] += time.perf_counter() - step - (clock["read"] - read_before)
+            if item is None:
+                break
+            count, shaded = item
             # The poses up to this frame first: the output stays in log-time order.
             T_world_camera: np.ndarray | None = None
             lookup: PoseLookupError | None = None
+            step = time.perf_counter()
             try:
                 T_world_camera = feed.at(shaded.stamp_ns)
             except PoseLookupError as error:
                 lookup = error
+            clock["poses"] += (now := time.perf_counter()) - step
             output.copy_until(truth, truth_pending, shaded.stamp_ns)
+            clock["truth"] += (step := time.perf_counter()) - now
             _write_frame(output, infos.pop(shaded.index), shaded, report)
             if lookup is not None:
                 report.without_pose[type(lookup).__name__] += 1
@@ -437,11 +493,14 @@ def process_bag(options: ProcessOptions, stop: threading.Event | None = None) ->
                     shaded.frame_id or topics.OPTICAL_FRAME,
                 )  # fmt: skip
                 output.hold_tf(topics.TF, [edge], shaded.stamp_ns)
+            clock["write"] += time.perf_counter() - step
             _flow_frame(output, flow, shaded, T_world_camera, world_frame, report)
             first_stamp = shaded.stamp_ns if first_stamp is None else first_stamp
             last_stamp = shaded.stamp_ns
             if count % options.flush_every == 0:
+                step = time.perf_counter()
                 output.flush()
+                clock["flush"] += time.perf_counter() - step
             progress.update(report.frames_in)
             if stop.is_set():
                 report.interrupted = True
@@ -449,7 +508,7 @@ def process_bag(options: ProcessOptions, stop: threading.Event | None = None) ->
     except KeyboardInterrupt:
         report.interrupted = True
     finally:
-        report.seconds = time.perf_counter() - start
+        report.seconds = time.perf_counter() - loop_start
         pool.close()
         progress.close()
         # A partial run (stopped, or --max-frames short of the end) ends at its last frame.

@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -31,6 +31,7 @@ from endo_io.errors import Endo3dError
 from endo_sfs.errors import NoValidPixelsError
 from endo_sfs.options import SfsOptions
 from endo_sfs.relative_depth import SfsSolution, solve
+from endo_sfs.warm_up import warm_up_frame
 
 
 @dataclass(frozen=True)
@@ -62,7 +63,10 @@ class ShadedFrame:
     (H, W) float32 relative depth, NaN invalid; None when the correction
     dropped the frame. dropped: the cause (error class name) and one-line
     message of a drop or of an all-NaN depth, else None. solve_ms: wall
-    time of the solve.
+    time of the solve. timings: wall seconds of the stage's steps where it
+    ran: "correct" (decoding the raw frame, the correction and the channel),
+    "solve" (the whole SFS call) and the solver's own stages as "sfs.<stage>"
+    (:data:`endo_sfs.relative_depth.STAGES`).
     """
 
     index: int
@@ -74,6 +78,7 @@ class ShadedFrame:
     dropped: tuple[str, str] | None = None
     solve_ms: float = 0.0
     iterations: int = 0
+    timings: dict[str, float] = field(default_factory=dict)
 
 
 class ShadingStage:
@@ -115,6 +120,13 @@ class ShadingStage:
         """Drop the warm start (the next frame is solved cold)."""
         self._previous = None
 
+    def warm_up(self, camera: CameraModel) -> float:
+        """Solve a synthetic frame of ``camera`` (kernels loaded, solve grids built); seconds.
+
+        The stage's own warm start is untouched.
+        """
+        return warm_up_frame(camera, self.options)
+
     def _mask_for(self, camera: CameraModel) -> np.ndarray | None:
         if camera != self._camera:
             self._camera = camera
@@ -128,6 +140,7 @@ class ShadingStage:
             self.reset()
         base: dict[str, Any] = {"index": frame.index, "stamp_ns": frame.stamp_ns,
                                 "frame_id": frame.frame_id, "camera": frame.camera}  # fmt: skip
+        start = time.perf_counter()
         try:
             corrected = self.calibration.correct(
                 to_raw_frame(frame.raw, frame.encoding), mask_extrapolated=self.mask_extrapolated
@@ -140,6 +153,7 @@ class ShadingStage:
             cause = ("SfsInputError", "the SFS node takes 32FC1 only (channel rgb gives 32FC3)")
             return ShadedFrame(**base, irradiance=irradiance, depth_relative=None, dropped=cause)
         mask = self._mask_for(frame.camera)
+        timings = {"correct": time.perf_counter() - start}
         start = time.perf_counter()
         try:
             solution = solve(
@@ -159,10 +173,13 @@ class ShadingStage:
             return ShadedFrame(**base, irradiance=irradiance, depth_relative=None,
                                dropped=(type(error).__name__, str(error)))  # fmt: skip
         self._previous = solution
+        timings["solve"] = time.perf_counter() - start
+        timings.update({f"sfs.{name}": seconds for name, seconds in solution.timings.items()})
         return ShadedFrame(
             **base,
             irradiance=irradiance,
             depth_relative=solution.depth,
-            solve_ms=(time.perf_counter() - start) * 1e3,
+            solve_ms=timings["solve"] * 1e3,
             iterations=int(solution.info.iterations),
+            timings=timings,
         )

@@ -25,7 +25,7 @@ from endo_io.bag import BagReader
 from endo_io.bag.streams import read_depth_frames
 from endo_process.accuracy import read_scale_stream, score_recording
 from endo_process.report import headline, write_report_figure
-from endo_process.runner import ProcessOptions, ProcessReport, process_bag
+from endo_process.runner import LOOP_STAGES, ProcessOptions, ProcessReport, process_bag
 from endo_process.simulated import write_simulated_parameters
 from endo_process.summary import summary_document
 
@@ -64,6 +64,13 @@ def test_every_frame_is_processed_and_the_truth_copied(full_run: tuple[ProcessRe
     assert 40 <= counts[topics.DEPTH] == report.frames_metric < 90
     assert counts[topics.POINTS] >= counts[topics.DEPTH] - 1
     assert counts[topics.MAP] == 1 and report.map_points > 10_000
+    # Where the time went: every step of the loop was timed, and the workers'
+    # correction and SFS steps came back with their frames; the steps fit in the loop.
+    assert set(report.stage_seconds) <= set(LOOP_STAGES)
+    assert all(report.stage_seconds[name] > 0.0 for name in ("read", "shading", "write", "flow"))
+    assert sum(report.stage_seconds.values()) <= report.seconds
+    assert report.shading_seconds["correct"] > 0.0
+    assert report.shading_seconds["sfs.sweeps"] < report.shading_seconds["solve"]
 
 
 def test_accuracy_against_the_ground_truth(full_run: tuple[ProcessReport, Path]) -> None:
