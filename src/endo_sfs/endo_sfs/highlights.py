@@ -46,7 +46,6 @@ from __future__ import annotations
 import cv2
 import numpy as np
 from numba import njit, prange
-from scipy import ndimage
 
 from endo_sfs.errors import SfsInputError
 
@@ -65,6 +64,23 @@ DEFAULT_MIN_SUPPORT = 0.85
 FINE_SIGMA = 1.5
 #: Stand-in for ±∞ in the float32 morphology (cells that take no part).
 _NO_PART = np.float32(1e30)
+
+
+def filled(inside: np.ndarray) -> np.ndarray:
+    """``inside`` with its holes filled: ``scipy.ndimage.binary_fill_holes``, by OpenCV.
+
+    A hole is a connected region (4-connected, as scipy's default structure)
+    of pixels outside ``inside`` that does not touch the image border.
+    inside: (H, W) bool. Returns (H, W) bool. One connected-components pass
+    instead of scipy's iterated dilation (~0.5 against ~5 ms at 640×480).
+    """
+    outside = (~np.asarray(inside, dtype=bool)).astype(np.uint8)
+    _, labels = cv2.connectedComponents(outside, connectivity=4)
+    border = np.zeros(labels.max() + 1, dtype=bool)
+    for edge in (labels[0], labels[-1], labels[:, 0], labels[:, -1]):
+        border[edge] = True
+    border[0] = False  # label 0: the pixels inside
+    return ~border[labels]
 
 
 def _disc(radius: int) -> np.ndarray:
@@ -291,7 +307,7 @@ def detect_highlights(
     if downsample > 1:
         if mask is None:
             # NaN holes enclosed by data are saturated: the same as a mask around them.
-            region = ndimage.binary_fill_holes(np.isfinite(image))
+            region = filled(np.isfinite(image))
         small, small_region = block_means(
             np.ascontiguousarray(image, dtype=np.float64), np.ascontiguousarray(region),
             np.inf if saturation is None else float(saturation), downsample,
@@ -327,7 +343,7 @@ def _detect(
         np.ascontiguousarray(image), region, np.inf if saturation is None else float(saturation)
     )
     if mask is None:
-        saturated &= ndimage.binary_fill_holes(np.isfinite(image))
+        saturated &= filled(np.isfinite(image))
     if saturated.any():
         margin = max(1, round(image.shape[0] / 240))
         saturated = cv2.dilate(saturated.astype(np.uint8), _disc(margin)).astype(bool) & region

@@ -120,3 +120,15 @@ def test_block_means_average_the_data_and_keep_saturation():
     np.testing.assert_array_equal(inside, [[True, True], [True, False]])
     small, _ = block_means(np.full((2, 2), 9.0), np.ones((2, 2), bool), 8.0, 2)
     assert np.isnan(small[0, 0])  # at or above the saturation level
+
+
+def test_holes_are_filled_as_scipy_fills_them():
+    from scipy import ndimage
+
+    from endo_sfs.highlights import filled
+
+    rng = np.random.default_rng(11)
+    for _ in range(50):
+        height, width = rng.integers(1, 40, 2)
+        inside = rng.random((height, width)) < rng.random()
+        np.testing.assert_array_equal(filled(inside), ndimage.binary_fill_holes(inside))
