@@ -44,6 +44,8 @@ from endo_io.stamp import ns_to_stamp
 #: The probe's topic (private to it; :func:`run_probe` adds its process id, so
 #: that two probes on one domain do not count each other's frames).
 TOPIC = "/endo3d_probe/frames"
+#: What the sender prints on stderr when it first sees the receiver.
+MATCHED_LINE = "endo3d_probe: receiver matched"
 
 
 class ProbeSender(Node):
@@ -68,6 +70,7 @@ class ProbeSender(Node):
         now = time.monotonic()
         if self._matched_at is None:
             self._matched_at = now
+            print(MATCHED_LINE, file=sys.stderr, flush=True)
         if now - self._matched_at < 2.0:  # let discovery finish on both sides
             return
         if self._sent >= self._frames:
@@ -146,6 +149,10 @@ class ProbeError(RuntimeError):
     """The probe's processes did not run to the end."""
 
 
+class ProbeDiscoveryError(ProbeError):
+    """The sender never saw the receiver: DDS discovery, not the transport, failed."""
+
+
 def run_probe(
     env: dict[str, str],
     *,
@@ -154,24 +161,40 @@ def run_probe(
     width: int = 640,
     height: int = 480,
     timeout_s: float = 60.0,
+    topic_suffix: str = "",
 ) -> ProbeResult:
     """Run a receiver and a sender process with ``env``; what the receiver got.
 
+    ``topic_suffix`` is added to the probe's topic (after this process's id), so
+    that a second probe from the same process does not meet the first's frames.
+
     Raises:
+        ProbeDiscoveryError: the sender saw no receiver within ``timeout_s``.
         ProbeError: a process failed or printed no result within ``timeout_s``.
     """
     command = [sys.executable, "-m", "endo_bringup.frame_probe"]
     shape = ["--frames", str(frames), "--width", str(width), "--height", str(height),
-             "--topic", f"{TOPIC}_{os.getpid()}"]  # fmt: skip
+             "--topic", f"{TOPIC}_{os.getpid()}{topic_suffix}"]  # fmt: skip
     receiver = subprocess.Popen(
         [*command, "receive", *shape, "--timeout", str(timeout_s)],
         env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
     )  # fmt: skip
     try:
-        sender = subprocess.run(
-            [*command, "send", *shape, "--rate", str(rate_hz)],
-            env=env, capture_output=True, text=True, timeout=timeout_s, check=False,
-        )  # fmt: skip
+        try:
+            sender = subprocess.run(
+                [*command, "send", *shape, "--rate", str(rate_hz)],
+                env=env, capture_output=True, text=True, timeout=timeout_s, check=False,
+            )  # fmt: skip
+        except subprocess.TimeoutExpired as error:
+            said = error.stderr or b""
+            text = said.decode(errors="replace") if isinstance(said, bytes) else said
+            if MATCHED_LINE in text:
+                raise
+            raise ProbeDiscoveryError(
+                f"the sender saw no receiver in {timeout_s:g} s (DDS discovery failed: "
+                f"domain {env.get('ROS_DOMAIN_ID', '0')}, "
+                f"ROS_AUTOMATIC_DISCOVERY_RANGE={env.get('ROS_AUTOMATIC_DISCOVERY_RANGE', '')!r})"
+            ) from error
         out, err = receiver.communicate(timeout=timeout_s)
     except subprocess.TimeoutExpired as error:
         raise ProbeError(f"the probe did not finish in {timeout_s:g} s") from error

@@ -129,9 +129,16 @@ def test_figures_of_a_known_run(tmp_path: Path) -> None:
 
 
 def test_cpu_and_memory_of_children_come_from_proc() -> None:
-    child = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(30)"])
+    # The child says when its interpreter is up: read before that, /proc shows the
+    # forked copy of this process or a half-loaded executable, not the child's RSS.
+    child = subprocess.Popen(
+        [sys.executable, "-c", "import time; print('up', flush=True); time.sleep(30)"],
+        stdout=subprocess.PIPE, text=True,
+    )  # fmt: skip
     try:
         import os
+
+        assert child.stdout is not None and child.stdout.readline() == "up\n"
 
         assert child.pid in _children(os.getpid())
         usage = _cpu_and_rss(child.pid)
