@@ -44,5 +44,5 @@ def test_nodes_without_profile_variables_receive_every_large_frame():
 
 def test_a_pair_that_never_discovers_each_other_is_said_as_discovery():
     env = {**os.environ, "ROS_AUTOMATIC_DISCOVERY_RANGE": "OFF"}
-    with pytest.raises(ProbeDiscoveryError, match="saw no receiver in 4 s .*'OFF'"):
+    with pytest.raises(ProbeDiscoveryError, match=r"saw no receiver in 4 s .*'OFF'"):
         run_probe(env, frames=3, width=8, height=8, timeout_s=4.0)
