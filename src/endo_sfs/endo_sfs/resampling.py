@@ -44,53 +44,61 @@ def sample_strict(
     return out, ok
 
 
+@njit(cache=True, nogil=True, error_model="numpy", inline="always")
+def _finite_bilinear(grid: np.ndarray, x: float, y: float) -> float:
+    """Bilinear value of ``grid`` at node position (x, y) over its finite nodes only.
+
+    grid: (h, w) float64 with NaN or inf at unusable nodes. The weights of
+    the finite nodes among the four are renormalised, so a position next to
+    the edge of the solved region still gets a value; NaN where (x, y) is
+    outside the grid or no node around it is finite.
+    """
+    gh, gw = grid.shape
+    if not (x > -1.0 and y > -1.0 and x < gw and y < gh):
+        return np.nan
+    xf = np.floor(x)
+    yf = np.floor(y)
+    x0 = int(xf)
+    y0 = int(yf)
+    fx = x - xf
+    fy = y - yf
+    total = 0.0
+    weight = 0.0
+    for dy in range(2):
+        yy = y0 + dy
+        if yy < 0 or yy >= gh:
+            continue
+        wy = fy if dy == 1 else 1.0 - fy
+        for dx in range(2):
+            xx = x0 + dx
+            if xx < 0 or xx >= gw:
+                continue
+            value = grid[yy, xx]
+            if not np.isfinite(value):
+                continue
+            w = wy * (fx if dx == 1 else 1.0 - fx)
+            total += w * value
+            weight += w
+    if weight > 1e-6:
+        return total / weight
+    return np.nan
+
+
 @njit(cache=True, nogil=True, error_model="numpy", parallel=True)
 def sample_weighted(
     grid: np.ndarray, map_x: np.ndarray, map_y: np.ndarray, wanted: np.ndarray
 ) -> np.ndarray:
-    """Bilinear samples of ``grid`` over its finite nodes only.
+    """Bilinear samples of ``grid`` over its finite nodes only (:func:`_finite_bilinear`).
 
     grid: (h, w) float64 with NaN or inf at unusable nodes. map_x, map_y:
-    (H, W) node coordinates; wanted: (H, W) bool. The weights of the finite
-    nodes among the four are renormalised, so a pixel next to the edge of
-    the solved region still gets a value; NaN where no node is finite or the
-    pixel is not wanted. Returns (H, W) float64.
+    (H, W) node coordinates; wanted: (H, W) bool. NaN where no node is
+    finite or the pixel is not wanted. Returns (H, W) float64.
     """
-    gh, gw = grid.shape
     out = np.full(map_x.shape, np.nan)
     for r in prange(map_x.shape[0]):
         for c in range(map_x.shape[1]):
-            if not wanted[r, c]:
-                continue
-            x = map_x[r, c]
-            y = map_y[r, c]
-            if not (x > -1.0 and y > -1.0 and x < gw and y < gh):
-                continue
-            xf = np.floor(x)
-            yf = np.floor(y)
-            x0 = int(xf)
-            y0 = int(yf)
-            fx = x - xf
-            fy = y - yf
-            total = 0.0
-            weight = 0.0
-            for dy in range(2):
-                yy = y0 + dy
-                if yy < 0 or yy >= gh:
-                    continue
-                wy = fy if dy == 1 else 1.0 - fy
-                for dx in range(2):
-                    xx = x0 + dx
-                    if xx < 0 or xx >= gw:
-                        continue
-                    value = grid[yy, xx]
-                    if not np.isfinite(value):
-                        continue
-                    w = wy * (fx if dx == 1 else 1.0 - fx)
-                    total += w * value
-                    weight += w
-            if weight > 1e-6:
-                out[r, c] = total / weight
+            if wanted[r, c]:
+                out[r, c] = _finite_bilinear(grid, map_x[r, c], map_y[r, c])
     return out
 
 
@@ -140,40 +148,13 @@ def _depth_row(
     r: int,
 ) -> int:
     """Row ``r`` of :func:`depth_from_log_distance`; returns its overflowed pixels."""
-    gh, gw = log_r.shape
     bad = 0
     for c in range(map_x.shape[1]):
         if not wanted[r, c]:
             continue
-        x = map_x[r, c]
-        y = map_y[r, c]
-        if not (x > -1.0 and y > -1.0 and x < gw and y < gh):
-            continue
-        xf = np.floor(x)
-        yf = np.floor(y)
-        x0 = int(xf)
-        y0 = int(yf)
-        fx = x - xf
-        fy = y - yf
-        total = 0.0
-        weight = 0.0
-        for dy in range(2):
-            yy = y0 + dy
-            if yy < 0 or yy >= gh:
-                continue
-            wy = fy if dy == 1 else 1.0 - fy
-            for dx in range(2):
-                xx = x0 + dx
-                if xx < 0 or xx >= gw:
-                    continue
-                value = log_r[yy, xx]
-                if not np.isfinite(value):
-                    continue
-                w = wy * (fx if dx == 1 else 1.0 - fx)
-                total += w * value
-                weight += w
-        if weight > 1e-6:
-            depth = np.float32(np.exp(total / weight) * ray_z[r, c])
+        value = _finite_bilinear(log_r, map_x[r, c], map_y[r, c])
+        if value == value:  # not NaN
+            depth = np.float32(np.exp(value) * ray_z[r, c])
             out[r, c] = depth
             if depth == np.inf or depth <= 0.0:
                 bad += 1
