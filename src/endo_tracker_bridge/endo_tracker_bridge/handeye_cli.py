@@ -368,6 +368,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     unit = LengthUnit.parse(options.pose_unit)
     if options.board is not None:
         board = parse_board(options.board, nominal_mm)
+        # Another common board plainly in view of a few sampled images (OpenCV's fast
+        # check) while the given one is in none: say so at once, not after searching
+        # every image for a board that is not there (~20 s on the sample bag).
+        sampled = sample_images(options.bag, topics.image)
+        if find_board_size(sampled, (board.pattern_size,)) is None and find_board_size(sampled):
+            resolve_board(options.bag, topics.image, options.board, nominal_mm)
         observations = read_observations(options.bag, board, topics, unit, options.max_views)
         if len(observations.views) < MIN_VIEWS:
             # the board given is (almost) nowhere: name the one the images show
