@@ -82,6 +82,8 @@ def one_run(args: argparse.Namespace) -> None:
         "frames": frames, "main_ms": main_cpu / frames * 1e3,
         "workers_ms": workers_cpu / frames * 1e3,
         "setup_s": report.setup_seconds, "loop_s": report.seconds,
+        "loop_cpu_ms": getattr(report, "loop_cpu_seconds", 0.0) / frames * 1e3,
+        "worker_loop_cpu_ms": getattr(report, "worker_cpu_seconds", 0.0) / frames * 1e3,
         "solve_ms": report.median_solve_ms,
         "mb_per_frame": args.out.stat().st_size / frames / 1e6,
         "stages_ms": {k: v / frames * 1e3

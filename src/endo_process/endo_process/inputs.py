@@ -3,10 +3,12 @@
 A real rig records the camera driver's ``/endoscope/image_raw`` with its
 ``/endoscope/camera_info`` and the tracker driver's PoseStamped marker poses
 on ``/tracker/pose``; endo_sim's bags add ``/ground_truth/*``. Every stream
-is read lazily, each by a reader of its own, as far as the frame being
+is read lazily, as far as the frame being
 processed needs: memory does not grow with the recording's length (an hour
 of tracker poses and camera_infos held as messages took ~1 GB;
-docs/benchmarks.md, "endo-process").
+docs/benchmarks.md, "endo-process"). The streams share one pass over the
+file (:class:`RecordingStreams`): each chunk is decompressed and parsed
+once, not once per stream.
 
 An image pairs with the newest camera_info stamped at or before it
 (:class:`CameraInfoPairing`): the same message when the driver stamps both
@@ -20,6 +22,7 @@ the run processes everything up to the cut and says so.
 
 from __future__ import annotations
 
+from collections import deque
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -126,15 +129,123 @@ def open_recording(
         )
 
 
+#: A stream that would make the shared pass hold more than this many bytes
+#: (or messages) queued for the other streams reads on with a reader of its own.
+MAX_QUEUED_BYTES = 64 << 20
+MAX_QUEUED_MESSAGES = 20_000
+
+
+class RecordingStreams:
+    """The recording's streams (images, camera_info, tracker, ground truth) from one pass.
+
+    One reader goes through the file once, in log order, and hands each
+    message to the queue of the stream it belongs to; a stream's iterator
+    takes from its queue and advances the shared pass only when the queue is
+    empty. The streams advance together (each frame needs its image, its
+    camera_info, the poses up to just past it and the truth up to it), so
+    the queues hold a frame's worth of messages. A stream that would run far
+    ahead of the others (a camera_info published once, a tracker recorded
+    long after the last image) would make the pass queue everything in
+    between: once the queues would exceed :data:`MAX_QUEUED_BYTES` or
+    :data:`MAX_QUEUED_MESSAGES`, that stream goes on with a reader of its own
+    from where it was (as every stream did before: memory stays bounded, and
+    each stream yields exactly the messages, in the order, that a reader of
+    its topics alone gives).
+
+    Args:
+        inputs: the recording.
+        streams: stream name -> its topics (disjoint).
+    """
+
+    def __init__(self, inputs: RecordingInputs, streams: dict[str, list[str]]) -> None:
+        self._inputs = inputs
+        self._topics = {name: list(names) for name, names in streams.items()}
+        self._owner = {topic: name for name, names in streams.items() for topic in names}
+        self._queues: dict[str, deque[BagMessage]] = {name: deque() for name in streams}
+        self._delivered = dict.fromkeys(streams, 0)
+        self._detached: set[str] = set()
+        self._queued_bytes = 0
+        self._queued_messages = 0
+        self._reader: BagReader | None = None
+        self._pass: Iterator[BagMessage] | None = None
+
+    def _shared(self) -> Iterator[BagMessage]:
+        if self._pass is None:
+            self._reader = BagReader(self._inputs.path)
+            self._pass = _read(self._reader, list(self._owner), self._inputs)
+        return self._pass
+
+    def _next_of(self, name: str) -> BagMessage | None:
+        """The next message of stream ``name`` from the shared pass, or None at its end."""
+        queue = self._queues[name]
+        while not queue:
+            message = next(self._shared(), None)
+            if message is None:
+                return None
+            owner = self._owner[message.topic]
+            if owner in self._detached:
+                continue
+            self._queues[owner].append(message)
+            self._queued_bytes += len(message.data)
+            self._queued_messages += 1
+            if owner != name and (
+                self._queued_bytes > MAX_QUEUED_BYTES or self._queued_messages > MAX_QUEUED_MESSAGES
+            ):
+                self._detached.add(name)
+                raise _DetachedError
+        message = queue.popleft()
+        self._queued_bytes -= len(message.data)
+        self._queued_messages -= 1
+        return message
+
+    def __contains__(self, name: object) -> bool:
+        return name in self._topics
+
+    def messages(self, name: str) -> Iterator[BagMessage]:
+        """Stream ``name``'s messages in log order, raw; damage ends it (``inputs.damage``)."""
+        try:
+            while (message := self._next_of(name)) is not None:
+                self._delivered[name] += 1
+                yield message
+            return
+        except _DetachedError:
+            pass
+        skip = self._delivered[name]
+        with BagReader(self._inputs.path) as reader:
+            for index, message in enumerate(_read(reader, self._topics[name], self._inputs)):
+                if index >= skip:
+                    yield message
+
+    def close(self) -> None:
+        """Close the shared reader (idempotent)."""
+        if self._reader is not None:
+            self._reader.close()
+            self._reader = None
+
+
+class _DetachedError(Exception):
+    """A stream leaves the shared pass (internal to RecordingStreams)."""
+
+
 def _iter_decoded(inputs: RecordingInputs, topic: str) -> Iterator[Any]:
     with BagReader(inputs.path) as reader:
         for message in _read(reader, [topic], inputs):
             yield deserialize(message)
 
 
-def iter_tracker_poses(inputs: RecordingInputs) -> Iterator[PoseStamped]:
+def recording_streams(inputs: RecordingInputs) -> RecordingStreams:
+    """The streams a run reads, on one shared pass: image, camera_info, tracker, ground truth."""
+    streams = {"image": [inputs.topics.image], "tracker": [inputs.topics.tracker]}
+    if inputs.fixed_camera is None:
+        streams["camera_info"] = [inputs.topics.camera_info]
+    if inputs.ground_truth:
+        streams["truth"] = list(inputs.ground_truth)
+    return RecordingStreams(inputs, streams)
+
+
+def iter_tracker_poses(streams: RecordingStreams) -> Iterator[PoseStamped]:
     """The tracker topic's PoseStamped messages in log (arrival) order, one at a time."""
-    return _iter_decoded(inputs, inputs.topics.tracker)
+    return (deserialize(message) for message in streams.messages("tracker"))
 
 
 def _camera_key(info: CameraInfo) -> tuple[Any, ...]:
@@ -156,13 +267,14 @@ class CameraInfoPairing:
 
     Args:
         inputs: the recording.
+        streams: its streams (:func:`recording_streams`).
     """
 
-    def __init__(self, inputs: RecordingInputs) -> None:
+    def __init__(self, inputs: RecordingInputs, streams: RecordingStreams) -> None:
         self._fixed = inputs.fixed_camera
         self._stream: Iterator[CameraInfo] = (
             iter(()) if self._fixed is not None
-            else _iter_decoded(inputs, inputs.topics.camera_info)
+            else (deserialize(message) for message in streams.messages("camera_info"))
         )  # fmt: skip
         self._next: CameraInfo | None = None
         self._current: CameraInfo | None = None
@@ -216,14 +328,13 @@ def first_camera(inputs: RecordingInputs) -> CameraModel | None:
         return None
 
 
-def iter_images(inputs: RecordingInputs) -> Iterator[Image]:
+def iter_images(streams: RecordingStreams) -> Iterator[Image]:
     """The image topic's messages in log order, decoded one at a time."""
-    return _iter_decoded(inputs, inputs.topics.image)
+    return (deserialize(message) for message in streams.messages("image"))
 
 
-def iter_ground_truth(inputs: RecordingInputs) -> Iterator[BagMessage]:
+def iter_ground_truth(streams: RecordingStreams) -> Iterator[BagMessage]:
     """The ``/ground_truth/*`` messages in log order, raw (copied through unchanged)."""
-    if not inputs.ground_truth:
-        return
-    with BagReader(inputs.path) as reader:
-        yield from _read(reader, list(inputs.ground_truth), inputs)
+    if "truth" not in streams:
+        return iter(())
+    return streams.messages("truth")

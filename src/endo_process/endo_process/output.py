@@ -29,6 +29,8 @@ from endo_io.tf import StampedTransform, TransformError, add_tf_topic, serialize
 
 #: The ROS type of the image topics.
 IMAGE_TYPE = "sensor_msgs/msg/Image"
+#: The ROS type of the pose topics.
+POSE_TYPE = "geometry_msgs/msg/PoseStamped"
 #: Flush the writer (close the current chunk) every this many frames.
 DEFAULT_FLUSH_EVERY = 30
 
@@ -61,6 +63,14 @@ class OutputBag:
             self.writer.add_topic(topic, msgtype_of(message))
             self.counts[topic] = 0
         heapq.heappush(self._held, (int(log_time_ns), self._order, topic, serialize(message)))
+        self._order += 1
+
+    def hold_cdr(self, topic: str, msgtype: str, data: bytes, log_time_ns: int) -> None:
+        """Queue a small message already serialised (CDR bytes of ``msgtype``), as :meth:`hold`."""
+        if topic not in self.counts:
+            self.writer.add_topic(topic, msgtype)
+            self.counts[topic] = 0
+        heapq.heappush(self._held, (int(log_time_ns), self._order, topic, data))
         self._order += 1
 
     def hold_tf(self, topic: str, transforms: list[StampedTransform], log_time_ns: int) -> None:

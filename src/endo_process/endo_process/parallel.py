@@ -31,9 +31,11 @@ step and the writing anyway (docs/benchmarks.md, "endo-process").
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import multiprocessing
 import queue
 import signal
+import time
 import traceback
 from collections import deque
 from collections.abc import Iterable, Iterator
@@ -87,8 +89,11 @@ def _worker(
         stage = config.build()
         if camera is not None:
             warm_up_frame(camera, stage.options)
+        cpu_start: float | None = None
         while (frame := inbox.get()) is not None:
-            outbox.put(stage.process(frame))
+            cpu_start = time.process_time() if cpu_start is None else cpu_start
+            shaded = stage.process(frame)
+            outbox.put(dataclasses.replace(shaded, worker_cpu_s=time.process_time() - cpu_start))
     except BaseException:  # reported to the parent, which raises WorkerError
         outbox.put(("error", traceback.format_exc(limit=4)))
 
@@ -148,7 +153,8 @@ class ShadingPool:
         """Whether the recording is cut into chunks (more than one worker)."""
         return self.worker_count > 1
 
-    def _worker_of(self, index: int) -> int:
+    def worker_of(self, index: int) -> int:
+        """The worker that shades frame ``index`` (0 with one worker or none)."""
         return (index // self.chunk_frames) % self.worker_count if self.chunked else 0
 
     def _receive(self, worker: int) -> ShadedFrame:
@@ -158,8 +164,7 @@ class ShadingPool:
             except queue.Empty:
                 if not self._workers[worker].is_alive():
                     raise WorkerError(
-                        f"shading worker {worker} exited with code "
-                        f"{self._workers[worker].exitcode}"
+                        f"shading worker {worker} exited with code {self._workers[worker].exitcode}"
                     ) from None
                 continue
             if isinstance(item, tuple):
@@ -194,11 +199,11 @@ class ShadingPool:
                 if start != frame.chunk_start:
                     frame = RawFrame(frame.index, frame.stamp_ns, frame.frame_id, frame.raw,
                                      frame.encoding, frame.camera, start)  # fmt: skip
-                self._inboxes[self._worker_of(frame.index)].put(frame)
+                self._inboxes[self.worker_of(frame.index)].put(frame)
                 pending.append(frame.index)
             if not pending:
                 return
-            yield self._receive(self._worker_of(pending.popleft()))
+            yield self._receive(self.worker_of(pending.popleft()))
 
     def close(self) -> None:
         """Stop the workers (idempotent); frames still queued are abandoned."""

@@ -48,7 +48,7 @@ from endo_io import topics
 from endo_io.bag import BagMessage, BagReader
 from endo_io.errors import Endo3dError, PoseLookupError
 from endo_io.image import image_to_array
-from endo_io.pose import matrix_to_pose, pose_to_matrix
+from endo_io.pose import transforms_to_pose_stamped_cdr
 from endo_io.pose_buffer import PoseBuffer
 from endo_io.progress import Progress
 from endo_io.stamp import NS_PER_S, ns_to_stamp, stamp_to_ns
@@ -58,13 +58,15 @@ from endo_process.flow_stage import FlowStage, flow_options, grey_cloud, scale_m
 from endo_process.inputs import (
     CameraInfoPairing,
     InputTopics,
+    RecordingStreams,
     first_camera,
     iter_ground_truth,
     iter_images,
     iter_tracker_poses,
     open_recording,
+    recording_streams,
 )
-from endo_process.output import DEFAULT_FLUSH_EVERY, OutputBag
+from endo_process.output import DEFAULT_FLUSH_EVERY, POSE_TYPE, OutputBag
 from endo_process.parallel import DEFAULT_CHUNK_FRAMES, ShadingPool, StageConfig
 from endo_process.settings import ProcessSettings, load_settings
 from endo_process.shading import RawFrame, ShadedFrame, ShadingStage
@@ -104,7 +106,10 @@ class ProcessReport:
     ``stage_seconds``: wall seconds of the frame loop's steps in this
     process, summed over the frames (:data:`LOOP_STAGES`); ``shading_seconds``:
     the correction and SFS steps' own wall seconds, summed, wherever they ran
-    (this process or a worker; ``ShadedFrame.timings``).
+    (this process or a worker; ``ShadedFrame.timings``). ``loop_cpu_seconds``:
+    this process's CPU seconds (all its threads) in the frame loop;
+    ``worker_cpu_seconds``: the worker processes' CPU seconds from their
+    first frame to their last (``ShadedFrame.worker_cpu_s``), start-up aside.
     """
 
     frames_in: int = 0
@@ -125,6 +130,8 @@ class ProcessReport:
     written: Counter[str] = field(default_factory=Counter)
     seconds: float = 0.0
     setup_seconds: float = 0.0
+    loop_cpu_seconds: float = 0.0
+    worker_cpu_seconds: float = 0.0
     bag_seconds: float = 0.0
     solve_ms: list[float] = field(default_factory=list)
     stage_seconds: defaultdict[str, float] = field(default_factory=lambda: defaultdict(float))
@@ -198,17 +205,25 @@ def iter_camera_poses(
         yield pose
 
 
+#: Poses converted at once when the feed drains the stream (at most this many held ahead).
+_POSE_BLOCK = 256
+
+
 class _PoseFeed:
     """Camera poses, read lazily in arrival order, into a PoseBuffer up to just past each query.
 
     Each pose taken from the stream is queued for the output as
     ``/endoscope/pose`` (camera time) and ``/tracker/marker_pose`` (tracker
-    time), and goes into the buffer through the ``/endoscope/pose`` message
-    and ``pose_to_matrix``, as the flow node takes it, into a buffer made as
-    the flow node makes it (capacity 6000, its ``pose_max_gap_s``). A pose
-    the buffer refuses (out of order, a far-future stamp) or that resets it
-    (a clock jump) is counted by cause, as the node's diagnostics count it.
-    Only the poses read ahead of the current frame are held in memory.
+    time), and goes into the buffer as the flow node takes it: the transform
+    that ``pose_to_matrix`` reads back from the ``/endoscope/pose`` message,
+    into a buffer made as the flow node makes it (capacity 6000, its
+    ``pose_max_gap_s``). The poses a frame needs are read first and then
+    converted together (:func:`endo_io.pose.transforms_to_pose_stamped_cdr`:
+    the same bytes and transforms as one ``matrix_to_pose`` per pose, at a
+    fraction of the cost), then inserted one by one. A pose the buffer
+    refuses (out of order, a far-future stamp) or that resets it (a clock
+    jump) is counted by cause, as the node's diagnostics count it. Only the
+    poses read ahead of the current frame are held in memory.
     """
 
     def __init__(
@@ -225,35 +240,47 @@ class _PoseFeed:
         self._report = report
         self.buffer = PoseBuffer(capacity=6000, max_gap_ns=max_gap_ns)
 
-    def _take(self) -> bool:
-        """Take the next pose from the stream into the output queue and the buffer."""
-        pose = next(self._poses, None)
-        if pose is None:
-            return False
-        message = matrix_to_pose(pose.T_world_camera, pose.stamp_ns, self._pose_frame)
-        self._output.hold(topics.CAMERA_POSE, message, pose.stamp_ns)
-        self._output.hold(topics.MARKER_POSE,
-                          matrix_to_pose(pose.sample.T_tracker_marker, pose.sample.stamp_ns,
-                                         self._tracker_frame),
-                          pose.sample.stamp_ns)  # fmt: skip
-        T, stamp = pose_to_matrix(message)
-        try:
-            self.buffer.insert(stamp, T)
-        except Endo3dError as error:
-            self._report.pose_buffer_events[type(error).__name__] += 1
-        return True
+    def _read(self, until_ns: int | None) -> list[CameraPose]:
+        """Poses from the stream up to the first stamped after ``until_ns`` (a block when None)."""
+        block: list[CameraPose] = []
+        for pose in self._poses:
+            block.append(pose)
+            if (until_ns is not None and pose.stamp_ns > until_ns) or len(block) >= _POSE_BLOCK:
+                break
+        return block
+
+    def _take(self, block: list[CameraPose]) -> None:
+        """Queue ``block`` for the output and insert it into the buffer, in order."""
+        world, read_back = transforms_to_pose_stamped_cdr(
+            np.stack([pose.T_world_camera for pose in block]),
+            [pose.stamp_ns for pose in block], self._pose_frame,
+        )  # fmt: skip
+        marker, _ = transforms_to_pose_stamped_cdr(
+            np.stack([pose.sample.T_tracker_marker for pose in block]),
+            [pose.sample.stamp_ns for pose in block], self._tracker_frame,
+        )  # fmt: skip
+        for k, pose in enumerate(block):
+            self._output.hold_cdr(topics.CAMERA_POSE, POSE_TYPE, world[k], pose.stamp_ns)
+            self._output.hold_cdr(topics.MARKER_POSE, POSE_TYPE, marker[k], pose.sample.stamp_ns)
+            try:
+                self.buffer.insert(pose.stamp_ns, read_back[k])
+            except Endo3dError as error:
+                self._report.pose_buffer_events[type(error).__name__] += 1
 
     def at(self, stamp_ns: int) -> np.ndarray:
         """T_world_camera at ``stamp_ns``; raises PoseLookupError when there is none."""
+        # Only the last pose read can be newer than stamp_ns, as when taken one by one.
         while self.buffer.newest_ns is None or self.buffer.newest_ns <= stamp_ns:
-            if not self._take():
+            block = self._read(stamp_ns)
+            if not block:
                 break
+            self._take(block)
         return self.buffer.query(stamp_ns)
 
     def drain(self) -> None:
         """Queue every pose left in the stream for the output (the end of a complete run)."""
-        while self._take():
-            pass
+        while block := self._read(None):
+            self._take(block)
 
 
 def _raw_frames(
@@ -411,13 +438,15 @@ def process_bag(options: ProcessOptions, stop: threading.Event | None = None) ->
     # (warm_up_camera) while this process sets up and warms up the flow step.
     pool = ShadingPool(config, options.jobs, options.chunk_frames, stage,
                        warm_up_camera=camera)  # fmt: skip
+    streams: RecordingStreams | None = None
     try:  # the workers are running: stop them if the set-up fails
         report = ProcessReport(frames_total=inputs.frame_count, output=options.output)
         with BagReader(options.bag) as reader:
             copied = {name: reader.topics[name] for name in inputs.ground_truth}
         output = OutputBag(options.output, options.compression, copied)
         world_frame = str(settings.flow["world_frame"])
-        poses = iter_camera_poses(iter_tracker_poses(inputs), settings, handeye, report)
+        streams = recording_streams(inputs)
+        poses = iter_camera_poses(iter_tracker_poses(streams), settings, handeye, report)
         first_pose = next(poses, None)
         if first_pose is not None:
             poses = itertools.chain([first_pose], poses)
@@ -443,7 +472,7 @@ def process_bag(options: ProcessOptions, stop: threading.Event | None = None) ->
         if camera is not None and pool.worker_count > 0:
             # Overlapped with the workers' own warm-up; with one job it would only add.
             warm_up_pipeline(flow.pipeline.options, camera)
-        truth: Iterator[BagMessage] = iter_ground_truth(inputs)
+        truth: Iterator[BagMessage] = iter_ground_truth(streams)
         truth_pending: list[BagMessage] = []
         total = inputs.frame_count if options.max_frames is None else min(
             inputs.frame_count, options.max_frames
@@ -453,13 +482,16 @@ def process_bag(options: ProcessOptions, stop: threading.Event | None = None) ->
         progress = Progress(total, enabled=options.progress, description="endo-process")
     except BaseException:
         pool.close()
+        if streams is not None:
+            streams.close()
         raise
     report.setup_seconds = time.perf_counter() - setup_start
-    loop_start = time.perf_counter()
+    loop_start, loop_cpu_start = time.perf_counter(), time.process_time()
+    worker_cpu: dict[int, float] = {}
     try:
         infos: dict[int, CameraInfo | None] = {}
         frames = _raw_frames(
-            CameraInfoPairing(inputs), iter_images(inputs), infos, report, stop,
+            CameraInfoPairing(inputs, streams), iter_images(streams), infos, report, stop,
             options.max_frames,
         )  # fmt: skip
         clock = report.stage_seconds
@@ -472,6 +504,8 @@ def process_bag(options: ProcessOptions, stop: threading.Event | None = None) ->
             if item is None:
                 break
             count, shaded = item
+            if shaded.worker_cpu_s > 0.0:
+                worker_cpu[pool.worker_of(shaded.index)] = shaded.worker_cpu_s
             # The poses up to this frame first: the output stays in log-time order.
             T_world_camera: np.ndarray | None = None
             lookup: PoseLookupError | None = None
@@ -509,6 +543,8 @@ def process_bag(options: ProcessOptions, stop: threading.Event | None = None) ->
         report.interrupted = True
     finally:
         report.seconds = time.perf_counter() - loop_start
+        report.loop_cpu_seconds = time.process_time() - loop_cpu_start
+        report.worker_cpu_seconds = sum(worker_cpu.values())
         pool.close()
         progress.close()
         # A partial run (stopped, or --max-frames short of the end) ends at its last frame.
@@ -522,6 +558,7 @@ def process_bag(options: ProcessOptions, stop: threading.Event | None = None) ->
         if last_stamp is not None:
             _write_map(output, flow, options, last_stamp, world_frame, report)
         output.close(end if partial else None)
+        streams.close()
     report.interrupted = report.interrupted or stop.is_set()
     report.written = Counter(output.counts)
     report.poses_written = report.written[topics.CAMERA_POSE]

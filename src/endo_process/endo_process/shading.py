@@ -66,7 +66,9 @@ class ShadedFrame:
     time of the solve. timings: wall seconds of the stage's steps where it
     ran: "correct" (decoding the raw frame, the correction and the channel),
     "solve" (the whole SFS call) and the solver's own stages as "sfs.<stage>"
-    (:data:`endo_sfs.relative_depth.STAGES`).
+    (:data:`endo_sfs.relative_depth.STAGES`). worker_cpu_s: in a worker
+    process, its CPU seconds (all its threads) from receiving its first frame
+    to sending this one (0.0 when shaded in the calling process).
     """
 
     index: int
@@ -79,6 +81,7 @@ class ShadedFrame:
     solve_ms: float = 0.0
     iterations: int = 0
     timings: dict[str, float] = field(default_factory=dict)
+    worker_cpu_s: float = 0.0
 
 
 class ShadingStage:

@@ -4,7 +4,8 @@ A driver that stamps camera_info on its own clock (not the image's stamp)
 must work: each image takes the newest camera_info stamped at or before it,
 and the output carries one camera_info beside every image, at its stamp.
 Tracker poses are taken from the recording only as far as the frame being
-processed needs (memory does not grow with the recording's length).
+processed needs (memory does not grow with the recording's length), and
+every stream comes from one shared pass over the file.
 """
 
 from __future__ import annotations
@@ -13,11 +14,14 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
+import pytest
 
+import endo_process.inputs
 from endo_io import topics
-from endo_io.bag import BagReader, BagWriter, deserialize
+from endo_io.bag import BagMessage, BagReader, BagWriter, deserialize
 from endo_io.bag.serde import serialize
 from endo_io.stamp import ns_to_stamp, stamp_to_ns
+from endo_process.inputs import InputTopics, open_recording, recording_streams
 from endo_process.output import OutputBag
 from endo_process.runner import ProcessOptions, ProcessReport, _PoseFeed, process_bag
 from endo_tracker_bridge.chain import CameraPose
@@ -118,3 +122,32 @@ def test_tracker_poses_are_taken_only_as_far_as_each_frame(tmp_path: Path) -> No
     output.close()
     with BagReader(tmp_path / "poses.mcap") as reader:
         assert reader.topics[topics.CAMERA_POSE].message_count == 60 * 60
+
+
+def test_the_shared_pass_gives_each_stream_what_a_reader_of_its_own_gives(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """One pass over the file feeds every stream; a stream that runs far ahead reads on alone."""
+    inputs = open_recording(PHANTOM, InputTopics())
+    with BagReader(PHANTOM) as reader:
+        alone = {name: [(m.topic, m.log_time_ns, bytes(m.data)) for m in reader.messages(t)]
+                 for name, t in recording_streams(inputs)._topics.items()}  # fmt: skip
+    # Interleaved as a run takes them, then the tracker drained far ahead of the
+    # images (then each stream drained in turn); with a queue limit of 20
+    # messages the tracker leaves the pass (and the streams drained after it).
+    for limit, tracker_alone in ((inputs.frame_count * 10, False), (20, True)):
+        monkeypatch.setattr(endo_process.inputs, "MAX_QUEUED_MESSAGES", limit)
+        streams = recording_streams(inputs)
+        iterators = {name: streams.messages(name) for name in alone}
+        got: dict[str, list[tuple[str, int, bytes]]] = {name: [] for name in alone}
+        for name in ("image", "camera_info", "truth") * 3 + ("tracker",) * 150:
+            got[name].append(_key(next(iterators[name])))
+        for name, iterator in iterators.items():
+            got[name] += [_key(m) for m in iterator]
+        streams.close()
+        assert got == alone
+        assert ("tracker" in streams._detached) is tracker_alone
+
+
+def _key(message: BagMessage) -> tuple[str, int, bytes]:
+    return message.topic, message.log_time_ns, bytes(message.data)
