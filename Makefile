@@ -22,6 +22,7 @@ TEST_DOMAIN_ID ?= 42
 BENCH_DOMAIN_ID ?= 43
 DOCTOR_DOMAIN_ID ?= 44
 FUZZ_DOMAIN_ID ?= 45
+TEST_WORKERS ?= 2
 # Examples per fuzz property in `make fuzz` (`make test` runs each with 30).
 FUZZ_EXAMPLES ?= 2000
 
@@ -56,11 +57,15 @@ demo: export ROS_DOMAIN_ID := $(DEMO_DOMAIN_ID)
 demo: $(STAMP) $(KERNELS)
 	$(VBIN)/endo-demo --output-dir out
 
-# The 25 slowest tests are listed at the end, so that a CI log shows where the
-# suite's ten minutes go.
+# Two workers (pytest-xdist; TEST_WORKERS=0 runs in this process): about half
+# of the suite waits on DDS discovery and real-time replays, so two at a time
+# nearly halve the time on two cores. A file's tests stay on one worker (its
+# module fixtures are built once), each worker has a DDS domain of its own
+# (conftest.py). The 25 slowest tests are listed at the end, so that a CI log
+# shows where the time goes.
 test: export ROS_DOMAIN_ID := $(TEST_DOMAIN_ID)
 test: $(STAMP) $(KERNELS)
-	$(VBIN)/python -m pytest --durations=25
+	$(VBIN)/python -m pytest -n $(TEST_WORKERS) --dist loadfile --durations=25
 
 # The fuzz tests of untrusted input (bags, CDR messages) with a large budget.
 fuzz: export ROS_DOMAIN_ID := $(FUZZ_DOMAIN_ID)

@@ -3,6 +3,12 @@
 DDS stays on loopback in every test, however pytest was started: `make test`
 exports these already; a bare `pytest` run gets the same defaults here, before
 any test imports rclpy.
+
+With pytest-xdist (`make test` runs two workers), each worker gets a DDS
+domain of its own: worker gwK the domain given plus 100·K (gw0 keeps it), so
+that two tests running at once never see each other's nodes (a test that
+refuses a second graph in its domain would otherwise meet the other
+worker's), and two suites started with domains under 100 never share one.
 """
 
 from __future__ import annotations
@@ -12,3 +18,12 @@ import os
 os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
 os.environ.setdefault("ROS_DOMAIN_ID", "42")
 os.environ.setdefault("RMW_IMPLEMENTATION", "rmw_fastrtps_cpp")
+
+#: Added to the domain of xdist worker gwK, times K.
+WORKER_DOMAIN_STEP = 100
+_worker = os.environ.get("PYTEST_XDIST_WORKER", "")
+if _worker.startswith("gw"):
+    # DDS domains are 0..232 with Fast DDS's default port mapping
+    os.environ["ROS_DOMAIN_ID"] = str(
+        (int(os.environ["ROS_DOMAIN_ID"]) + WORKER_DOMAIN_STEP * int(_worker[2:])) % 233
+    )

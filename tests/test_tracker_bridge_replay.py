@@ -92,9 +92,10 @@ def test_replayed_tracker_poses_come_out_as_camera_poses(tmp_path):
     assert code == 0, log
     assert "Traceback" not in log and "source ros: /tracker/pose" in log, log
 
-    # Sensor-data QoS on the input is best effort (depth 5): on a loaded
-    # machine a few samples may be lost, never altered.
-    assert len(received) >= 0.9 * len(expected), (len(received), log)
+    # The input is best effort, keep last 100 (endo_io.qos.POSE_STREAM_QOS): a
+    # bridge stalled by the load takes the waiting samples afterwards (with
+    # depth 5 it lost 28 of 180 under load ~10); none is altered.
+    assert len(received) >= 0.97 * len(expected), (len(received), log)
     for msg in received:
         T, stamp = pose_to_matrix(msg)
         assert msg.header.frame_id == "world"

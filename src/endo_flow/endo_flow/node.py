@@ -99,6 +99,7 @@ from endo_io.pose_buffer import PoseBuffer
 from endo_io.process import describing_only, run_node
 from endo_io.qos import (
     NEWEST_FRAME_QOS,
+    POSE_STREAM_QOS,
     SENSOR_DATA_QOS,
     create_reliable_publisher,
     reliable_qos,
@@ -245,7 +246,7 @@ class FlowNode(Node):
         self.health.subscribe(CameraInfo, topics.CAMERA_INFO, self._on_info, SENSOR_DATA_QOS,
                               processed=False)
         self.pose_health.subscribe(PoseStamped, topics.CAMERA_POSE, self._on_pose,
-                                   SENSOR_DATA_QOS)
+                                   POSE_STREAM_QOS)
         self.create_service(Trigger, "~/reset_map", self._reset_map)
         self.create_service(Trigger, "~/export_map", self._export_map)
         self.create_timer(0.02, self._expire_pending)

@@ -1,9 +1,11 @@
 """QoS presets following REP 2003 (sensor data and map QoS).
 
-* Subscriptions to sensor streams (images, camera_info, tracker poses) use
-  the sensor-data profile: best effort, keep last 5, volatile. A best-effort
-  subscription matches both reliable and best-effort publishers, so a node
-  never silently misses a driver that publishes either way.
+* Subscriptions to sensor streams (images, camera_info) use the sensor-data
+  profile: best effort, keep last 5, volatile. A best-effort subscription
+  matches both reliable and best-effort publishers, so a node never silently
+  misses a driver that publishes either way. Pose streams (the tracker's, the
+  camera's) are the same but keep the last :data:`POSE_STREAM_DEPTH`
+  (:data:`POSE_STREAM_QOS`): every sample counts there.
 * Publishers are reliable, keep last ``depth``, and accept QoS overrides from
   parameters (``qos_overrides./topic.publisher.reliability`` and friends), as
   image_pipeline's nodes do. A user who wants best effort for a wireless link
@@ -34,6 +36,22 @@ from rclpy.qos_overriding_options import QoSOverridingOptions
 
 #: Subscription profile for sensor streams (REP 2003).
 SENSOR_DATA_QOS: QoSProfile = qos_profile_sensor_data
+
+#: Samples a pose-stream subscription holds while its node is busy: every
+#: tracker sample counts (a pose buffer interpolates between them), and a pose
+#: is ~100 bytes, so the queue covers 0.4 s at 250 Hz, 1.7 s at 60 Hz: a node
+#: stalled by a slow frame or a loaded machine takes them all afterwards
+#: instead of losing all but the last five.
+POSE_STREAM_DEPTH = 100
+
+#: Subscription profile of tracker and camera pose streams: best effort (it
+#: matches reliable and best-effort publishers), keep last POSE_STREAM_DEPTH.
+POSE_STREAM_QOS = QoSProfile(
+    history=HistoryPolicy.KEEP_LAST,
+    depth=POSE_STREAM_DEPTH,
+    reliability=ReliabilityPolicy.BEST_EFFORT,
+    durability=DurabilityPolicy.VOLATILE,
+)
 
 #: Frames a newest-frame subscription holds while its node is busy: 8 frames
 #: cover 0.27 s at 30 fps, longer than any stage takes per frame here, so the

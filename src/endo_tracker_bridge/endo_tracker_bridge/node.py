@@ -58,7 +58,7 @@ from endo_io.errors import ParameterValidationError
 from endo_io.parameters import NodeParameters, ParameterSpec
 from endo_io.pose import matrix_to_pose
 from endo_io.process import run_node
-from endo_io.qos import SENSOR_DATA_QOS, create_reliable_publisher
+from endo_io.qos import POSE_STREAM_QOS, create_reliable_publisher
 from endo_io.tf import FrameNames, StampedTransform, camera_transform, static_transforms
 from endo_io.tf_broadcast import TfBroadcaster
 from endo_tracker_bridge.chain import CameraPoseChain
@@ -431,7 +431,7 @@ class TrackerBridgeNode(Node):
                 self._publish(sample)
 
             self._subscription = self._health.subscribe(
-                PoseStamped, p["ros_topic"], on_pose, SENSOR_DATA_QOS
+                PoseStamped, p["ros_topic"], on_pose, POSE_STREAM_QOS
             )
             self._input_name = self._subscription.topic_name
             self.get_logger().info(f"source ros: {self._subscription.topic_name} ({unit.value})")
