@@ -359,6 +359,11 @@ class FlowNode(Node):
         return self._camera
 
     def _process(self, pending: _Pending, pose: np.ndarray | None) -> None:
+        if self._frame_time.is_late(pending.stamp_ns):
+            # paired after a newer frame was processed (its image or camera_info came
+            # late): stale, skipped like a depth passed over for a newer one
+            self.health.skip(topics.DEPTH_RELATIVE)
+            return
         try:
             out = self._step(pending, pose)
         except ClockJumpError as error:  # the pipeline reset itself; this frame is dropped

@@ -106,6 +106,21 @@ class ClockJumpDetector:
         """The newest stamp of the current timeline (None before the first)."""
         return self._reference
 
+    def is_late(self, stamp_ns: int) -> bool:
+        """True for a stamp at or before the reference by at most the back tolerance.
+
+        A frame paired with another input (its camera_info, its pose) can be
+        handed out after a newer frame was processed, when its partner came
+        late on a loaded machine: that frame is stale, to be skipped and
+        counted as such, not checked (:meth:`check` would raise
+        :class:`~endo_io.errors.StampOrderError` for it, and a second such
+        frame would confirm a clock jump and reset the stream's state). The
+        price: a stream that really steps back by less than the tolerance is
+        skipped until it passes its old newest stamp instead of reset.
+        """
+        reference = self._reference
+        return reference is not None and 0 <= reference - int(stamp_ns) <= self.back_tolerance_ns
+
     def reset(self) -> None:
         """Forget the stream: the next stamp starts a timeline."""
         self._reference = self._reference_arrival = None

@@ -104,3 +104,25 @@ def test_reset_starts_a_new_timeline():
     assert detector.check(1 * S) is None and detector.reference_ns == 1 * S
     with pytest.raises(ValueError):
         ClockJumpDetector(forward_tolerance_ns=0)
+
+
+def test_late_frames_are_told_apart_from_a_jump_and_leave_the_stream_untouched():
+    # A frame stream on a loaded machine: 66 and 33 ms are paired after 100 ms was
+    # processed. A node skips what is_late says is late instead of checking it, so
+    # two late frames in a row do not confirm a "jump" (which check would).
+    detector = ClockJumpDetector(back_tolerance_ns=1 * S)
+    assert not detector.is_late(0)  # no reference yet
+    detector.check(100 * MS)
+    late = [s for s in (66 * MS, 33 * MS) if detector.is_late(s)]
+    assert late == [66 * MS, 33 * MS]
+    assert detector.is_late(100 * MS)  # a repeat of the newest
+    assert not detector.is_late(133 * MS) and detector.check(133 * MS) is None
+    assert not detector.is_late(133 * MS - 2 * S)  # beyond the tolerance: a jump
+    assert detector.check(133 * MS - 2 * S) == ClockJump(133 * MS, 133 * MS - 2 * S)
+    assert detector.jumps == 1
+    # without the check first, the two late frames would have made a jump
+    naive = ClockJumpDetector(back_tolerance_ns=1 * S)
+    naive.check(100 * MS)
+    with pytest.raises(StampOrderError):
+        naive.check(33 * MS)
+    assert naive.check(66 * MS) == ClockJump(100 * MS, 66 * MS)

@@ -375,6 +375,11 @@ class SfsNode(Node):
         camera = self._camera_model(info)
         stamp_ns = stamp_to_ns(image_msg.header.stamp)
         frame_id = image_msg.header.frame_id
+        if self._frame_time.is_late(stamp_ns):
+            # paired after a newer frame was solved (its camera_info came late): stale,
+            # skipped like a frame passed over for a newer one, not an error
+            self.health.skip(topics.IMAGE_CORRECTED)
+            return
         jump = self._frame_time.check(stamp_ns, time.monotonic_ns())  # raises for a wild stamp
         if jump is not None:
             self._chain.reset()
