@@ -193,6 +193,14 @@ def run_node(factory: Callable[[], Node], args: Sequence[str] | None = None) -> 
         executor.spin()
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
+    except RuntimeError:
+        # rclpy's signal handler may shut the context down while spin() builds
+        # its next wait set (an RCLError, "failed to initialize wait set: the
+        # given context is not valid"): that is the shutdown asked for, not a
+        # failure (exit 1 and a traceback after SIGINT, seen in CI). With the
+        # context still valid it is one, and propagates.
+        if rclpy.ok():
+            raise
     finally:
         if node is not None:
             close = getattr(node, "close", None)

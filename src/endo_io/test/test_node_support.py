@@ -134,3 +134,37 @@ def test_run_node_help_lists_declared_parameters_and_exits(capsys):
     assert "usage: gain-node [--ros-args" in out
     assert "gain (default 2.0 [0.0, 8.0]): multiplies every pixel" in out
     assert not rclpy.ok()  # the help path leaves no context running
+
+
+def test_run_node_takes_a_shutdown_inside_spin_for_the_shutdown_it_is(monkeypatch):
+    # SIGINT's handler shut the context down while spin() built its next wait
+    # set: rclpy raised RCLError, the bridge printed a traceback and exited 1
+    # (CI). The race is reproduced here by a spin that does the same.
+    import endo_io.process as process
+
+    def spin_into_a_shutdown(self):
+        rclpy.try_shutdown()
+        raise RuntimeError("failed to initialize wait set: the given context is not valid")
+
+    closed = []
+
+    class ClosingNode(Node):
+        exit_code = 0
+
+        def __init__(self) -> None:
+            super().__init__("closing_under_test")
+
+        def close(self) -> None:
+            closed.append(True)
+
+    monkeypatch.setattr(process.SingleThreadedExecutor, "spin", spin_into_a_shutdown)
+    assert process.run_node(ClosingNode, ["closing-node"]) == 0
+    assert closed == [True] and not rclpy.ok()
+
+    def spin_into_a_real_error(self):
+        raise RuntimeError("a bug while the context is valid")
+
+    monkeypatch.setattr(process.SingleThreadedExecutor, "spin", spin_into_a_real_error)
+    with pytest.raises(RuntimeError, match="a bug"):
+        process.run_node(ClosingNode, ["closing-node"])
+    assert closed == [True, True] and not rclpy.ok()
