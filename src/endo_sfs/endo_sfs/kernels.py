@@ -102,8 +102,8 @@ def colocated_cosine_scalar(radiance: float, coef_a: float, coef_b: float) -> fl
     return c
 
 
-#: The per-node solve reads v(F) = g(F) − ½·ln I from a table of
-#: g(F) = ½·ln R(1/√(1+F²)) and g'(F) on F = tan θ ∈ [0, TABLE_MAX_SLOPE]
+#: The per-node solve reads v(F) = g(F) + v* from a table of
+#: g(F) = ½·ln(R(1/√(1+F²))/A) and g'(F) on F = tan θ ∈ [0, TABLE_MAX_SLOPE]
 #: (θ up to 86°), cubic Hermite between entries (error ~1e-11): a lookup in
 #: place of a square root, a division and a logarithm per Newton step.
 TABLE_MAX_SLOPE = 16.0
@@ -118,16 +118,17 @@ REFLECTANCE_A, REFLECTANCE_B = 0, 1
 
 @njit(cache=True, nogil=True, error_model="numpy", inline="always")
 def _log_radiance_direct(f: float, reflectance: np.ndarray) -> tuple[float, float]:
-    """g(F) = ½·ln R(c), c = 1/√(1+F²), and g'(F) = −½·R'(c)/R·F·c³.
+    """g(F) = ½·ln(R(c)/A), c = 1/√(1+F²), and g'(F) = −½·R'(c)/R·F·c³.
 
-    R(c) = A·c + B·(1 − c²) with reflectance = (A, B).
+    R(c) = A·c + B·(1 − c²) with reflectance = (A, B). g(0) = 0, so that a
+    node's v(F) = g(F) + v* with v* = ½·ln(A/I) its singular value.
     """
     coef_a = reflectance[REFLECTANCE_A]
     coef_b = reflectance[REFLECTANCE_B]
     c = 1.0 / np.sqrt(1.0 + f * f)
     radiance = coef_a * c + coef_b * (1.0 - c * c)
     slope = coef_a - 2.0 * coef_b * c
-    return 0.5 * np.log(radiance), -0.5 * slope / radiance * f * c * c * c
+    return 0.5 * np.log(radiance / coef_a), -0.5 * slope / radiance * f * c * c * c
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
@@ -171,12 +172,13 @@ def near_light_update(
     sa: float,
     sb: float,
     lam: float,
-    log_intensity: float,
     v_star: float,
     reflectance: np.ndarray,
     f_guess: float,
+    v_guess: float,
+    dv_guess: float,
     table: np.ndarray,
-) -> tuple[float, float]:
+) -> tuple[float, float, float]:
     """Per-node solve of the near-light Godunov equation for v = ln r.
 
     Finds v with
@@ -192,21 +194,29 @@ def near_light_update(
     (F = 0). When v* ≤ min(a, b) the node is a singular point (a local
     minimum of distance) and v = v*.
 
-    The unknown is F itself: v(F) = ½·(ln R(1/√(1+F²)) − ln I) is smooth
-    down to F = 0, where v(·) has the square-root singularity that slows
-    Newton on v. Safeguarded Newton on q(F) = λF − √(left side), seeded
-    with ``f_guess`` (the node's previous F, or the last frame's); v(F) comes
-    from ``table`` (:func:`log_radiance_table` of the same ``reflectance``,
-    (A, B) of R(c) = A·c + B·(1 − c²)). Newton
-    stops once the residual guarantees |F − F*| < 1e-3·(1 + F)
-    (``_NEWTON_RESIDUAL_TOL``) and takes one more Newton step. Returns (v, F).
+    The unknown is F itself: v(F) = g(F) + v*, g(F) = ½·ln(R(1/√(1+F²))/A),
+    is smooth down to F = 0, where v(·) has the square-root singularity that
+    slows Newton on v. Safeguarded Newton on q(F) = λF − √(left side),
+    seeded with ``f_guess`` (the node's previous F, or the last frame's); v(F)
+    comes from ``table`` (:func:`log_radiance_table` of the same
+    ``reflectance``, (A, B) of R(c) = A·c + B·(1 − c²)). When ``dv_guess``
+    < 0, (``v_guess``, ``dv_guess``) are v and v' at ``f_guess`` already (the
+    node's own last solve returned them), and the first Newton step takes
+    them instead of a table lookup: a re-solve after a neighbour changed
+    then costs one lookup less. Newton stops once the residual guarantees
+    |F − F*| < 1e-3·(1 + F) (``_NEWTON_RESIDUAL_TOL``) and takes one more
+    Newton step, evaluated to first order. Returns (v, F, v'(F)), the last
+    < 0 only when v came from a table lookup and that one first-order step
+    (so that the error of v that a next solve starts from stays ~1e-6),
+    else 0.
     """
     m = a if a < b else b
     if v_star <= m:
-        return v_star, 0.0
+        return v_star, 0.0, 0.0
     f_lo = 0.0
     f_hi = np.inf
     f = f_guess
+    known = dv_guess < 0.0 and f > 0.0
     if not f > 0.0:
         # Small-slope start: v ≈ v* − κ·F² with κ = R'(1)/(4·R(1)), using the
         # larger one-sided term alone.
@@ -217,11 +227,16 @@ def near_light_update(
         f = (-lam + np.sqrt(lam * lam + 4.0 * w * kappa * (v_star - m))) / (
             2.0 * np.sqrt(w) * kappa
         )
-    half_log_intensity = 0.5 * log_intensity
-    v = v_star
+    looked_up = False
     for _ in range(_NEWTON_MAX_STEPS):
-        g, dv_df = _log_radiance(f, table, reflectance)
-        v = g - half_log_intensity
+        if known:
+            v = v_guess
+            dv_df = dv_guess
+            known = False
+        else:
+            g, dv_df = _log_radiance(f, table, reflectance)
+            v = g + v_star
+            looked_up = True
         da = v - a
         db = v - b
         # √(left side) and its derivative in v; one-sided without a root.
@@ -243,7 +258,7 @@ def near_light_update(
         elif q < 0.0:
             f_lo = f
         else:
-            return v, f
+            return v, f, dv_df if looked_up else 0.0
         slope = lam - droot * dv_df
         step = q / slope
         f_new = f - step
@@ -253,12 +268,13 @@ def near_light_update(
             if f_new > f_lo and f_new < f_hi:
                 # The last step is below 1e-3·(1 + F): v(F) to first order
                 # (error ~ ½g''·step², under 1e-6) instead of another lookup.
-                return v + dv_df * (f_new - f), f_new
-            return v, f
+                return v + dv_df * (f_new - f), f_new, dv_df if looked_up else 0.0
+            return v, f, dv_df if looked_up else 0.0
         if not (f_new > f_lo and f_new < f_hi):
             f_new = 0.5 * (f_lo + f_hi) if f_hi < np.inf else 2.0 * f + 1.0
         f = f_new
-    return _log_radiance(f, table, reflectance)[0] - half_log_intensity, f
+    g, dv_df = _log_radiance(f, table, reflectance)
+    return g + v_star, f, dv_df
 
 
 @njit(cache=True, nogil=True, error_model="numpy", inline="always")
@@ -360,6 +376,38 @@ def _unlock_stencil(
         for ni, nj in ((i - k, j), (i + k, j), (i, j - k), (i, j + k)):
             if state[ni, nj] == LOCKED and (not causal or u[ni, nj] > lowest):
                 state[ni, nj] = UNLOCKED
+
+
+@njit(cache=True, nogil=True, error_model="numpy", fastmath=_FAST, inline="always")
+def _unlock_dependents(
+    state: np.ndarray, v: np.ndarray, i: int, j: int, order: int, lowest: float
+) -> None:
+    """Unlock the locked nodes whose upwind stencil reads (i, j), after it changed.
+
+    Causal schemes (orders 1 and 2) only; ``lowest`` is the smaller of the
+    changed node's old and new values. A node n reads (i, j) only through
+    the upwind choices of :func:`second_order_neighbour` (or the first-order
+    minimum): as its nearer neighbour n1 along an axis when (i, j) is not
+    above the opposite neighbour, and, for order 2, as its second node n2
+    when the node between them is n1 (not above the opposite one) and
+    (i, j) is not above it. Only such nodes, and only when n lies above
+    ``lowest`` (a causal node uses lower neighbours only), are unlocked;
+    the ties count as reads. If a later change makes (i, j) part of n's
+    stencil after all, that change unlocks n (it reads the node that
+    changed), so no dependency is lost: the same fixed point, with fewer
+    idle re-solves than unlocking the whole stencil reach.
+    """
+    for di, dj in ((-1, 0), (1, 0), (0, -1), (0, 1)):
+        ni = i + di
+        nj = j + dj
+        near = v[ni, nj]
+        if state[ni, nj] == LOCKED and near > lowest and lowest <= v[ni + di, nj + dj]:
+            state[ni, nj] = UNLOCKED
+        if order == 2 and near != np.inf and lowest <= near:
+            fi = ni + di
+            fj = nj + dj
+            if state[fi, fj] == LOCKED and v[fi, fj] > lowest and near <= v[fi + di, fj + dj]:
+                state[fi, fj] = UNLOCKED
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
@@ -472,7 +520,9 @@ def _count_unlocked(state: np.ndarray) -> int:
     return count
 
 #: Layout of the last axis of the per-node data of :func:`near_light_sweep`.
-NODE_LOG_INTENSITY, NODE_LAMBDA, NODE_V_STAR, NODE_SEED = 0, 1, 2, 3
+#: NODE_SEED_SLOPE: v'(F) at the seed F when the node's last solve left v and
+#: F consistent (< 0), else 0 (see :func:`near_light_update`).
+NODE_SEED_SLOPE, NODE_LAMBDA, NODE_V_STAR, NODE_SEED = 0, 1, 2, 3
 
 
 @njit(cache=True, nogil=True, error_model="numpy", fastmath=_FAST, inline="always")
@@ -490,8 +540,8 @@ def _near_light_node(
 ) -> float:
     """Solve node (i, j) from its current neighbours, store v and F; returns |change|.
 
-    node: (ny+4, nx+4, 4) float64 per-node data (ln I, λ, v*, F seed), kept
-    together so that a node's data share a cache line.
+    node: (ny+4, nx+4, 4) float64 per-node data (v'(F) at the seed, λ, v*,
+    F seed), kept together so that a node's data share a cache line.
     """
     sx = 1.0 / hx
     sy = 1.0 / hy
@@ -517,9 +567,9 @@ def _near_light_node(
         sa = sx
         sb = sy
     old = v[i, j]
-    new, node[i, j, NODE_SEED] = near_light_update(
-        a, b, wa, wb, sa, sb, node[i, j, NODE_LAMBDA], node[i, j, NODE_LOG_INTENSITY],
-        node[i, j, NODE_V_STAR], reflectance, node[i, j, NODE_SEED], table,
+    new, node[i, j, NODE_SEED], node[i, j, NODE_SEED_SLOPE] = near_light_update(
+        a, b, wa, wb, sa, sb, node[i, j, NODE_LAMBDA], node[i, j, NODE_V_STAR], reflectance,
+        node[i, j, NODE_SEED], old, node[i, j, NODE_SEED_SLOPE], table,
     )
     v[i, j] = new
     return abs(new - old)
@@ -578,7 +628,10 @@ def _ordered_pass(
         old = v[i, j]
         diff = _near_light_node(v, node, i, j, hx, hy, reflectance, order, eps, table)
         if diff > tolerance:
-            _unlock_stencil(state, v, i, j, reach, min(v[i, j], old), causal)
+            if causal:
+                _unlock_dependents(state, v, i, j, order, min(v[i, j], old))
+            else:
+                _unlock_stencil(state, v, i, j, reach, min(v[i, j], old), causal)
     return updates
 
 
@@ -810,13 +863,15 @@ def near_light_sweep(
             # Every node is consistent with its final stencil: a sweep
             # would only confirm it.
             return 0, 0.0, updates
+    spans = row_spans(valid)
+    dirty = np.zeros(ny, dtype=np.uint8)
     if sweep_split > 0:
         # Each half sweeps its own rows on its own thread until it settles;
         # the halves unlock each other's nodes along the seam without
         # synchronisation, so every node there is unlocked again and the
         # sweeps below finish on one thread.
         updates += _parallel_sweeps(
-            v, node, state, sweep_split, hx, hy, reflectance, order, tolerance,
+            v, node, state, spans, dirty, sweep_split, hx, hy, reflectance, order, tolerance,
             max_iterations, eps, table,
         )
         for i in range(max(2, sweep_split - reach), min(ny - 2, sweep_split + reach)):
@@ -824,10 +879,32 @@ def near_light_sweep(
                 if state[i, j] == LOCKED:
                     state[i, j] = UNLOCKED
     iterations, change, more = _sweeps(
-        v, node, state, 2, ny - 2, hx, hy, reflectance, order, tolerance, max_iterations, eps,
-        table,
+        v, node, state, spans, dirty, 2, ny - 2, hx, hy, reflectance, order, tolerance,
+        max_iterations, eps, table,
     )
     return iterations, change, updates + more
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def row_spans(valid: np.ndarray) -> np.ndarray:
+    """Per row of ``valid`` ((ny, nx) uint8), the columns [begin, end) of its nonzero entries.
+
+    Returns (ny, 2) int64, (0, 0) for a row with none.
+    """
+    ny, nx = valid.shape
+    spans = np.zeros((ny, 2), dtype=np.int64)
+    for i in range(ny):
+        begin = -1
+        end = 0
+        for j in range(nx):
+            if valid[i, j]:
+                if begin < 0:
+                    begin = j
+                end = j + 1
+        if begin >= 0:
+            spans[i, 0] = begin
+            spans[i, 1] = end
+    return spans
 
 
 @njit(cache=True, nogil=True, error_model="numpy", fastmath=_FAST, **_NO_REFCOUNTS)
@@ -835,6 +912,8 @@ def _sweeps(
     v: np.ndarray,
     node: np.ndarray,
     state: np.ndarray,
+    spans: np.ndarray,
+    dirty: np.ndarray,
     row_begin: int,
     row_end: int,
     hx: float,
@@ -850,12 +929,27 @@ def _sweeps(
 
     Four Gauss–Seidel sweeps per iteration with alternating orderings, until
     no node changed by more than ``tolerance`` (or ``max_iterations``).
+    spans: (ny, 2) int64 per padded row, the columns [begin, end) that hold
+    its valid nodes (:func:`row_spans`); dirty: (ny,) uint8 scratch, one
+    flag per row. A row is scanned only while flagged: every row holding an
+    unlocked node is flagged first, a row's flag is cleared as its scan
+    starts and set again (with the rows within the stencil reach) whenever
+    a node changes by more than the tolerance, which is when nodes are
+    unlocked. Once most nodes have settled the sweeps skip the settled rows
+    instead of testing every node of them, and never test the nodes outside
+    the rows' spans (the field of view's corners): the same visits of the
+    unlocked nodes in the same order, so the same result bit for bit.
     Returns (iterations, last max change, node solves).
     """
-    nx = v.shape[1]
     reach = 1 if order == 1 else 2
     causal = order != 3
     rows = row_end - row_begin
+    for i in range(row_begin, row_end):
+        dirty[i] = 0
+        for j in range(spans[i, 0], spans[i, 1]):
+            if state[i, j] == UNLOCKED:
+                dirty[i] = 1
+                break
     updates = 0
     change = np.inf
     iterations = 0
@@ -866,10 +960,15 @@ def _sweeps(
             di = 1 if sweep < 2 else -1
             dj = 1 if (sweep == 0 or sweep == 3) else -1
             i0 = row_begin if di > 0 else row_end - 1
-            j0 = 2 if dj > 0 else nx - 3
             for ii in range(rows):
                 i = i0 + di * ii
-                for jj in range(nx - 4):
+                if dirty[i] == 0:
+                    continue
+                dirty[i] = 0
+                begin = spans[i, 0]
+                end = spans[i, 1]
+                j0 = begin if dj > 0 else end - 1
+                for jj in range(end - begin):
                     j = j0 + dj * jj
                     if state[i, j] != UNLOCKED:
                         continue
@@ -878,9 +977,13 @@ def _sweeps(
                     old = v[i, j]
                     diff = _near_light_node(v, node, i, j, hx, hy, reflectance, order, eps, table)
                     if diff > tolerance:
-                        _unlock_stencil(state, v, i, j, reach, min(v[i, j], old), causal)
-                        if not causal:
+                        if causal:
+                            _unlock_dependents(state, v, i, j, order, min(v[i, j], old))
+                        else:
+                            _unlock_stencil(state, v, i, j, reach, min(v[i, j], old), causal)
                             state[i, j] = UNLOCKED
+                        for k in range(i - reach, i + reach + 1):
+                            dirty[k] = 1
                     if diff > change:
                         change = diff
         if change <= tolerance:
@@ -893,6 +996,8 @@ def _parallel_sweeps(
     v: np.ndarray,
     node: np.ndarray,
     state: np.ndarray,
+    spans: np.ndarray,
+    dirty: np.ndarray,
     split_row: int,
     hx: float,
     hy: float,
@@ -903,15 +1008,19 @@ def _parallel_sweeps(
     eps: float,
     table: np.ndarray,
 ) -> int:
-    """:func:`_sweeps` of padded rows [2, split_row) and [split_row, ny − 2) on two threads."""
+    """:func:`_sweeps` of padded rows [2, split_row) and [split_row, ny − 2) on two threads.
+
+    The halves flag each other's rows along the seam without
+    synchronisation; the caller unlocks the seam again and sweeps once more.
+    """
     ny = v.shape[0]
     counts = np.zeros(2, dtype=np.int64)
     for half in prange(2):
         begin = 2 if half == 0 else split_row
         end = split_row if half == 0 else ny - 2
         counts[half] = _sweeps(
-            v, node, state, begin, end, hx, hy, reflectance, order, tolerance, max_iterations,
-            eps, table,
+            v, node, state, spans, dirty, begin, end, hx, hy, reflectance, order, tolerance,
+            max_iterations, eps, table,
         )[2]
     return counts[0] + counts[1]
 
@@ -1027,7 +1136,7 @@ def near_light_inputs_into(
             v[p, q] = np.inf
             key[p, q] = np.inf
             valid_p[p, q] = 0
-            node[p, q, NODE_LOG_INTENSITY] = 0.0
+            node[p, q, NODE_SEED_SLOPE] = 0.0
             node[p, q, NODE_LAMBDA] = 1.0
             node[p, q, NODE_V_STAR] = 0.0
             node[p, q, NODE_SEED] = 0.0
@@ -1053,7 +1162,7 @@ def near_light_inputs_into(
             valid_p[p, q] = 1
             v[p, q] = v_star
             key[p, q] = order_key
-            node[p, q, NODE_LOG_INTENSITY] = log_i
+            node[p, q, NODE_SEED_SLOPE] = 0.0  # v = v*: not v(seed)
             node[p, q, NODE_LAMBDA] = np.sqrt(conformal_factor_sq[i, j])
             node[p, q, NODE_V_STAR] = v_star
             node[p, q, NODE_SEED] = seed

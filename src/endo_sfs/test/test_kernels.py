@@ -45,14 +45,25 @@ def test_near_light_update_solves_its_discrete_equation(sigma):
         intensity = rng.uniform(0.3, 1.0)
         v_star = 0.5 * np.log(coef_a / intensity)
         a, b = v_star + rng.uniform(-0.05, 0.005, 2)
-        v, tan_theta = kernels.near_light_update(
-            a, b, wa, wb, np.sqrt(wa), np.sqrt(wb), lam, np.log(intensity), v_star,
-            reflectance, 0.0, table,
+        v, tan_theta, dv = kernels.near_light_update(
+            a, b, wa, wb, np.sqrt(wa), np.sqrt(wb), lam, v_star, reflectance, 0.0, 0.0, 0.0,
+            table,
         )
         if v_star <= min(a, b):
             assert v == v_star and tan_theta == 0.0
             singular += 1
             continue
+        # A re-solve after a neighbour moved, started from this solve's
+        # (F, v, v'): one table lookup less, the same root.
+        a_moved = a - 2e-4
+        exact_moved = brentq(residual, min(a_moved, b) + 1e-12, v_star - 1e-15,
+                             args=(a_moved, b, wa, wb, lam, intensity), xtol=1e-14)
+        assert dv < 0.0
+        again, _, _ = kernels.near_light_update(
+            a_moved, b, wa, wb, np.sqrt(wa), np.sqrt(wb), lam, v_star, reflectance, tan_theta,
+            v, dv, table,
+        )
+        assert again == pytest.approx(exact_moved, abs=2e-7)
         c = 1.0 / np.sqrt(1.0 + tan_theta**2)
         assert colocated_radiance(c, sigma) == pytest.approx(
             intensity * np.exp(2 * v), rel=1e-7
@@ -70,8 +81,8 @@ def test_log_radiance_table_matches_the_closed_form(sigma):
     reflectance = np.array([coef_a, coef_b])
     table = kernels.log_radiance_table(reflectance)
 
-    def log_radiance(f):
-        return 0.5 * np.log(colocated_radiance(1.0 / np.sqrt(1.0 + f * f), sigma))
+    def log_radiance(f):  # relative to the value facing the camera, R(1) = A
+        return 0.5 * np.log(colocated_radiance(1.0 / np.sqrt(1.0 + f * f), sigma) / coef_a)
 
     for f in np.concatenate([np.linspace(0.0, 15.99, 997), [16.0, 20.0, 300.0]]):
         value, slope = kernels._log_radiance(f, table, reflectance)
