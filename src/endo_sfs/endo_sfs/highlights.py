@@ -35,10 +35,33 @@ Detection, on the linear irradiance (the output of ``endo_calib``):
    light but no longer stands out from the texture) are taken by
    hysteresis: every connected region of e > ``shoulder_excess`` that
    contains a core.
+4. **Shoulder growth** of the lobes as wide as the opening's disc. The lobe
+   k·c^m (c = cos θ, θ the angle between the normal and the ray) falls as
+   e^(−mθ²/2): its ratio to the diffuse light, q(θ) = q₀·e^(−mθ²/2), is a
+   Gaussian in θ, and so, where θ grows about linearly with the distance
+   from the lobe's centre in the image, in that distance too. A region
+   whose edge is at q = q_e covers the lobe down to q = τ once its radius
+   is multiplied by √(ln(q₀/τ) / ln(q₀/q_e)). A lobe about as wide as the
+   opening's disc is not removed by the opening, the baseline rises under
+   it, and the excess test ends its region at q_e ≈ 1.5, where the lobe
+   still outshines the texture and SFS reads it as surface facing the
+   camera and near (on the textured abdomen that was most of the error;
+   docs/sfs.md, "Specular shoulders"). The peak ratio of wet tissue (k = 2
+   on albedo 0.4: q₀ ≈ 5) gives 1.64 for τ = 0.2 and 1.84 for τ = 0.1: the
+   factor depends on the ratios only, not on the surface's distance or
+   curvature, which set the lobe's size in the image. So such a region is
+   grown by (``shoulder_growth`` − 1) times its inradius (its largest
+   distance from a pixel to its edge: across an elongated region, not
+   along it). The growth ramps in over inradii of :data:`WIDE_LOBE` opening
+   radii (narrower lobes go with their shoulders in the opening, and the
+   excess test finds those), and a region that touches the edge of the
+   view does not grow (in the colon that is the near wall, saturated by
+   diffuse light alone, whose nearest seen points the solution needs).
 
-The defaults were chosen on endo_sim's colon phantom (specular 2·c^120 on
-albedo 0.4, σ = 0.3) against the true specular fraction; see docs/sfs.md for
-the figures and the limits.
+The defaults of steps 1–3 were chosen on endo_sim's colon phantom (specular
+2·c^120 on albedo 0.4, σ = 0.3) against the true specular fraction, the
+growth on the textured abdomen (seed 3); see docs/sfs.md for the figures
+and the limits.
 """
 
 from __future__ import annotations
@@ -60,6 +83,11 @@ DEFAULT_SHOULDER_EXCESS = 0.3
 #: Smallest fraction of the opening's disc that must hold data for the
 #: excess to be measured (about 0.4 radii from a straight edge of the data).
 DEFAULT_MIN_SUPPORT = 0.85
+#: Default factor by which a wide highlight region's inradius is grown (step 4).
+DEFAULT_SHOULDER_GROWTH = 2.0
+#: Inradii (fractions of the opening's radius) over which the growth ramps
+#: from none to full: narrower regions' shoulders were found by the excess test.
+WIDE_LOBE = (0.55, 0.75)
 #: Gaussian σ (pixels) of ln I before it is compared with the baseline.
 FINE_SIGMA = 1.5
 #: Stand-in for ±∞ in the float32 morphology (cells that take no part).
@@ -247,6 +275,70 @@ def block_means(
     return small, inside
 
 
+def _any_in_blocks(flags: np.ndarray, size: tuple[int, int], factor: int) -> np.ndarray:
+    """(size[1], size[0]) uint8: 1 where any pixel of the factor × factor block is set."""
+    height, width = flags.shape
+    padded = np.zeros((size[1] * factor, size[0] * factor), dtype=np.uint8)
+    padded[:height, :width] = flags
+    return padded.reshape(size[1], factor, size[0], factor).max(axis=(1, 3))
+
+
+def grown_regions(
+    found: np.ndarray, region: np.ndarray, growth: float,
+    opening_radius: float = DEFAULT_OPENING_RADIUS,
+) -> np.ndarray:
+    """The wide regions of ``found`` grown by (growth − 1) × their inradius (step 4 above).
+
+    found, region: (H, W) bool; growth ≥ 1 (1: ``found`` unchanged);
+    opening_radius: the baseline's, a fraction of H. The regions, their
+    inradii and the distances are taken on a grid about
+    :data:`BASELINE_ROWS` rows high (a cell is in a region when any of its
+    pixels is); a region grows fully when its inradius is at least
+    ``WIDE_LOBE[1]`` opening radii, not at all below ``WIDE_LOBE[0]`` or
+    when it touches a cell with a pixel outside ``region``. Each cell gets
+    the margin of its nearest region, and the margin minus the distance is
+    interpolated back to the pixels, so the grown edge is smooth. Returns
+    (H, W) bool: ``found`` and the grown margins, inside ``region``.
+    """
+    if growth <= 1.0 or not found.any():
+        return found
+    height, width = found.shape
+    factor = max(1, round(height / BASELINE_ROWS))
+    size = (max(1, -(-width // factor)), max(1, -(-height // factor)))
+    cells = _any_in_blocks(found, size, factor)
+    unseen = _any_in_blocks(~np.asarray(region, dtype=bool), size, factor)
+    count, labels = cv2.connectedComponents(cells, connectivity=8)
+    inside = cells.astype(bool)
+    # the inradius: the largest distance from a region cell to the outside
+    depth = cv2.distanceTransform(cells, cv2.DIST_L2, 5)
+    radius = np.zeros(count, dtype=np.float64)
+    np.maximum.at(radius, labels[inside], depth[inside])
+    # Only lobes about as wide as the opening's disc lift the baseline.
+    opening = max(1.0, opening_radius * cells.shape[0])
+    low, high = WIDE_LOBE
+    share = np.clip((radius / opening - low) / (high - low), 0.0, 1.0)
+    # A region cut by the edge of the view (or of the data) does not grow.
+    edge = cv2.dilate(unseen, np.ones((3, 3), np.uint8)).astype(bool) & inside
+    share[labels[edge]] = 0.0
+    margin = (growth - 1.0) * radius * share
+    margin[0] = 0.0
+    # distance (in cells) to the nearest region cell, and which zero-component that is
+    distance, nearest = cv2.distanceTransformWithLabels(
+        1 - cells, cv2.DIST_L2, 5, labelType=cv2.DIST_LABEL_CCOMP
+    )
+    component = np.zeros(int(nearest.max()) + 1, dtype=np.int64)
+    component[nearest[inside]] = labels[inside]
+    grows = margin[component[nearest]]
+    if not np.any(grows > 0.0):
+        return found
+    # cells near a region that does not grow stay out (-1), as do those beyond the margin
+    reach = np.where(grows > 0.0, grows - distance, -1.0).astype(np.float32)
+    # cell centres to pixel centres: the grid covers the padded image
+    pixels = cv2.resize(reach, (size[0] * factor, size[1] * factor),
+                        interpolation=cv2.INTER_LINEAR)[:height, :width]  # fmt: skip
+    return np.asarray((found | (pixels >= 0.0)) & region, dtype=bool)
+
+
 def detect_highlights(
     irradiance: np.ndarray,
     mask: np.ndarray | None = None,
@@ -258,6 +350,7 @@ def detect_highlights(
     min_support: float = DEFAULT_MIN_SUPPORT,
     *,
     downsample: int = 1,
+    shoulder_growth: float = DEFAULT_SHOULDER_GROWTH,
 ) -> np.ndarray:
     """Pixels of specular highlights (saturated or not) and their shoulders.
 
@@ -283,6 +376,10 @@ def detect_highlights(
             radii are fractions of the height, so the result is the same
             detection on a coarser grid; a solve on a coarser grid
             (``solve_scale`` 0.5) cannot use finer detail anyway.
+        shoulder_growth: a highlight region as wide as the opening's disc
+            has its inradius multiplied by this, ≥ 1 (1: no growth), to take
+            the lobe's broad shoulders (step 4 of the module docstring,
+            :func:`grown_regions`).
 
     Returns:
         (H, W) bool, True on highlight pixels (inside ``mask`` if given).
@@ -303,6 +400,8 @@ def detect_highlights(
         raise SfsInputError("opening_radius and closing_radius must be > 0")
     if downsample < 1:
         raise SfsInputError(f"downsample must be >= 1, got {downsample}")
+    if not shoulder_growth >= 1.0:  # also refuses NaN
+        raise SfsInputError(f"shoulder_growth must be >= 1, got {shoulder_growth}")
     region = np.ones(image.shape, dtype=bool) if mask is None else np.asarray(mask, dtype=bool)
     if downsample > 1:
         if mask is None:
@@ -318,11 +417,15 @@ def detect_highlights(
         )
         height, width = image.shape
         full = np.repeat(np.repeat(found, downsample, axis=0), downsample, axis=1)
-        return full[:height, :width] & region
-    return _detect(
+        return grown_regions(full[:height, :width] & region, region, shoulder_growth,
+                             opening_radius)
+    found = _detect(
         image, mask, saturation, core_excess, shoulder_excess, opening_radius, closing_radius,
         min_support, FINE_SIGMA,
     )
+    if shoulder_growth > 1.0 and mask is None and found.any():
+        region = filled(np.isfinite(image))  # the data and the NaN holes it encloses
+    return grown_regions(found, region, shoulder_growth, opening_radius)
 
 
 def _detect(
