@@ -106,6 +106,10 @@ def test_predicted_parallax_gate_does_not_select_near_biased_tracks():
     true_angle = np.arccos(np.sum(to_first * to_last, axis=1) / np.linalg.norm(to_first, axis=1)
                            / np.linalg.norm(to_last, axis=1))
     np.testing.assert_allclose(predicted[ok], true_angle[ok], rtol=0.08)
+    # every track at the frame's median distance: the angle follows the baseline only
+    flat = geometric_parallax(views, ok, np.log(result.depth_m[ok] / relative[ok]),
+                              relative[ok], axis, one_distance=True)
+    assert np.ptp(flat) < 0.35 * np.ptp(predicted[ok]), (np.ptp(flat), np.ptp(predicted[ok]))
     by_rays = ok & (result.parallax_rad >= np.radians(4.0))
     by_prediction = ok & (predicted >= np.radians(4.0))
     assert abs(by_rays.sum() - by_prediction.sum()) < 0.1 * by_rays.sum()
