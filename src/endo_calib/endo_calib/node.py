@@ -42,7 +42,7 @@ from endo_calib.raw_image import to_raw_frame
 from endo_io import topics
 from endo_io.diagnostics import HEALTH_PARAMETERS, InputHealth
 from endo_io.errors import ParameterValidationError
-from endo_io.image import array_to_image, image_to_array
+from endo_io.image import ImageMessage, array_to_image, image_from_cdr, image_to_array
 from endo_io.parameters import NodeParameters, ParameterSpec
 from endo_io.process import describing_only, run_node
 from endo_io.provenance import provenance_summary
@@ -119,7 +119,8 @@ class PhotometricCorrectionNode(Node):
         if self.calibration is not None and not describing_only():
             self._warm_up(self.calibration)
         self.subscription = self.health.subscribe(
-            Image, topics.IMAGE_RAW, self._on_image, NEWEST_FRAME_QOS, gaps=True, newest=True
+            Image, topics.IMAGE_RAW, self._on_image, NEWEST_FRAME_QOS, gaps=True, newest=True,
+            decode=image_from_cdr,  # the pixels stay a view of the received bytes
         )
 
     @property
@@ -196,7 +197,9 @@ class PhotometricCorrectionNode(Node):
             f"{time.perf_counter() - start:.2f} s"
         )
 
-    def _correct(self, calibration: PhotometricCalibration, msg: Image) -> tuple[Image, Any]:
+    def _correct(
+        self, calibration: PhotometricCalibration, msg: ImageMessage
+    ) -> tuple[Image, Any]:
         """(the corrected image message, the raw frame) of one raw image message."""
         frame = to_raw_frame(image_to_array(msg), msg.encoding)
         mask = bool(self.parameters["mask_extrapolated"])
@@ -206,7 +209,7 @@ class PhotometricCorrectionNode(Node):
         stamp = stamp_to_ns(msg.header.stamp)
         return array_to_image(output, encoding, stamp, msg.header.frame_id), frame
 
-    def _on_image(self, msg: Image) -> None:
+    def _on_image(self, msg: ImageMessage) -> None:
         calibration = self.calibration
         if calibration is None:
             raise CalibrationNotLoadedError(f"no calibration loaded ({self.load_error})")

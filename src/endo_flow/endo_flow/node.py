@@ -92,7 +92,7 @@ from endo_io.errors import (
     PoseLookupError,
     PoseNotYetError,
 )
-from endo_io.image import array_to_image, image_to_array
+from endo_io.image import ImageMessage, array_to_image, image_from_cdr, image_to_array
 from endo_io.parameters import NodeParameters, ParameterSpec
 from endo_io.pose import pose_to_matrix
 from endo_io.pose_buffer import PoseBuffer
@@ -200,8 +200,8 @@ class _Pending:
     """A complete frame waiting for its pose."""
 
     stamp_ns: int
-    image: Image
-    depth: Image
+    image: ImageMessage
+    depth: ImageMessage
     info: CameraInfo
     deadline: float
 
@@ -219,9 +219,9 @@ class FlowNode(Node):
             self._warm_up(options, values["warm_up_camera_file"])
         self.pipeline = FlowPipeline(options)
         tolerance_ns = round(values["stamp_tolerance"] * NS_PER_S)
-        self._images: StampMatcher[Image, CameraInfo] = StampMatcher(
+        self._images: StampMatcher[ImageMessage, CameraInfo] = StampMatcher(
             values["queue_size"], tolerance_ns)
-        self._frames: StampMatcher[tuple[Image, CameraInfo], Image] = StampMatcher(
+        self._frames: StampMatcher[tuple[ImageMessage, CameraInfo], ImageMessage] = StampMatcher(
             values["queue_size"], tolerance_ns)
         self.poses = PoseBuffer(capacity=6000,
                                 max_gap_ns=round(values["pose_max_gap_s"] * NS_PER_S))
@@ -239,10 +239,11 @@ class FlowNode(Node):
         # "processed" counts frames (_process), not the three inputs' callbacks. The
         # depth drives a frame: only the newest is processed, stale ones are skipped;
         # the images wait (as deep) for the depth of their stamp.
+        # image_from_cdr: the pixels stay a view of the received bytes (no copy)
         self.health.subscribe(Image, topics.IMAGE_CORRECTED, self._on_image, NEWEST_FRAME_QOS,
-                              processed=False, gaps=True)
+                              processed=False, gaps=True, decode=image_from_cdr)
         self.health.subscribe(Image, topics.DEPTH_RELATIVE, self._on_depth, NEWEST_FRAME_QOS,
-                              processed=False, gaps=True, newest=True)
+                              processed=False, gaps=True, newest=True, decode=image_from_cdr)
         self.health.subscribe(CameraInfo, topics.CAMERA_INFO, self._on_info, SENSOR_DATA_QOS,
                               processed=False)
         self.pose_health.subscribe(PoseStamped, topics.CAMERA_POSE, self._on_pose,
@@ -290,13 +291,13 @@ class FlowNode(Node):
 
     # ------------------------------------------------------------------ inputs
 
-    def _on_image(self, msg: Image) -> None:
+    def _on_image(self, msg: ImageMessage) -> None:
         self._offer_pair(self._images.add_first(stamp_to_ns(msg.header.stamp), msg))
 
     def _on_info(self, msg: CameraInfo) -> None:
         self._offer_pair(self._images.add_second(stamp_to_ns(msg.header.stamp), msg))
 
-    def _on_depth(self, msg: Image) -> None:
+    def _on_depth(self, msg: ImageMessage) -> None:
         pair = self._frames.add_second(stamp_to_ns(msg.header.stamp), msg)
         if pair is not None:
             self._enqueue(pair.stamp_ns, pair.first[0], msg, pair.first[1])
@@ -315,7 +316,8 @@ class FlowNode(Node):
         finally:
             self._drain()
 
-    def _enqueue(self, stamp_ns: int, image: Image, depth: Image, info: CameraInfo) -> None:
+    def _enqueue(self, stamp_ns: int, image: ImageMessage, depth: ImageMessage,
+                 info: CameraInfo) -> None:
         wait = self.parameters["pose_wait_s"]
         self._pending.append(_Pending(stamp_ns, image, depth, info, time.monotonic() + wait))
         self._drain()

@@ -25,6 +25,10 @@ class ImageLayoutError(MessageConversionError):
     """An image's step, size or buffer length do not agree."""
 
 
+class UndecodableMessageError(MessageConversionError):
+    """A message's serialized (CDR) bytes do not decode as the topic's type."""
+
+
 class CameraModelError(MessageConversionError):
     """A CameraInfo or calibration YAML is inconsistent or unsupported."""
 

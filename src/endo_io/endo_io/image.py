@@ -23,6 +23,15 @@ Rows may be padded (``step > width * bytes_per_pixel``); multi-byte data may
 be big-endian (``is_bigendian = 1``). The returned array is always C-contiguous
 in native byte order. When the message is already packed and native it is a
 zero-copy view of ``msg.data`` (as cv_bridge does), otherwise a copy.
+
+A node that takes its images raw (serialized CDR bytes, as
+:meth:`endo_io.diagnostics.InputHealth.subscribe` does) decodes them with
+:func:`image_from_cdr` into an :class:`ImageView`: the message's fields, its
+``data`` a view of the received bytes. rclpy's own deserialisation copies the
+1.2 MB of a 640x480 32FC1 frame into an ``array.array`` on top of the bytes
+it was given; at 30 images/s those copies, of differing lifetimes, fragment
+the main thread's heap (the live flow node's RSS sawtooth in the soak,
+docs/benchmarks.md). :func:`image_to_array` takes either.
 """
 
 from __future__ import annotations
@@ -31,11 +40,14 @@ import struct
 import sys
 from array import array as byte_array
 from dataclasses import dataclass
+from typing import TypeAlias
 
 import numpy as np
+from rclpy.serialization import deserialize_message
 from sensor_msgs.msg import Image
+from std_msgs.msg import Header
 
-from endo_io.errors import ImageEncodingError, ImageLayoutError
+from endo_io.errors import ImageEncodingError, ImageLayoutError, UndecodableMessageError
 from endo_io.stamp import NS_PER_S, ns_to_stamp
 
 
@@ -84,14 +96,136 @@ def pixel_format(encoding: str) -> PixelFormat:
         ) from None
 
 
-def image_to_array(msg: Image) -> np.ndarray:
+@dataclass(frozen=True)
+class ImageView:
+    """A ``sensor_msgs/Image`` decoded from its CDR bytes, ``data`` a view of them.
+
+    The fields are the message's, with the same names and meanings, so a
+    node reads ``header.stamp``, ``encoding``, ... as from an ``Image``;
+    :func:`image_to_array` takes it. ``data`` is read-only (a view of the
+    immutable bytes rclpy delivers): so is the array :func:`image_to_array`
+    returns for a packed, native image. It keeps the whole serialized
+    message alive.
+    """
+
+    header: Header
+    height: int
+    width: int
+    encoding: str
+    is_bigendian: int
+    step: int
+    data: memoryview
+
+
+#: What a node receives as an image: decoded by :func:`image_from_cdr`, or a message
+#: (a test's, an offline driver's).
+ImageMessage: TypeAlias = Image | ImageView
+
+
+class _CdrReader:
+    """Reads plain CDR (XCDR1) fields in order, bounds-checked, as Fast CDR aligns them."""
+
+    def __init__(self, data: bytes, *, little_endian: bool) -> None:
+        self._data = data
+        self._offset = 4  # after the encapsulation header, where alignment starts
+        self._uint32 = struct.Struct("<I" if little_endian else ">I")
+        self._int32 = struct.Struct("<i" if little_endian else ">i")
+
+    def _take(self, size: int, what: str, *, align: int = 1) -> int:
+        start = self._offset + (-(self._offset - 4) % align)
+        if size > len(self._data) - start:
+            raise UndecodableMessageError(
+                f"truncated at {what}: {size} byte(s) needed at byte {start}, "
+                f"{max(len(self._data) - start, 0)} left"
+            )
+        self._offset = start + size
+        return start
+
+    def uint32(self, what: str) -> int:
+        return int(self._uint32.unpack_from(self._data, self._take(4, what, align=4))[0])
+
+    def int32(self, what: str) -> int:
+        return int(self._int32.unpack_from(self._data, self._take(4, what, align=4))[0])
+
+    def uint8(self, what: str) -> int:
+        return self._data[self._take(1, what)]
+
+    def string(self, what: str) -> str:
+        """A CDR string as rclpy gives it: up to the first NUL, invalid UTF-8 replaced."""
+        length = self.uint32(f"{what} length")
+        start = self._take(length, what)
+        text = self._data[start:start + length]
+        return text.split(b"\x00", 1)[0].decode("utf-8", "replace")
+
+    def octets(self, what: str) -> memoryview:
+        """A ``uint8[]`` sequence: its length, then the bytes (a view, not a copy)."""
+        length = self.uint32(f"{what} length")
+        start = self._take(length, what)
+        return memoryview(self._data)[start:start + length]
+
+
+#: Encapsulation identifiers (first two bytes) of plain CDR, big and little endian.
+_CDR_BE, _CDR_LE = b"\x00\x00", b"\x00\x01"
+
+
+def image_from_cdr(data: bytes) -> ImageMessage:
+    """Decode a serialized ``sensor_msgs/Image`` without copying its pixels.
+
+    Reads the fields as rclpy's ``deserialize_message(data, Image)`` does
+    (the same values, strings cut at a NUL and invalid UTF-8 replaced as
+    rclpy does; tested against it), but ``data`` of the result is a view of
+    ``data``: no copy of the pixels. Bytes after the pixel data (CDR
+    padding) are ignored, as rclpy ignores them. The image's layout (encoding,
+    step, size) is not checked here but by :func:`image_to_array`, as for a
+    deserialized message. A message in another encapsulation than plain CDR
+    (XCDR2, parameter lists: no endo3d or ROS 2 publisher sends them for
+    Image) is given to rclpy, which returns an ``Image``.
+
+    Args:
+        data: the serialized message, its 4-byte encapsulation header first.
+
+    Returns:
+        An :class:`ImageView` (an ``Image`` in the rare case above).
+
+    Raises:
+        UndecodableMessageError: the bytes end before a field does (a
+            declared string or data length longer than what is left
+            included: refused before anything is allocated), or they do not
+            decode as an Image (other encapsulations, through rclpy).
+    """
+    head = bytes(data[:2])
+    if len(data) < 4 or head not in (_CDR_BE, _CDR_LE):
+        if len(data) >= 4 and head[0] == 0:
+            try:
+                return deserialize_message(data, Image)
+            except Exception as error:  # rclpy raises RMWError, or TypeError on junk
+                first = str(error).splitlines()[0] if str(error) else type(error).__name__
+                raise UndecodableMessageError(first) from None
+        raise UndecodableMessageError(
+            f"not CDR: encapsulation header {bytes(data[:4]).hex() or 'missing'}"
+        )
+    cdr = _CdrReader(data, little_endian=head == _CDR_LE)
+    sec = cdr.int32("header.stamp.sec")
+    nanosec = cdr.uint32("header.stamp.nanosec")
+    header = Header(frame_id=cdr.string("header.frame_id"))
+    header.stamp.sec, header.stamp.nanosec = sec, nanosec
+    height = cdr.uint32("height")
+    width = cdr.uint32("width")
+    encoding = cdr.string("encoding")
+    is_bigendian = cdr.uint8("is_bigendian")
+    step = cdr.uint32("step")
+    return ImageView(header, height, width, encoding, is_bigendian, step, cdr.octets("data"))
+
+
+def image_to_array(msg: ImageMessage) -> np.ndarray:
     """Return the pixels of a ``sensor_msgs/Image`` as a numpy array.
 
     Returns an array of shape (H, W) for single-channel encodings or
     (H, W, C) for colour ones, with dtype uint8, uint16 or float32 (see the
     module table), C-contiguous and in native byte order. Units are those of
     the encoding (``32FC1`` depth is metres by REP 118). The array may share
-    memory with ``msg.data`` when no copy is needed.
+    memory with ``msg.data`` when no copy is needed (read-only for an
+    :class:`ImageView`).
 
     Raises:
         ImageEncodingError: the encoding is not one of ``SUPPORTED_ENCODINGS``.

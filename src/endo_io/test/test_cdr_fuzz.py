@@ -25,8 +25,8 @@ from sensor_msgs.msg import CameraInfo, Image
 
 from endo_io.bag import BagMessage, MessageDeserializationError, deserialize
 from endo_io.camera import CameraModel
-from endo_io.errors import MessageConversionError
-from endo_io.image import image_to_array
+from endo_io.errors import MessageConversionError, UndecodableMessageError
+from endo_io.image import image_from_cdr, image_to_array
 from endo_io.pose import pose_to_matrix
 
 pytestmark = pytest.mark.fuzz
@@ -95,19 +95,34 @@ TYPES = st.sampled_from(sorted(CASES))
 
 
 def _decode_and_convert(msgtype: str, data: bytes) -> str:
-    """Decode and convert; returns which named outcome it had (anything else fails the test)."""
+    """Decode and convert; returns which named outcome it had (anything else fails the test).
+
+    An Image is also decoded by :func:`endo_io.image.image_from_cdr` (the
+    nodes' decoding), which must agree: refused as undecodable, rejected by
+    the same error, or the same pixels.
+    """
     _, cls, convert = CASES[msgtype]
     try:
         msg = deserialize(BagMessage("/fuzz", msgtype, 0, data, 0))
     except MessageDeserializationError as error:
         assert "\n" not in str(error) and msgtype in str(error)
+        if cls is Image:
+            with pytest.raises(UndecodableMessageError):
+                image_from_cdr(data)
         return "undecodable"
     assert isinstance(msg, cls)
+    view = image_from_cdr(data) if cls is Image else None
     try:
         convert(msg)
     except MessageConversionError as error:
         assert "\n" not in str(error)
+        if view is not None:
+            with pytest.raises(type(error)):
+                image_to_array(view)
         return "rejected"
+    if view is not None:
+        assert view.header == msg.header and view.encoding == msg.encoding
+        np.testing.assert_array_equal(image_to_array(view), image_to_array(msg))
     return "ok"
 
 

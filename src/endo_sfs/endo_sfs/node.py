@@ -63,7 +63,7 @@ from endo_io.camera import CameraModel
 from endo_io.clock_jump import ClockJumpDetector
 from endo_io.diagnostics import HEALTH_PARAMETERS, InputHealth
 from endo_io.errors import Endo3dError, ParameterValidationError
-from endo_io.image import array_to_image, image_to_array
+from endo_io.image import ImageMessage, array_to_image, image_from_cdr, image_to_array
 from endo_io.parameters import NodeParameters, ParameterSpec
 from endo_io.process import describing_only, run_node
 from endo_io.qos import (
@@ -257,7 +257,7 @@ class SfsNode(Node):
         #: rebuilding their solutions as warm starts.
         self._peer_inputs: dict[int, np.ndarray] = {}
         self._peer_frames = 0
-        self._matcher: StampMatcher[Image, CameraInfo] = StampMatcher(
+        self._matcher: StampMatcher[ImageMessage, CameraInfo] = StampMatcher(
             self.parameters["queue_size"], _tolerance_ns(self.parameters["stamp_tolerance"])
         )
         self.depth_publisher = create_reliable_publisher(self, Image, topics.DEPTH_RELATIVE)
@@ -269,6 +269,7 @@ class SfsNode(Node):
             # one: workers take every frame in arrival order (the others'
             # return at once).
             processed=False, gaps=True, newest=self._worker_count == 1,
+            decode=image_from_cdr,  # the pixels stay a view of the received bytes
         )
         self.health.subscribe(
             CameraInfo, topics.CAMERA_INFO, self._on_camera_info, SENSOR_DATA_QOS,
@@ -279,7 +280,7 @@ class SfsNode(Node):
             # warm-starts this one's next frame.
             self.health.subscribe(
                 Image, topics.DEPTH_RELATIVE, self._on_peer_depth,
-                reliable_qos(self._worker_count), processed=False,
+                reliable_qos(self._worker_count), processed=False, decode=image_from_cdr,
             )
             self.health.set_value("worker", f"{self._worker_index} of {self._worker_count}")
         self.parameters.on_change(self._apply_parameters)
@@ -321,7 +322,7 @@ class SfsNode(Node):
 
     # ------------------------------------------------------------------ callbacks
 
-    def _on_image(self, msg: Image) -> None:
+    def _on_image(self, msg: ImageMessage) -> None:
         pair = self._matcher.add_first(stamp_to_ns(msg.header.stamp), msg)
         if pair is not None:
             self._process(pair.first, pair.second)
@@ -343,7 +344,7 @@ class SfsNode(Node):
         """Whether this worker solves the frame stamped ``stamp_ns`` (observe: a new input)."""
         return self._dealer.owner(stamp_ns, observe=observe) == self._worker_index
 
-    def _on_peer_depth(self, msg: Image) -> None:
+    def _on_peer_depth(self, msg: ImageMessage) -> None:
         """Another worker's depth: keep it as a possible warm start."""
         stamp_ns = stamp_to_ns(msg.header.stamp)
         if self._owns(stamp_ns) or self._camera is None or msg.encoding != "32FC1":
@@ -366,7 +367,7 @@ class SfsNode(Node):
             self._fov_mask = (radius, camera.fov_mask(radius))
         return self._fov_mask[1]
 
-    def _process(self, image_msg: Image, info: CameraInfo) -> None:
+    def _process(self, image_msg: ImageMessage, info: CameraInfo) -> None:
         if image_msg.encoding != "32FC1":
             raise SfsInputError(
                 f"image_corrected must be 32FC1 linear irradiance, got {image_msg.encoding!r}"
