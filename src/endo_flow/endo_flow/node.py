@@ -338,9 +338,12 @@ class FlowNode(Node):
                 too_many = len(self._pending) > self.parameters["max_pending"]
                 if now < head.deadline and not too_many:
                     return  # the pose may still come; later frames wait behind this one
-                missing = error
+                missing = error.with_traceback(None)
             except PoseLookupError as error:
-                missing = error
+                # Without its traceback: kept in a local, the traceback would make a cycle
+                # through this frame, which holds the frame's images (2.4 MB) until a full
+                # garbage collection, minutes later (flow's RSS sawtooth in the soak).
+                missing = error.with_traceback(None)
             self._pending.popleft()
             if missing is not None:
                 self.health.drop(type(missing).__name__,

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import gc
 import subprocess
 import sys
 import time
@@ -21,7 +22,7 @@ from std_srvs.srv import Trigger
 from endo_flow.node import PARAMETERS, FlowNode
 from endo_flow.scale import ScaleState
 from endo_io import topics
-from endo_io.image import array_to_image, image_to_array
+from endo_io.image import ImageView, array_to_image, image_to_array
 from endo_io.pointcloud import pointcloud2_to_xyz
 from endo_io.pose import matrix_to_pose
 from endo_io.qos import SENSOR_DATA_QOS, reliable_qos
@@ -152,8 +153,16 @@ def test_frames_become_metric_depth_points_map_and_scale(graph, moving, kit):
 def test_a_frame_without_poses_waits_then_goes_on_without(graph, moving):
     flow, _peer, pubs, got, spin_until = graph
     frame = moving.frames(moving.poses)[0]
-    _publish_frame(pubs, frame)
-    spin_until(lambda: False, timeout=0.1)
-    assert len(flow._pending) == 1  # waiting for a pose after its stamp
-    assert spin_until(lambda: len(got["scale"]) == 1, timeout=3.0)
-    assert flow.health.dropped["PoseNotYetError"] == 1
+    gc.collect()
+    gc.disable()  # what the node keeps must be freed without the cyclic collector
+    try:
+        _publish_frame(pubs, frame)
+        spin_until(lambda: False, timeout=0.1)
+        assert len(flow._pending) == 1  # waiting for a pose after its stamp
+        assert spin_until(lambda: len(got["scale"]) == 1, timeout=3.0)
+        assert flow.health.dropped["PoseNotYetError"] == 1
+        # The frame's images (views of the received bytes) are gone: a lookup error kept
+        # with its traceback held them in a cycle until a full collection (soak RSS).
+        assert [o for o in gc.get_objects() if isinstance(o, ImageView)] == []
+    finally:
+        gc.enable()
