@@ -19,7 +19,7 @@ from sensor_msgs.msg import Image
 
 from endo_io.diagnostics import InputHealth
 from endo_io.errors import ClockJumpError, ImageEncodingError
-from endo_io.image import array_to_image
+from endo_io.image import array_to_image, image_from_cdr
 from endo_io.qos import reliable_qos
 from endo_io.sequence_gaps import SequenceGapCounter
 
@@ -173,7 +173,9 @@ def test_gap_counter_counts_missing_frames_at_the_estimated_rate():
 def test_undecodable_cdr_is_logged_and_counted_and_good_frames_pass(node):
     health = InputHealth(node, "image input")
     got: list[Image] = []
-    health.subscribe(Image, "/diag_test/image", got.append, reliable_qos(10), gaps=True)
+    # decoded as the image nodes decode (pixels a view of the bytes)
+    health.subscribe(Image, "/diag_test/image", got.append, reliable_qos(10), gaps=True,
+                     decode=image_from_cdr)
     publisher = node.create_publisher(Image, "/diag_test/image", reliable_qos(10))
     executor = SingleThreadedExecutor(context=node.context)
     executor.add_node(node)
@@ -193,6 +195,7 @@ def test_undecodable_cdr_is_logged_and_counted_and_good_frames_pass(node):
     assert values["dropped.UndecodableMessageError"] == "2"
     assert values["received./diag_test/image"] == "4" and values["processed"] == "2"
     assert "do not decode as Image" in health.last_error
+    assert "truncated at header.frame_id: 4294967295 byte(s) needed" in health.last_error
     executor.shutdown()
 
 
