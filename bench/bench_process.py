@@ -254,19 +254,24 @@ def main() -> None:
         {name for rows in results.values() for r in rows for name in r["shading_ms"]}
         - {"correct", "solve"}
     )]  # fmt: skip
-    print(f"| {label}solve_scale | jobs | loop ms per frame | setup s | "
-          + " | ".join(stage_names + shading_names) + " |")
-    print("|---" * (4 + bool(label) + len(stage_names) + len(shading_names)) + "|")
+    print(f"| {label}solve_scale | jobs | loop ms per frame | loop CPU ms per frame: main, "
+          "worker | setup s | " + " | ".join(stage_names + shading_names) + " |")
+    print("|---" * (5 + bool(label) + len(stage_names) + len(shading_names)) + "|")
     for tree, scale, jobs in configs:
         rows = results[(tree, scale, jobs)]
         loop = " / ".join(f"{r['loop_s'] / r['frames'] * 1e3:.1f}" for r in rows)
+        loop_cpu = " / ".join(
+            f"{r.get('loop_cpu_ms', 0.0):.1f}, {r.get('worker_loop_cpu_ms', 0.0):.1f}"
+            if r.get("loop_cpu_ms") else "–" for r in rows
+        )
         setup = " / ".join(f"{r['setup_s']:.2f}" for r in rows)
         cells = [" / ".join(f"{r['stages_ms'].get(n, 0.0):.1f}" for r in rows)
                  for n in stage_names]
         cells += [" / ".join(f"{r['shading_ms'].get(n, 0.0):.1f}" for r in rows)
                   for n in shading_names]
         first = f"{tree} | " if label else ""
-        print(f"| {first}{scale:g} | {jobs} | {loop} | {setup} | " + " | ".join(cells) + " |")
+        print(f"| {first}{scale:g} | {jobs} | {loop} | {loop_cpu} | {setup} | "
+              + " | ".join(cells) + " |")
     if args.no_writing:
         return
     print()

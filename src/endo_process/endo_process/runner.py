@@ -46,7 +46,6 @@ from endo_calib.errors import CalibrationError
 from endo_flow.warm_up import warm_up_pipeline
 from endo_io import topics
 from endo_io.bag import BagMessage, BagReader
-from endo_io.bag.serde import serialize
 from endo_io.errors import Endo3dError, PoseLookupError
 from endo_io.image import image_to_array
 from endo_io.pose import transforms_to_pose_stamped_cdr
@@ -473,7 +472,6 @@ def process_bag(options: ProcessOptions, stop: threading.Event | None = None) ->
         if camera is not None and pool.worker_count > 0:
             # Overlapped with the workers' own warm-up; with one job it would only add.
             warm_up_pipeline(flow.pipeline.options, camera)
-            serialize(camera.to_camera_info(0))  # loads the CDR codecs (~0.3 s) ahead
         truth: Iterator[BagMessage] = iter_ground_truth(streams)
         truth_pending: list[BagMessage] = []
         total = inputs.frame_count if options.max_frames is None else min(
