@@ -34,7 +34,10 @@ Detection, on the linear irradiance (the output of ``endo_calib``):
    The lobe's shoulders (where it is still a large fraction of the diffuse
    light but no longer stands out from the texture) are taken by
    hysteresis: every connected region of e > ``shoulder_excess`` that
-   contains a core.
+   contains a core. A lobe as wide as the opening's disc lifts the
+   baseline under its own peak, which may then stand less than
+   ``core_excess`` above it: a second baseline, opened by a disc twice as
+   wide on a grid half as fine, finds those cores (:func:`_broad_excess`).
 4. **Shoulder growth** of the lobes as wide as the opening's disc. The lobe
    k·c^m (c = cos θ, θ the angle between the normal and the ray) falls as
    e^(−mθ²/2): its ratio to the diffuse light, q(θ) = q₀·e^(−mθ²/2), is a
@@ -46,8 +49,8 @@ Detection, on the linear irradiance (the output of ``endo_calib``):
    it, and the excess test ends its region at q_e ≈ 1.5, where the lobe
    still outshines the texture and SFS reads it as surface facing the
    camera and near (on the textured abdomen that was most of the error;
-   docs/sfs.md, "Specular shoulders"). The peak ratio of wet tissue (k = 2
-   on albedo 0.4: q₀ ≈ 5) gives 1.64 for τ = 0.2 and 1.84 for τ = 0.1: the
+   docs/sfs.md, "Specular shoulders and broad lobes"). The peak ratio of
+   wet tissue (k = 2 on albedo 0.4: q₀ ≈ 5) gives 1.64 for τ = 0.2 and 1.84 for τ = 0.1: the
    factor depends on the ratios only, not on the surface's distance or
    curvature, which set the lobe's size in the image. So such a region is
    grown by (``shoulder_growth`` − 1) times its inradius (its largest
@@ -83,6 +86,8 @@ DEFAULT_SHOULDER_EXCESS = 0.3
 #: Smallest fraction of the opening's disc that must hold data for the
 #: excess to be measured (about 0.4 radii from a straight edge of the data).
 DEFAULT_MIN_SUPPORT = 0.85
+#: Default radius of the second, broader opening (fraction of the image height).
+DEFAULT_BROAD_OPENING_RADIUS = 0.3
 #: Default factor by which a wide highlight region's inradius is grown (step 4).
 DEFAULT_SHOULDER_GROWTH = 2.0
 #: Inradii (fractions of the opening's radius) over which the growth ramps
@@ -141,14 +146,17 @@ def diffuse_excess(
     closing_radius: float = DEFAULT_CLOSING_RADIUS,
     min_support: float = DEFAULT_MIN_SUPPORT,
     fine_sigma: float = FINE_SIGMA,
-) -> tuple[np.ndarray, np.ndarray]:
+    broad_opening_radius: float = DEFAULT_BROAD_OPENING_RADIUS,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
     """ln I minus its morphological diffuse baseline (step 2–3 of the module docstring).
 
     irradiance: (H, W) float linear irradiance; data: (H, W) bool pixels with
     a finite, positive value; saturated: (H, W) bool. opening_radius,
-    closing_radius: fractions of H. min_support: see
+    closing_radius, broad_opening_radius: fractions of H. min_support: see
     :data:`DEFAULT_MIN_SUPPORT`. Returns ((H, W) float32 excess in ln units,
-    0 where not ``data``; (H, W) bool pixels whose baseline has that support).
+    0 where not ``data``; (H, W) bool pixels whose baseline has that support;
+    (h, w) float32 broad excess of :func:`_broad_excess`, one value per block
+    of b × b pixels; b).
     """
     height, width = irradiance.shape
     weighted_log, weight = _log_and_weight(np.ascontiguousarray(irradiance), data)
@@ -162,7 +170,8 @@ def diffuse_excess(
         cv2.resize(saturated.astype(np.float32), size, interpolation=cv2.INTER_AREA) > 0.5
     ) & ~has_data
     if not has_data.any():
-        return np.zeros((height, width), dtype=np.float32), np.zeros((height, width), bool)
+        nothing = np.zeros((height, width), dtype=np.float32)
+        return nothing, np.zeros((height, width), bool), np.zeros((1, 1), np.float32), 1
     cell_log[cell_saturated] = cell_log[has_data].max()
     part = has_data | cell_saturated
     rows = height / factor
@@ -183,7 +192,48 @@ def diffuse_excess(
     blurred_log = cv2.GaussianBlur(weighted_log, (0, 0), fine_sigma,
                                    borderType=cv2.BORDER_CONSTANT)  # fmt: skip
     blurred_weight = cv2.GaussianBlur(weight, (0, 0), fine_sigma, borderType=cv2.BORDER_CONSTANT)
-    return _excess(blurred_log, blurred_weight, baseline, support, data, np.float32(min_support))
+    excess, supported = _excess(blurred_log, blurred_weight, baseline, support, data,
+                                np.float32(min_support))  # fmt: skip
+    broad = _broad_excess(cell_log, has_data, part, closing_radius, broad_opening_radius,
+                          min_support)  # fmt: skip
+    return excess, supported, broad, 2 * factor
+
+
+def _broad_excess(
+    cell_log: np.ndarray, has_data: np.ndarray, part: np.ndarray, closing_radius: float,
+    opening_radius: float, min_support: float,
+) -> np.ndarray:
+    """The excess of block means of ln I over a baseline opened by a disc twice as wide.
+
+    A lobe about as wide as the opening's disc is not removed by the
+    opening: the baseline rises under its peak too, which then stands less
+    than ``core_excess`` above it and no core is found (the textured
+    abdomen's wall facing the scope). Against an opening of
+    ``opening_radius`` (0.3 H), on a grid half as fine as the baseline's
+    (the same cost), its peak stands out again. cell_log, has_data, part:
+    the baseline grid's mean ln I, cells with data, cells taking part. Returns
+    the (h // 2, w // 2) float32 excess of the blocks of 2 × 2 cells with
+    data and support ≥ ``min_support``, 0 elsewhere.
+    """
+    rows, columns = cell_log.shape[0] // 2, cell_log.shape[1] // 2
+    if rows < 1 or columns < 1:
+        return np.zeros((max(rows, 1), max(columns, 1)), dtype=np.float32)
+    size = (columns, rows)
+    weight = cv2.resize(part.astype(np.float32), size, interpolation=cv2.INTER_AREA)
+    logs = cv2.resize(np.where(part, cell_log, 0.0).astype(np.float32), size,
+                      interpolation=cv2.INTER_AREA)  # fmt: skip
+    takes_part = weight > 0.5
+    logs = np.where(takes_part, logs / np.maximum(weight, 1e-6), 0.0).astype(np.float32)
+    closing = max(1, round(closing_radius * rows))
+    opening = max(1, round(opening_radius * rows))
+    closed = _erode(_dilate(logs, takes_part, closing), takes_part, closing)
+    baseline = _dilate(_erode(closed, takes_part, opening), takes_part, opening)
+    disc = _disc(opening).astype(np.float32)
+    support = cv2.filter2D(takes_part.astype(np.float32), -1, disc / disc.sum(),
+                           borderType=cv2.BORDER_CONSTANT)  # fmt: skip
+    with_data = cv2.resize(has_data.astype(np.float32), size, interpolation=cv2.INTER_AREA) > 0.5
+    return np.where(with_data & (support >= min_support), logs - baseline, 0.0).astype(
+        np.float32)
 
 
 @njit(cache=True, nogil=True, error_model="numpy", parallel=True)
@@ -275,12 +325,10 @@ def block_means(
     return small, inside
 
 
-def _any_in_blocks(flags: np.ndarray, size: tuple[int, int], factor: int) -> np.ndarray:
-    """(size[1], size[0]) uint8: 1 where any pixel of the factor × factor block is set."""
-    height, width = flags.shape
-    padded = np.zeros((size[1] * factor, size[0] * factor), dtype=np.uint8)
-    padded[:height, :width] = flags
-    return padded.reshape(size[1], factor, size[0], factor).max(axis=(1, 3))
+def _any_in_blocks(flags: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    """(size[1], size[0]) uint8: 1 where any pixel of the block (cv2 INTER_AREA's) is set."""
+    return (cv2.resize(flags.astype(np.float32), size, interpolation=cv2.INTER_AREA) > 0.0
+            ).astype(np.uint8)  # fmt: skip
 
 
 def grown_regions(
@@ -305,23 +353,29 @@ def grown_regions(
     height, width = found.shape
     factor = max(1, round(height / BASELINE_ROWS))
     size = (max(1, -(-width // factor)), max(1, -(-height // factor)))
-    cells = _any_in_blocks(found, size, factor)
-    unseen = _any_in_blocks(~np.asarray(region, dtype=bool), size, factor)
-    count, labels = cv2.connectedComponents(cells, connectivity=8)
-    inside = cells.astype(bool)
+    cells = _any_in_blocks(found, size)
     # the inradius: the largest distance from a region cell to the outside
     depth = cv2.distanceTransform(cells, cv2.DIST_L2, 5)
-    radius = np.zeros(count, dtype=np.float64)
-    np.maximum.at(radius, labels[inside], depth[inside])
     # Only lobes about as wide as the opening's disc lift the baseline.
     opening = max(1.0, opening_radius * cells.shape[0])
     low, high = WIDE_LOBE
+    if float(depth.max()) <= low * opening:
+        return found  # no region is wide enough (the usual case in the colon)
+    count, labels = cv2.connectedComponents(cells, connectivity=8)
+    inside = cells.astype(bool)
+    radius = np.zeros(count, dtype=np.float64)
+    np.maximum.at(radius, labels[inside], depth[inside])
     share = np.clip((radius / opening - low) / (high - low), 0.0, 1.0)
+    share[0] = 0.0
+    if not np.any(share > 0.0):
+        return found
     # A region cut by the edge of the view (or of the data) does not grow.
+    unseen = _any_in_blocks(~np.asarray(region, dtype=bool), size)
     edge = cv2.dilate(unseen, np.ones((3, 3), np.uint8)).astype(bool) & inside
     share[labels[edge]] = 0.0
     margin = (growth - 1.0) * radius * share
-    margin[0] = 0.0
+    if not np.any(margin > 0.0):
+        return found
     # distance (in cells) to the nearest region cell, and which zero-component that is
     distance, nearest = cv2.distanceTransformWithLabels(
         1 - cells, cv2.DIST_L2, 5, labelType=cv2.DIST_LABEL_CCOMP
@@ -451,11 +505,12 @@ def _detect(
         margin = max(1, round(image.shape[0] / 240))
         saturated = cv2.dilate(saturated.astype(np.uint8), _disc(margin)).astype(bool) & region
         data &= ~saturated
-    excess, supported = diffuse_excess(
+    excess, supported, broad, block = diffuse_excess(
         image, data, saturated, opening_radius, closing_radius, min_support, fine_sigma
     )
     core, candidate, cores = _cores(
-        excess, supported, saturated, np.float32(core_excess), np.float32(shoulder_excess)
+        excess, supported, broad, block, saturated, np.float32(core_excess),
+        np.float32(shoulder_excess),
     )
     if cores == 0:
         return np.zeros(image.shape, dtype=bool)
@@ -490,23 +545,39 @@ def _classify(
 def _cores(
     excess: np.ndarray,
     supported: np.ndarray,
+    broad: np.ndarray,
+    block: int,
     saturated: np.ndarray,
     core_excess: np.float32,
     shoulder_excess: np.float32,
 ) -> tuple[np.ndarray, np.ndarray, int]:
-    """Highlight cores (saturated, or excess above ``core_excess`` with support) and candidates.
+    """Highlight cores (saturated, or excess or broad excess above ``core_excess``) and candidates.
+
+    ``excess`` counts where ``supported``; ``broad`` (:func:`_broad_excess`,
+    one value per ``block`` × ``block`` pixels, pixels beyond its blocks
+    read 0) is 0 where it has no support, and it makes a core only where the pixel
+    also stands (core_excess + shoulder_excess) / 2 above the ordinary
+    baseline: a lobe's peak is sharp, so it still does (0.75–0.86 on the
+    abdomen's broad lobes); the near side of a sphere, diffuse, is as
+    bright against the broad baseline but only 0.2 above the ordinary one.
 
     Returns ((H, W) bool cores; (H, W) uint8 candidates: cores and every
     pixel of excess above ``shoulder_excess``; the number of cores).
     """
     height, width = excess.shape
+    midway = np.float32(0.5) * (core_excess + shoulder_excess)
     core = np.zeros((height, width), dtype=np.bool_)
     candidate = np.zeros((height, width), dtype=np.uint8)
     counts = np.zeros(height, dtype=np.int64)
     for r in prange(height):
         count = 0
+        broad_row = r // block
         for c in range(width):
-            is_core = saturated[r, c] or (excess[r, c] > core_excess and supported[r, c])
+            broad_column = c // block
+            wide = (broad_row < broad.shape[0] and broad_column < broad.shape[1]
+                    and broad[broad_row, broad_column] > core_excess)
+            is_core = (saturated[r, c] or (excess[r, c] > core_excess and supported[r, c])
+                       or (wide and excess[r, c] > midway))
             if is_core:
                 core[r, c] = True
                 count += 1
