@@ -573,11 +573,11 @@ def _cores(
         count = 0
         broad_row = r // block
         for c in range(width):
-            broad_column = c // block
-            wide = (broad_row < broad.shape[0] and broad_column < broad.shape[1]
-                    and broad[broad_row, broad_column] > core_excess)
-            is_core = (saturated[r, c] or (excess[r, c] > core_excess and supported[r, c])
-                       or (wide and excess[r, c] > midway))
+            is_core = saturated[r, c] or (excess[r, c] > core_excess and supported[r, c])
+            if not is_core and excess[r, c] > midway:  # rare: look the broad excess up
+                broad_column = c // block
+                is_core = (broad_row < broad.shape[0] and broad_column < broad.shape[1]
+                           and broad[broad_row, broad_column] > core_excess)
             if is_core:
                 core[r, c] = True
                 count += 1
