@@ -100,6 +100,21 @@ class _WriterThread:
                 raise error
 
 
+class _DirectWriter:
+    """:class:`_WriterThread`'s interface, calling the writer at once in the caller's thread."""
+
+    def __init__(self, writer: BagWriter) -> None:
+        self.writer = writer
+
+    def call(self, method: Callable[..., Any], *args: Any) -> None:
+        """Call ``method(*args)`` now."""
+        method(*args)
+
+    def close(self) -> None:
+        """Close the writer."""
+        self.writer.close()
+
+
 class OutputBag:
     """A :class:`BagWriter` with a merge of held-back small streams.
 
@@ -108,10 +123,20 @@ class OutputBag:
         compression: chunk compression, zstd | lz4 | none.
         copied_topics: topics copied from the input, name -> TopicInfo
             (their type and QoS offers are kept).
+        threaded: write from a thread of its own (:class:`_WriterThread`),
+            else in the caller's thread. With a worker process the runner
+            writes directly: the main process waits for the worker anyway,
+            and the thread's lz4 and CRC beside the worker slowed it
+            (docs/benchmarks.md, "endo-process").
     """
 
     def __init__(
-        self, path: Path, compression: str, copied_topics: dict[str, TopicInfo] | None = None
+        self,
+        path: Path,
+        compression: str,
+        copied_topics: dict[str, TopicInfo] | None = None,
+        *,
+        threaded: bool = True,
     ) -> None:
         writer = BagWriter(path, compression=compression)
         self.path = Path(path)
@@ -121,7 +146,7 @@ class OutputBag:
         for name, info in (copied_topics or {}).items():
             writer.add_topic(name, info.msgtype, info.offered_qos_profiles)
             self.counts[name] = 0
-        self._writer = _WriterThread(writer)
+        self._writer = _WriterThread(writer) if threaded else _DirectWriter(writer)
         self._bag = writer  # its methods, called through the thread only
 
     def hold(self, topic: str, message: Any, log_time_ns: int) -> None:

@@ -443,7 +443,8 @@ def process_bag(options: ProcessOptions, stop: threading.Event | None = None) ->
         report = ProcessReport(frames_total=inputs.frame_count, output=options.output)
         with BagReader(options.bag) as reader:
             copied = {name: reader.topics[name] for name in inputs.ground_truth}
-        output = OutputBag(options.output, options.compression, copied)
+        output = OutputBag(options.output, options.compression, copied,
+                           threaded=pool.worker_count == 0)  # fmt: skip
         world_frame = str(settings.flow["world_frame"])
         streams = recording_streams(inputs)
         poses = iter_camera_poses(iter_tracker_poses(streams), settings, handeye, report)
