@@ -509,18 +509,22 @@ def process_bag(options: ProcessOptions, stop: threading.Event | None = None) ->
                 worker_cpu[pool.worker_of(shaded.index)] = shaded.worker_cpu_s
             # The poses up to this frame first: the output stays in log-time order.
             T_world_camera: np.ndarray | None = None
-            lookup: PoseLookupError | None = None
+            # The cause's name only: an exception kept past its except block holds
+            # its traceback, whose frames hold this loop's frame data until a full
+            # garbage collection (the cycle that made the live flow node's memory
+            # creep, docs/reliability.md).
+            missing_pose: str | None = None
             step = time.perf_counter()
             try:
                 T_world_camera = feed.at(shaded.stamp_ns)
             except PoseLookupError as error:
-                lookup = error
+                missing_pose = type(error).__name__
             clock["poses"] += (now := time.perf_counter()) - step
             output.copy_until(truth, truth_pending, shaded.stamp_ns)
             clock["truth"] += (step := time.perf_counter()) - now
             _write_frame(output, infos.pop(shaded.index), shaded, report)
-            if lookup is not None:
-                report.without_pose[type(lookup).__name__] += 1
+            if missing_pose is not None:
+                report.without_pose[missing_pose] += 1
             if T_world_camera is not None:
                 report.frames_with_pose += 1
                 edge = StampedTransform.from_matrix(
