@@ -103,9 +103,9 @@ class ImageView:
     The fields are the message's, with the same names and meanings, so a
     node reads ``header.stamp``, ``encoding``, ... as from an ``Image``;
     :func:`image_to_array` takes it. ``data`` is read-only (a view of the
-    immutable bytes rclpy delivers): so is the array :func:`image_to_array`
-    returns for a packed, native image. It keeps the whole serialized
-    message alive.
+    immutable bytes rclpy delivers); :func:`image_to_array` returns a
+    writeable copy of its pixels. It keeps the whole serialized message
+    alive.
     """
 
     header: Header
@@ -224,8 +224,9 @@ def image_to_array(msg: ImageMessage) -> np.ndarray:
     (H, W, C) for colour ones, with dtype uint8, uint16 or float32 (see the
     module table), C-contiguous and in native byte order. Units are those of
     the encoding (``32FC1`` depth is metres by REP 118). The array may share
-    memory with ``msg.data`` when no copy is needed (read-only for an
-    :class:`ImageView`).
+    memory with ``msg.data`` when no copy is needed and ``msg.data`` is
+    writeable; it is always writeable (an :class:`ImageView`'s pixels are
+    copied once: numba compiles kernels per signature, read-only being one).
 
     Raises:
         ImageEncodingError: the encoding is not one of ``SUPPORTED_ENCODINGS``.
@@ -260,7 +261,15 @@ def image_to_array(msg: ImageMessage) -> np.ndarray:
     pixels = rows.reshape(shape)
     if not stored_dtype.isnative:
         return pixels.astype(fmt.dtype)  # byte-swapping copy, C-contiguous
-    return np.ascontiguousarray(pixels)
+    pixels = np.ascontiguousarray(pixels)
+    if not pixels.flags.writeable:
+        # A view of received bytes (an ImageView's) is read-only, and numba takes a
+        # read-only array for another type: every kernel the nodes warm up on
+        # writeable frames compiled again at a node's first real frame (a fresh
+        # clone's demo: SFS stalled ~3 s and lost 33 frames). One copy of the
+        # pixels (~0.1 ms for 1.2 MB) keeps the signatures the warm-ups load.
+        pixels = pixels.copy()
+    return pixels
 
 
 def _packed_pixels(array: np.ndarray, encoding: str) -> tuple[np.ndarray, PixelFormat]:

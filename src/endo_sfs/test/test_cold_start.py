@@ -131,9 +131,14 @@ warm_up_kernels()
 warm_up_frame(camera, options)
 before = {k: len(f.signatures) for k, f in kernels.items()}
 previous = None
+from rclpy.serialization import serialize_message
+from endo_io.image import array_to_image, image_from_cdr
 for msg in images[::5]:
     irradiance = calibration.correct(to_raw_frame(image_to_array(msg), msg.encoding))
-    previous = solve(irradiance, camera, options, warm_start=previous)
+    # as the node gets it: the corrected image's CDR bytes, decoded without rclpy
+    sent = serialize_message(array_to_image(irradiance.astype(np.float32), "32FC1"))
+    previous = solve(image_to_array(image_from_cdr(sent)), camera, options,
+                     warm_start=previous)
 print(sorted(k for k, f in kernels.items() if len(f.signatures) > before[k]))
 """
 
