@@ -5,10 +5,14 @@ exports these already; a bare `pytest` run gets the same defaults here, before
 any test imports rclpy.
 
 With pytest-xdist (`make test` runs two workers), each worker gets a DDS
-domain of its own: worker gwK the domain given plus 100·K (gw0 keeps it), so
-that two tests running at once never see each other's nodes (a test that
-refuses a second graph in its domain would otherwise meet the other
-worker's), and two suites started with domains under 100 never share one.
+domain of its own: worker gwK the domain given plus 30·K, modulo 102 (gw0
+keeps it), so that two tests running at once never see each other's nodes
+(a test that refuses a second graph in its domain would otherwise meet the
+other worker's). Domains stay at 101 or below: above, Fast DDS's ports
+(7400 + 250·domain + ...) fall in Linux's ephemeral port range (32768+),
+where any outgoing socket may hold one, and discovery fails now and then
+(seen: a worker on domain 152 whose pairs of processes did not find each
+other, twice in one run).
 """
 
 from __future__ import annotations
@@ -20,10 +24,11 @@ os.environ.setdefault("ROS_DOMAIN_ID", "42")
 os.environ.setdefault("RMW_IMPLEMENTATION", "rmw_fastrtps_cpp")
 
 #: Added to the domain of xdist worker gwK, times K.
-WORKER_DOMAIN_STEP = 100
+WORKER_DOMAIN_STEP = 30
+#: Domains above this risk Linux's ephemeral ports (see the module docstring).
+SAFE_DOMAINS = 102
 _worker = os.environ.get("PYTEST_XDIST_WORKER", "")
 if _worker.startswith("gw"):
-    # DDS domains are 0..232 with Fast DDS's default port mapping
     os.environ["ROS_DOMAIN_ID"] = str(
-        (int(os.environ["ROS_DOMAIN_ID"]) + WORKER_DOMAIN_STEP * int(_worker[2:])) % 233
+        (int(os.environ["ROS_DOMAIN_ID"]) + WORKER_DOMAIN_STEP * int(_worker[2:])) % SAFE_DOMAINS
     )
