@@ -34,6 +34,17 @@ from rclpy.qos import (
 )
 from rclpy.qos_overriding_options import QoSOverridingOptions
 
+
+def best_effort_qos(depth: int) -> QoSProfile:
+    """Best-effort, volatile, keep-last ``depth`` subscription profile."""
+    return QoSProfile(
+        history=HistoryPolicy.KEEP_LAST,
+        depth=depth,
+        reliability=ReliabilityPolicy.BEST_EFFORT,
+        durability=DurabilityPolicy.VOLATILE,
+    )
+
+
 #: Subscription profile for sensor streams (REP 2003).
 SENSOR_DATA_QOS: QoSProfile = qos_profile_sensor_data
 
@@ -46,12 +57,7 @@ POSE_STREAM_DEPTH = 100
 
 #: Subscription profile of tracker and camera pose streams: best effort (it
 #: matches reliable and best-effort publishers), keep last POSE_STREAM_DEPTH.
-POSE_STREAM_QOS = QoSProfile(
-    history=HistoryPolicy.KEEP_LAST,
-    depth=POSE_STREAM_DEPTH,
-    reliability=ReliabilityPolicy.BEST_EFFORT,
-    durability=DurabilityPolicy.VOLATILE,
-)
+POSE_STREAM_QOS = best_effort_qos(POSE_STREAM_DEPTH)
 
 #: Frames a newest-frame subscription holds while its node is busy: 8 frames
 #: cover 0.27 s at 30 fps, longer than any stage takes per frame here, so the
@@ -59,12 +65,7 @@ POSE_STREAM_QOS = QoSProfile(
 NEWEST_FRAME_DEPTH = 8
 
 #: Subscription profile of the frame a node processes (see the module docstring).
-NEWEST_FRAME_QOS = QoSProfile(
-    history=HistoryPolicy.KEEP_LAST,
-    depth=NEWEST_FRAME_DEPTH,
-    reliability=ReliabilityPolicy.BEST_EFFORT,
-    durability=DurabilityPolicy.VOLATILE,
-)
+NEWEST_FRAME_QOS = best_effort_qos(NEWEST_FRAME_DEPTH)
 
 
 def reliable_qos(depth: int = 10, *, latched: bool = False) -> QoSProfile:
