@@ -10,10 +10,12 @@ frame crosses in UDP fragments and a best-effort reader loses most of them
 (``docs/benchmarks.md``, "DDS transport for large frames").
 
 What is tested is the transport once the pair has matched. Discovery between
-two fresh processes failed once in CI and once here in ~100 runs (the sender
-saw no receiver for 60 s, with only the test process on the domain beside
-them); it is said (``ProbeDiscoveryError``) and the pair is started once more
-on a new topic, so that a discovery failure is not reported as a lost frame.
+two fresh processes failed once in CI and a few times here in ~100 runs (the
+sender saw no receiver for 60 s; or it saw the receiver, which never took a
+frame: discovery one way only; stale shared-memory ports left by the kill -9
+tests are a likely cause, not a proven one); it is said (``ProbeDiscoveryError``)
+and the pair is started once more on a new topic, so that a discovery failure
+is not reported as a lost frame.
 """
 
 from __future__ import annotations

@@ -66,6 +66,8 @@ class ProbeSender(Node):
 
     def _tick(self) -> None:
         if self._publisher.get_subscription_count() == 0:
+            if self._matched_at is not None:
+                self.context.try_shutdown()  # the receiver has left: nothing more to send
             return
         now = time.monotonic()
         if self._matched_at is None:
@@ -169,14 +171,17 @@ def run_probe(
     that a second probe from the same process does not meet the first's frames.
 
     Raises:
-        ProbeDiscoveryError: the sender saw no receiver within ``timeout_s``.
+        ProbeDiscoveryError: the sender saw no receiver within ``timeout_s``, or
+            the receiver took no frame although the sender saw it.
         ProbeError: a process failed or printed no result within ``timeout_s``.
     """
     command = [sys.executable, "-m", "endo_bringup.frame_probe"]
     shape = ["--frames", str(frames), "--width", str(width), "--height", str(height),
              "--topic", f"{TOPIC}_{os.getpid()}{topic_suffix}"]  # fmt: skip
+    # The receiver gives up first, so that a sender whose frames never arrive sees
+    # it leave and stops (rather than both waiting out the whole timeout).
     receiver = subprocess.Popen(
-        [*command, "receive", *shape, "--timeout", str(timeout_s)],
+        [*command, "receive", *shape, "--timeout", str(0.8 * timeout_s)],
         env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
     )  # fmt: skip
     try:
@@ -207,7 +212,15 @@ def run_probe(
     line = next((x for x in out.splitlines() if x.startswith("{")), None)
     if line is None:
         raise ProbeError(f"the receiver printed no result: {err[-2000:]}")
-    return ProbeResult(**json.loads(line))
+    result = ProbeResult(**json.loads(line))
+    if result.received == 0:
+        # The sender saw the receiver, the receiver never took a frame: it never
+        # matched the sender (discovery one way only), which is not a transport loss.
+        raise ProbeDiscoveryError(
+            f"the receiver got no frame in {0.8 * timeout_s:g} s although the sender saw it "
+            f"(DDS discovery one way only: domain {env.get('ROS_DOMAIN_ID', '0')})"
+        )
+    return result
 
 
 def main(argv: Sequence[str] | None = None) -> int:
