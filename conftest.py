@@ -19,6 +19,8 @@ from __future__ import annotations
 
 import os
 
+import pytest
+
 os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
 os.environ.setdefault("ROS_DOMAIN_ID", "42")
 os.environ.setdefault("RMW_IMPLEMENTATION", "rmw_fastrtps_cpp")
@@ -32,3 +34,17 @@ if _worker.startswith("gw"):
     os.environ["ROS_DOMAIN_ID"] = str(
         (int(os.environ["ROS_DOMAIN_ID"]) + WORKER_DOMAIN_STEP * int(_worker[2:])) % SAFE_DOMAINS
     )
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    """Tests marked ``ros`` (separate processes over DDS) are run once more if they fail.
+
+    DDS discovery between two freshly started processes on this loopback fails
+    now and then (a pair that never matches, or matches one way only: 3 times
+    in ~8 full runs on 2026-12-02, on varying tests, never twice in a row on
+    one); a second run tells such a failure from a broken graph. pytest reports
+    every rerun (``R`` and the summary's "rerun" count), so none goes unseen.
+    """
+    for item in items:
+        if item.get_closest_marker("ros") is not None and item.get_closest_marker("flaky") is None:
+            item.add_marker(pytest.mark.flaky(reruns=1))

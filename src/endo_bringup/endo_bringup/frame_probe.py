@@ -5,7 +5,8 @@ node processes (both through :func:`endo_io.process.run_node`, so each gets
 the transport every node gets). The sender publishes ``--frames`` 32FC1
 images of ``--width``×``--height`` at ``--rate`` Hz on a reliable publisher,
 as the nodes do, once the receiver is matched; the receiver counts them on a
-best-effort (sensor-data) subscription, as the SFS node does, and prints one
+best-effort subscription, as the SFS node does (deep enough to hold every
+frame, so that a stalled receiver's backlog is not counted), and prints one
 JSON line: frames received from the first one that arrived on (what is lost
 before is discovery, not transport), the sequence numbers lost, and the
 latency (receive time − header stamp) median and 95th percentile in
@@ -37,7 +38,7 @@ from sensor_msgs.msg import Image
 
 from endo_io.image import array_to_image
 from endo_io.process import run_node, split_ros_args
-from endo_io.qos import SENSOR_DATA_QOS, create_reliable_publisher
+from endo_io.qos import SENSOR_DATA_QOS, best_effort_qos, create_reliable_publisher
 from endo_io.serialized_stamp import serialized_header_stamp_ns
 from endo_io.stamp import ns_to_stamp
 
@@ -89,7 +90,11 @@ class ProbeReceiver(Node):
 
     def __init__(self, topic: str, expected: int, idle_s: float, timeout_s: float) -> None:
         super().__init__("endo3d_probe_receiver")
-        self.create_subscription(Image, topic, self._on_frame, SENSOR_DATA_QOS, raw=True)
+        # Best effort as the SFS node's input, but deep enough to hold every frame: a
+        # receiver stalled by the machine's load must not count its own backlog as
+        # frames lost in transport (4 in a row were, with depth 5, at load ~2).
+        self.create_subscription(Image, topic, self._on_frame,
+                                 best_effort_qos(max(expected, SENSOR_DATA_QOS.depth)), raw=True)
         self.sequence: list[int] = []
         self.latency_ms: list[float] = []
         self._expected = expected
