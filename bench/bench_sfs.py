@@ -604,19 +604,14 @@ def convergence_table() -> list[str]:
 def phantom(bag: str, calibration: str, roughness: float, mask_highlights: bool,
             solve_scale: float, fov_radius: float, threads: int) -> None:
     """Median-scaled AbsRel on an endo_sim bag, after endo_calib's correction."""
+    from recorded_frames import read_recorded_frames
+
     from endo_calib.calibration import PhotometricCalibration
     from endo_calib.raw_image import to_raw_frame
-    from endo_io.bag import BagReader, deserialize
     from endo_io.image import image_to_array
-    from endo_io.stamp import stamp_to_ns
 
-    topics = {"/endoscope/image_raw": {}, "/endoscope/camera_info": {}, "/ground_truth/depth": {}}
-    with BagReader(bag) as reader:
-        for message in reader.messages(list(topics)):
-            msg = deserialize(message)
-            topics[message.topic][stamp_to_ns(msg.header.stamp)] = msg
-    images, infos, depths = topics.values()
-    stamps = sorted(set(images) & set(infos))
+    frames = read_recorded_frames(bag)
+    images, infos, depths, stamps = frames.images, frames.infos, frames.depths, frames.stamps
     correction = PhotometricCalibration.load(calibration)
     camera = CameraModel.from_camera_info(infos[stamps[0]])
     mask = camera.fov_mask(fov_radius)

@@ -34,17 +34,14 @@ import dataclasses
 import time
 from collections.abc import Callable
 from functools import partial
-from typing import Any
 
 import numpy as np
+from recorded_frames import read_recorded_frames
 
 from endo_calib.calibration import PhotometricCalibration
 from endo_calib.raw_image import to_raw_frame
-from endo_io.bag import BagReader, deserialize
 from endo_io.camera import CameraModel
 from endo_io.image import image_to_array
-from endo_io.stamp import stamp_to_ns
-from endo_io.topics import CAMERA_INFO, IMAGE_RAW, TRUE_DEPTH
 from endo_sfs import SfsOptions, solve
 from endo_sfs.errors import SfsError
 from endo_sfs.evaluation import depth_error
@@ -162,13 +159,8 @@ def grown_mask(frame: Frame, growth: float) -> np.ndarray:
 
 def score_bag(bag: str, calibration: str, growth: float, fov_radius: float = 240.0) -> None:
     """Per-frame median-scaled AbsRel of the warm-started chain over a bag's ground-truth frames."""
-    topics: dict[str, dict[int, Any]] = {IMAGE_RAW: {}, CAMERA_INFO: {}, TRUE_DEPTH: {}}
-    with BagReader(bag) as reader:
-        for message in reader.messages(list(topics)):
-            msg = deserialize(message)
-            topics[message.topic][stamp_to_ns(msg.header.stamp)] = msg
-    images, infos, depths = topics.values()
-    stamps = sorted(set(images) & set(infos))
+    frames = read_recorded_frames(bag)
+    images, infos, depths, stamps = frames.images, frames.infos, frames.depths, frames.stamps
     correction = PhotometricCalibration.load(calibration)
     camera = CameraModel.from_camera_info(infos[stamps[0]])
     fov = camera.fov_mask(fov_radius)
