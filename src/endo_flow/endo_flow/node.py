@@ -75,7 +75,13 @@ from std_srvs.srv import Trigger
 
 from endo_flow.errors import FlowError, FlowInputError
 from endo_flow.messages import grey_cloud, scale_message
-from endo_flow.pipeline import FlowFrame, FlowOptions, FlowOutput, FlowPipeline
+from endo_flow.pipeline import (
+    SCALE_OBSERVATIONS,
+    FlowFrame,
+    FlowOptions,
+    FlowOutput,
+    FlowPipeline,
+)
 from endo_flow.scale import ScaleFilterOptions
 from endo_flow.shape_correction import SHAPE_CORRECTION_MODES, ShapeCorrectionOptions
 from endo_flow.tracking import TrackingOptions
@@ -143,6 +149,10 @@ PARAMETERS: tuple[ParameterSpec, ...] = (
     ParameterSpec("min_baseline_m", 2.0e-3,
                   "least camera-centre baseline of a triangulated track, metres",
                   range=(0.0, 0.1), read_only=True),
+    ParameterSpec("scale_observation", "triangulation",
+                  "how a frame observes the scale: its triangulated tracks' depth ratios, or "
+                  "the scale-only reprojection fit of SFS's points over the keyframe window",
+                  choices=SCALE_OBSERVATIONS, read_only=True),
     ParameterSpec("pose_smoothing_s", 0.3,
                   "half-width of the pose smoothing of keyframes, seconds (0: raw poses)",
                   range=(0.0, 2.0), read_only=True),
@@ -190,6 +200,7 @@ def pipeline_options(values: dict[str, Any]) -> FlowOptions:
         scale=replace(ScaleFilterOptions(), process_noise=values["scale_process_noise"]),
         shape=ShapeCorrectionOptions(mode=values["shape_correction"]),
         pose_smoothing_s=values["pose_smoothing_s"],
+        scale_observation=values["scale_observation"],
         cloud_decimation=values["cloud_decimation"], map_enabled=values["map_enabled"],
         voxel_size_m=values["map_voxel_size_m"], max_voxels=values["map_max_voxels"],
     )

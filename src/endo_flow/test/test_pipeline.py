@@ -112,3 +112,21 @@ def test_keyframe_samples_follow_a_gain_step():
     views = window.views(np.array([8]))
     assert views.relative is not None
     np.testing.assert_allclose(views.relative[0], 2.0 / np.sqrt(1.2))
+
+
+@pytest.mark.parametrize("gate", ["none", "baseline"])
+def test_reprojection_observation_gives_the_scale(moving, kit, gate):
+    """``scale_observation: reprojection`` converges to the true scale with true poses.
+
+    No parallax gate, or the baseline one; with the tracker's noise it stays
+    near the truth.
+
+    Measured (last frame): true poses 0.04 % / 0.01 %, tracker noise seed 1
+    1.5 % / 1.4 % (none / baseline).
+    """
+    options = kit.options(scale_observation="reprojection", parallax_gate=gate)
+    for poses, bar in ((moving.poses, 0.01), (kit.tracked_poses(moving.poses, seed=1), 0.03)):
+        pipe = FlowPipeline(options)
+        outputs = [pipe.process(frame) for frame in moving.frames(poses)]
+        errors = [abs(o.scale.value / kit.S_TRUE - 1.0) for o in outputs if o.scale.usable]
+        assert outputs[-1].scale.usable and errors[-1] < bar, (gate, errors[-1])
