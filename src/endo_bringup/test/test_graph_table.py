@@ -79,7 +79,7 @@ def test_command_lines_come_from_the_table(tmp_path: Path) -> None:
     assert recorder == [
         "--topics", *outputs, topics.CAMERA_INFO, topics.TRUE_DEPTH, topics.TRUE_CAMERA_POSE,
         "-o", str(tmp_path / "graph.mcap"),
-        "--flush-period", "0.2",
+        "--flush-period", "0.2", "--compression", "lz4",
     ]  # fmt: skip
     text = describe_graph(processes)
     assert len(text.splitlines()) == 1 + len(processes)
