@@ -22,7 +22,7 @@ from geometry_msgs.msg import Vector3Stamped
 from sensor_msgs.msg import PointCloud2
 
 from endo_flow.scale import ScaleEstimate
-from endo_io.pointcloud import xyz_to_pointcloud2
+from endo_io.pointcloud import xyz_to_pointcloud2, xyz_to_pointcloud2_cdr
 from endo_io.stamp import ns_to_stamp
 
 
@@ -40,6 +40,16 @@ def scale_message(estimate: ScaleEstimate, stamp_ns: int, frame_id: str) -> Vect
 def grey_cloud(points: np.ndarray, grey: np.ndarray, stamp_ns: int, frame_id: str
                ) -> PointCloud2:
     """(N, 3) points, metres, with (N,) grey levels 0–255 as a PointCloud2 (xyz + rgb grey)."""
-    level = np.clip(np.rint(np.asarray(grey, np.float64)), 0, 255).astype(np.uint8)
     return xyz_to_pointcloud2(np.asarray(points, np.float32), stamp_ns, frame_id,
-                              np.repeat(level[:, None], 3, axis=1))
+                              _grey_rgb(grey))
+
+
+def grey_cloud_cdr(points: np.ndarray, grey: np.ndarray, stamp_ns: int, frame_id: str) -> bytes:
+    """:func:`grey_cloud`'s CDR bytes, built directly (what the live node publishes)."""
+    return xyz_to_pointcloud2_cdr(np.asarray(points, np.float32), stamp_ns, frame_id,
+                                  _grey_rgb(grey))
+
+
+def _grey_rgb(grey: np.ndarray) -> np.ndarray:
+    level = np.clip(np.rint(np.asarray(grey, np.float64)), 0, 255).astype(np.uint8)
+    return np.repeat(level[:, None], 3, axis=1)

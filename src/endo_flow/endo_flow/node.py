@@ -74,7 +74,7 @@ from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 from std_srvs.srv import Trigger
 
 from endo_flow.errors import FlowError, FlowInputError
-from endo_flow.messages import grey_cloud, scale_message
+from endo_flow.messages import grey_cloud_cdr, scale_message
 from endo_flow.pipeline import (
     SCALE_OBSERVATIONS,
     FlowFrame,
@@ -98,7 +98,7 @@ from endo_io.errors import (
     PoseLookupError,
     PoseNotYetError,
 )
-from endo_io.image import ImageMessage, array_to_image, image_from_cdr, image_to_array
+from endo_io.image import ImageMessage, array_to_image_cdr, image_from_cdr, image_to_array
 from endo_io.parameters import NodeParameters, ParameterSpec
 from endo_io.pose import pose_to_matrix
 from endo_io.pose_buffer import PoseBuffer
@@ -261,7 +261,10 @@ class FlowNode(Node):
                                    POSE_STREAM_QOS)
         self.create_service(Trigger, "~/reset_map", self._reset_map)
         self.create_service(Trigger, "~/export_map", self._export_map)
-        self.create_timer(0.02, self._expire_pending)
+        # runs only while a frame waits for its pose: idle, it would wake the executor
+        # 50 times a second for nothing (each wake-up builds rclpy's whole wait set)
+        self._expiry = self.create_timer(0.02, self._expire_pending)
+        self._expiry.cancel()
         self.create_timer(values["map_period_s"], self._publish_map)
         self._map_dirty = False
         self.get_logger().info(
@@ -286,8 +289,8 @@ class FlowNode(Node):
                     f"{error}"
                 ) from None
         seconds = warm_up_pipeline(options, camera)
-        grey_cloud(np.zeros((1, 3), np.float32), np.zeros(1, np.uint8), 0,
-                   self.parameters["world_frame"])
+        grey_cloud_cdr(np.zeros((1, 3), np.float32), np.zeros(1, np.uint8), 0,
+                       self.parameters["world_frame"])
         self.get_logger().info(
             f"warmed up on a {camera.width}x{camera.height} frame"
             f"{f' of {path}' if path else ''} in {seconds:.2f} s"
@@ -332,9 +335,13 @@ class FlowNode(Node):
         wait = self.parameters["pose_wait_s"]
         self._pending.append(_Pending(stamp_ns, image, depth, info, time.monotonic() + wait))
         self._drain()
+        if self._pending and self._expiry.is_canceled():
+            self._expiry.reset()
 
     def _expire_pending(self) -> None:
         self._drain()
+        if not self._pending:
+            self._expiry.cancel()
 
     def _drain(self) -> None:
         """Process waiting frames in order while their pose is known or cannot come."""
@@ -429,12 +436,12 @@ class FlowNode(Node):
                 throttle_duration_sec=1.0)
         if out.depth is None:
             return
-        depth_msg = array_to_image(out.depth, "32FC1")
-        depth_msg.header = header
-        self.depth_pub.publish(depth_msg)
+        # CDR bytes built directly: one copy of the pixels, not the message's and rclpy's
+        self.depth_pub.publish(array_to_image_cdr(out.depth, "32FC1", stamp_to_ns(header.stamp),
+                                                  header.frame_id))
         if len(out.points):
-            self.points_pub.publish(grey_cloud(out.points, out.intensity, pending.stamp_ns,
-                                               self.parameters["world_frame"]))
+            self.points_pub.publish(grey_cloud_cdr(out.points, out.intensity, pending.stamp_ns,
+                                                   self.parameters["world_frame"]))
             self._map_dirty = True
 
     # ------------------------------------------------------------------ map
@@ -445,8 +452,8 @@ class FlowNode(Node):
             return
         cloud = voxel_map.points(self.parameters["map_min_count"])
         stamp = self.get_clock().now().nanoseconds
-        self.map_pub.publish(grey_cloud(cloud.points, cloud.grey, stamp,
-                                        self.parameters["world_frame"]))
+        self.map_pub.publish(grey_cloud_cdr(cloud.points, cloud.grey, stamp,
+                                            self.parameters["world_frame"]))
         self._map_dirty = False
 
     def _reset_map(self, _request: Trigger.Request, response: Trigger.Response

@@ -14,6 +14,10 @@ H x W cloud and an (N, 3) one gives 1 x N. Invalid points stay in the cloud
 as NaN (organised clouds keep their grid), and ``is_dense`` is True only
 when every coordinate is finite.
 
+:func:`xyz_to_pointcloud2_cdr` gives the same message's CDR bytes directly,
+for a live node to publish as they are (one copy of the points instead of
+three).
+
 The reader accepts any layout that has float32 ``x``, ``y``, ``z`` (and
 optionally ``rgb`` or ``rgba``, float32 or uint32), in any order, with any
 padding, row padding or byte order.
@@ -21,13 +25,14 @@ padding, row padding or byte order.
 
 from __future__ import annotations
 
+import struct
 from array import array as byte_array
 
 import numpy as np
 from sensor_msgs.msg import PointCloud2, PointField
 
 from endo_io.errors import PointCloudError
-from endo_io.stamp import ns_to_stamp
+from endo_io.stamp import NS_PER_S, ns_to_stamp
 
 XYZ_POINT_STEP = 16
 XYZRGB_POINT_STEP = 32
@@ -83,26 +88,10 @@ def xyz_to_pointcloud2(
         PointCloudError: a shape other than (N, 3) / (H, W, 3), a non-float
             dtype, or an ``rgb`` whose shape or dtype does not match.
     """
-    xyz = np.asarray(points)
-    if xyz.ndim not in (2, 3) or xyz.shape[-1] != 3:
-        raise PointCloudError(f"points must have shape (N, 3) or (H, W, 3), got {xyz.shape}")
-    if not np.issubdtype(xyz.dtype, np.floating):
-        raise PointCloudError(f"points must be floating point metres, got dtype {xyz.dtype}")
-    height, width = xyz.shape[:2] if xyz.ndim == 3 else (1, xyz.shape[0])
-    if rgb is not None:
-        colours = np.asarray(rgb)
-        if colours.shape != xyz.shape or colours.dtype != np.uint8:
-            raise PointCloudError(
-                f"rgb must be uint8 with the points' shape {xyz.shape}, "
-                f"got {colours.dtype} {colours.shape}"
-            )
-    dtype = _XYZ_DTYPE if rgb is None else _XYZRGB_DTYPE
-    cloud = np.zeros((height, width), dtype=dtype)  # zero padding bytes
-    flat = xyz.reshape(height, width, 3)
-    for axis, name in enumerate("xyz"):
-        cloud[name] = flat[..., axis]
-    if rgb is not None:
-        cloud["rgb"] = pack_rgb(colours.reshape(height, width, 3))
+    xyz, colours = _checked(points, rgb)
+    cloud = _packed_points(xyz, colours)
+    height, width = cloud.shape
+    dtype = cloud.dtype
 
     msg = PointCloud2()
     msg.header.stamp = ns_to_stamp(stamp_ns)
@@ -117,8 +106,85 @@ def xyz_to_pointcloud2(
     msg.point_step = dtype.itemsize
     msg.row_step = width * dtype.itemsize
     msg.data = byte_array("B", cloud.tobytes())
-    msg.is_dense = bool(np.all(np.isfinite(flat)))
+    msg.is_dense = bool(np.isfinite(xyz).all())
     return msg
+
+
+def _checked(points: np.ndarray, rgb: np.ndarray | None) -> tuple[np.ndarray, np.ndarray | None]:
+    """``points`` and ``rgb`` as arrays, checked (see :func:`xyz_to_pointcloud2`)."""
+    xyz = np.asarray(points)
+    if xyz.ndim not in (2, 3) or xyz.shape[-1] != 3:
+        raise PointCloudError(f"points must have shape (N, 3) or (H, W, 3), got {xyz.shape}")
+    if not np.issubdtype(xyz.dtype, np.floating):
+        raise PointCloudError(f"points must be floating point metres, got dtype {xyz.dtype}")
+    if rgb is None:
+        return xyz, None
+    colours = np.asarray(rgb)
+    if colours.shape != xyz.shape or colours.dtype != np.uint8:
+        raise PointCloudError(
+            f"rgb must be uint8 with the points' shape {xyz.shape}, "
+            f"got {colours.dtype} {colours.shape}"
+        )
+    return xyz, colours
+
+
+def _packed_points(xyz: np.ndarray, rgb: np.ndarray | None) -> np.ndarray:
+    """The (H, W) records of checked points in the module's layout, padding bytes zero.
+
+    Written as float32 / uint32 columns of one zeroed block (one pass per
+    column instead of the structured fields' strided assignments).
+    """
+    height, width = xyz.shape[:2] if xyz.ndim == 3 else (1, xyz.shape[0])
+    dtype = _XYZ_DTYPE if rgb is None else _XYZRGB_DTYPE
+    words = np.zeros((height * width, dtype.itemsize // 4), np.float32)
+    words[:, :3] = xyz.reshape(-1, 3)
+    if rgb is not None:
+        words.view(np.uint32)[:, RGB_OFFSET // 4] = pack_rgb(rgb.reshape(-1, 3))
+    return words.view(dtype).reshape(height, width)
+
+
+def _cdr_string(text: str, offset: int) -> bytes:
+    """A CDR string (length with the NUL, bytes, NUL), aligned to 4 from ``offset``."""
+    data = text.encode()
+    return bytes(-offset % 4) + struct.pack("<I", len(data) + 1) + data + b"\x00"
+
+
+def xyz_to_pointcloud2_cdr(
+    points: np.ndarray,
+    stamp_ns: int,
+    frame_id: str,
+    rgb: np.ndarray | None = None,
+) -> bytes:
+    """The CDR bytes of ``xyz_to_pointcloud2(points, stamp_ns, frame_id, rgb)``, built directly.
+
+    Byte for byte what :func:`endo_io.bag.serde.serialize` gives for that
+    message (little-endian CDR, padding bytes zero, padded to 4 bytes as DDS
+    delivers it; tested), for ``Publisher.publish`` to send as it is: one
+    copy of the points instead of the three that building the message
+    (``tobytes``, the ``array``) and rclpy's serialisation take. Arguments
+    and errors as :func:`xyz_to_pointcloud2`.
+    """
+    xyz, colours = _checked(points, rgb)
+    if stamp_ns < 0:
+        raise ValueError(f"stamp must be non-negative, got {stamp_ns} ns")
+    cloud = _packed_points(xyz, colours)
+    height, width = cloud.shape
+    sec, nanosec = divmod(int(stamp_ns), NS_PER_S)
+    offsets = {"x": 0, "y": 4, "z": 8} | ({} if rgb is None else {"rgb": RGB_OFFSET})
+    # offsets below count from the end of the 4-byte encapsulation header
+    head = bytearray(struct.pack("<iI", sec, nanosec))
+    head += _cdr_string(frame_id, len(head))
+    head += bytes(-len(head) % 4) + struct.pack("<III", height, width, len(offsets))
+    for name, offset in offsets.items():
+        head += _cdr_string(name, len(head))
+        head += bytes(-len(head) % 4) + struct.pack("<IB", offset, PointField.FLOAT32)
+        head += bytes(-len(head) % 4) + struct.pack("<I", 1)
+    head += struct.pack("<B", 0)  # is_bigendian
+    head += bytes(-len(head) % 4)
+    head += struct.pack("<III", cloud.dtype.itemsize, width * cloud.dtype.itemsize, cloud.nbytes)
+    tail = struct.pack("<B", bool(np.isfinite(xyz).all()))
+    tail += bytes(-(len(head) + cloud.nbytes + len(tail)) % 4)
+    return b"".join((b"\x00\x01\x00\x00", head, cloud.reshape(-1).view(np.uint8).data, tail))
 
 
 def _field(msg: PointCloud2, name: str) -> PointField | None:

@@ -10,8 +10,9 @@ import pytest
 from rclpy.serialization import deserialize_message, serialize_message
 from sensor_msgs.msg import PointCloud2, PointField
 
+from endo_io.bag.serde import serialize
 from endo_io.errors import PointCloudError
-from endo_io.pointcloud import pointcloud2_to_xyz, xyz_to_pointcloud2
+from endo_io.pointcloud import pointcloud2_to_xyz, xyz_to_pointcloud2, xyz_to_pointcloud2_cdr
 from endo_io.stamp import stamp_to_ns
 
 
@@ -183,3 +184,31 @@ def test_reader_rejects_inconsistent_layout():
 def test_writer_rejects_bad_arrays(points, rgb, match):
     with pytest.raises(PointCloudError, match=match):
         xyz_to_pointcloud2(points, 0, "f", rgb)
+
+
+@pytest.mark.parametrize("frame_id", ["", "w", "world", "endoscope_optical_frame"])
+@pytest.mark.parametrize("shape", [(7,), (3, 4), (0,)])
+@pytest.mark.parametrize("coloured", [True, False])
+def test_cdr_is_the_serialized_message_byte_for_byte(frame_id, shape, coloured):
+    xyz, rgb = random_cloud(shape) if shape != (0,) else (np.zeros((0, 3), np.float32),
+                                                          np.zeros((0, 3), np.uint8))
+    colours = rgb if coloured else None
+    stamp_ns = 1_700_000_123_456_789_012
+    direct = xyz_to_pointcloud2_cdr(xyz, stamp_ns, frame_id, colours)
+    assert direct == serialize(xyz_to_pointcloud2(xyz, stamp_ns, frame_id, colours))
+    assert len(direct) % 4 == 0
+    back = deserialize_message(direct, PointCloud2)
+    assert (back.header.frame_id, stamp_to_ns(back.header.stamp)) == (frame_id, stamp_ns)
+    got_xyz, got_rgb = pointcloud2_to_xyz(back)
+    assert bit_equal(got_xyz.reshape(-1, 3), xyz.reshape(-1, 3))
+    if coloured:
+        assert np.array_equal(got_rgb.reshape(-1, 3), rgb.reshape(-1, 3))
+
+
+def test_cdr_casts_float64_and_checks_like_the_message():
+    xyz = np.array([[0.1, 0.2, 0.3]])  # float64: cast as the message casts it
+    assert xyz_to_pointcloud2_cdr(xyz, 5, "f") == serialize(xyz_to_pointcloud2(xyz, 5, "f"))
+    with pytest.raises(PointCloudError, match="shape"):
+        xyz_to_pointcloud2_cdr(np.zeros((4, 2), np.float32), 0, "f")
+    with pytest.raises(PointCloudError, match="rgb"):
+        xyz_to_pointcloud2_cdr(xyz, 0, "f", np.zeros((1, 3), np.int32))

@@ -19,6 +19,7 @@ import numpy as np
 import pytest
 import rclpy
 from rclpy.parameter import Parameter
+from rclpy.serialization import deserialize_message
 
 from endo_calib.node import PhotometricCorrectionNode
 from endo_flow.node import FlowNode
@@ -41,7 +42,12 @@ pytestmark = pytest.mark.ros
 
 def _capture(publisher: Any) -> list[Any]:
     sent: list[Any] = []
-    publisher.publish = sent.append
+
+    def keep(msg: Any) -> None:
+        # the flow node publishes the CDR bytes it builds (endo_io.image.array_to_image_cdr)
+        sent.append(deserialize_message(msg, publisher.msg_type) if isinstance(msg, bytes) else msg)
+
+    publisher.publish = keep
     return sent
 
 
