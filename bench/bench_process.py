@@ -4,8 +4,8 @@ The phantom bag (bags/phantom_colon.mcap: 90 frames of 640×480 mono8 at
 30 fps, 3.0 s) is processed end to end by :func:`endo_process.runner.process_bag`
 (correction, SFS, tracker chain, flow, writing the output MCAP) with the
 calibrations endo-demo fits, for every combination of ``--solve-scale``
-{0.5, 1} and ``--jobs`` {1, 2} (and 3: two chunked workers, the scheme
-``--jobs 2`` used before), in two rounds (the order reversed in the second),
+{0.5, 1} and ``--jobs`` {1, 2} (2: two worker processes taking the frames
+in turn), in two rounds (the order reversed in the second),
 so that configurations are compared inside one run. Each run is its own
 process (``python bench_process.py --one ...``) so that its CPU time is
 its own: the main process's, and its workers' (reaped, so counted as
@@ -42,7 +42,7 @@ from machine import cpu_model
 
 ROOT = Path(__file__).resolve().parents[1]
 BAGS = ROOT / "bags"
-CONFIGS = [(0.5, 1), (0.5, 2), (0.5, 3), (1.0, 1), (1.0, 2)]
+CONFIGS = [(0.5, 1), (0.5, 2), (1.0, 1), (1.0, 2)]
 #: The output compression endo-process uses by default (its --compression).
 COMPRESSION = "lz4"
 

@@ -64,11 +64,12 @@ def build_parser() -> argparse.ArgumentParser:
                         help="camera YAML (camera_calibration format) instead of the topic")
     parser.add_argument("--ply", type=Path, help="write the fused map as PLY")
     parser.add_argument("--jobs", type=int, default=2,
-                        help="processes (default 2: correction + SFS in a second process, "
-                        "pipelined with flow and writing in this one; 1: all in this process; "
-                        "N > 2: N-1 SFS workers on chunks of --chunk-frames)")
-    parser.add_argument("--chunk-frames", type=int, default=32,
-                        help="consecutive frames per worker chunk with --jobs > 2")
+                        help="SFS chains (default 2: correction + SFS in 2 worker processes "
+                        "taking the frames in turn, flow and writing in this one; 1: all in "
+                        "this process)")
+    parser.add_argument("--chunk-frames", type=int, default=1,
+                        help="consecutive frames per worker turn with --jobs > 1 (default 1; "
+                        "above 1 each turn starts cold)")
     parser.add_argument("--compression", choices=("zstd", "lz4", "none"), default="lz4",
                         help="output chunk compression (default lz4: fast)")
     parser.add_argument("--report", type=Path,

@@ -9,9 +9,10 @@
    (:class:`endo_tracker_bridge.chain.CameraPoseChain`: gate, hand–eye,
    ``T_world_tracker``, clock offset), written as ``/endoscope/pose``;
 3. every image through the correction and SFS cores
-   (:class:`endo_process.parallel.ShadingPool`, one chain or chunks on
-   several processes), written as ``/endoscope/image_corrected``,
-   ``/endoscope/depth_relative`` and ``/endoscope/camera_info``;
+   (:class:`endo_process.parallel.ShadingPool`, one chain, or chains on
+   worker processes taking the frames in turn), written as
+   ``/endoscope/image_corrected``, ``/endoscope/depth_relative`` and
+   ``/endoscope/camera_info``;
 4. the camera pose at each image stamp from a
    :class:`endo_io.pose_buffer.PoseBuffer` fed with those poses in stamp
    order, as a live consumer sees them; frames without one are counted;
