@@ -110,6 +110,11 @@ class KeyframeWindow:
         return len(self._frames)
 
     @property
+    def version(self) -> int:
+        """A counter bumped on every change of the held keyframes (added, dropped, rescaled)."""
+        return self._version
+
+    @property
     def keyframes(self) -> tuple[Keyframe, ...]:
         """The keyframes held, oldest first."""
         return tuple(self._frames)
