@@ -151,18 +151,20 @@ def report(results: list[Result], args: argparse.Namespace) -> str:
         "",
         f"`bench/bench_graph.py{' --quick' if args.quick else ''}`, "
         f"{datetime.now(UTC):%Y-%m-%d %H:%M} UTC, {cpu_model()}, {os.cpu_count()} cores, "
-        f"Python {sys.version.split()[0]}. **The machine was shared with other helpers' test "
-        f"suites and benchmarks: 1-minute load average {min(loads):.1f}–{max(loads):.1f} "
-        f"(median {statistics.median(loads):.1f}) on {os.cpu_count()} cores**, so absolute "
-        "rates and latencies measure the load as much as the graph; compare configurations "
-        "as ratios inside one pass (each pass runs every configuration once, back to back)."
+        f"Python {sys.version.split()[0]}. 1-minute load average {min(loads):.1f}–"
+        f"{max(loads):.1f} (median {statistics.median(loads):.1f}) on {os.cpu_count()} cores "
+        "before and after each run, the graph's own six processes included (alone, they make "
+        "~2); above ~3 the machine was shared and absolute rates and latencies measure the "
+        "load as much as the graph. Compare configurations as ratios inside one pass (each "
+        "pass runs every configuration once, back to back)."
         + (f" Left out: {', '.join(args.exclude)} (bag:pass; that pass overlapped with a test "
            "graph on the same DDS domain, whose messages the listener counted too); a later "
            "pass replaces it." if getattr(args, "exclude", None) else ""),
         "",
         "Bags: `phantom_colon` (the committed 3 s phantom, 90 frames) and the long render "
-        "(`endo-sim render colon --seed 2 --duration 60 --depth-every 30`, 1800 frames; not "
-        "tuned on), 640×480 mono8 at 30 fps, played at 1× (30 fps) unless said. "
+        f"(`endo-sim render colon --seed 2 --duration {args.long_seconds:g} --depth-every 30`, "
+        f"{30 * args.long_seconds:.0f} frames; not tuned on), 640×480 mono8 at 30 fps, played "
+        "at 1× (30 fps) unless said. "
         "Each run is `endo_bringup.graph.run_live_graph` (the demo's runner and table: "
         "replay → correction → sfs → tracker bridge → flow → recorder, separate processes, "
         "loopback DDS with the large-frame shared-memory profile) with the bag's true "
@@ -242,7 +244,9 @@ def sweep_report(sweep: list[Result]) -> str:
 
 
 def ratio_lines(results: list[Result]) -> list[str]:
-    """Each optimisation off against all on, same bag, scale and pass."""
+    """Each optimisation off against all on, same bag, scale and pass (none: no lines)."""
+    if all(r.configuration.name == "all on" for r in results):
+        return []
     lines = ["Each optimisation off against all on (same bag, scale and pass; >1: off is "
              "worse for latency, <1: off gives fewer depth frames):", ""]
     lines += ["| bag | configuration | scale | pass | depth frames off/on | "
@@ -278,17 +282,18 @@ def cost_lines(results: list[Result]) -> list[str]:
              "recorder, bridge and replay: per frame played). CPU time is less sensitive to the "
              "load than wall time, but not immune: on a starved machine it grows with cache and "
              "memory contention and with sfs's two threads waiting for each other, and a "
-             "stage's work on frames that gave no output (flow deserializes every corrected "
-             "image, ~1 ms each; frames it processed without a pose) is charged to those it "
-             "let out. So Σ ms per frame × 30 / 1000 is an upper bound of the cores 30 Hz "
-             "needs:", "",
-             "| bag | scale | pass | " + " | ".join(names) + " | cores for 30 Hz (bound) |",
-             "|---|---|---|" + "---|" * (len(names) + 1)]
+             "stage's work on frames that gave no output (flow takes every corrected image and "
+             "pose; frames it processed without a pose) is charged to those it let out. So Σ "
+             "ms per frame is an upper bound of the CPU a frame costs, against the 66 CPU-ms "
+             "of 2 cores × 33 ms, and Σ × 30 / 1000 of the cores 30 Hz needs:", "",
+             "| bag | scale | pass | " + " | ".join(names) + " | Σ ms per frame | "
+             "cores for 30 Hz (bound) |",
+             "|---|---|---|" + "---|" * (len(names) + 2)]
     for r in runs:
         costs = [r.figures.cpu_ms_per_frame(n) for n in names]
         lines.append(f"| {r.bag} | {r.configuration.solve_scale:g} | {r.run} | "
                      + " | ".join(f"{c:.1f}" for c in costs)
-                     + f" | {sum(costs) * 30 / 1000:.2f} |")
+                     + f" | {sum(costs):.0f} | {sum(costs) * 30 / 1000:.2f} |")
     return lines
 
 
