@@ -8,13 +8,10 @@ the scale is usable), ``/endoscope/points`` (the frame's world points,
 PointCloud2 in ``world``, grey as rgb), ``/endoscope/scale`` and, at the end,
 ``/endoscope/map`` (the fused voxel map's last state).
 
-The messages are the ``flow`` node's (``endo_flow.node``): the scale is
-``geometry_msgs/Vector3Stamped`` with x = s (metres per unit of
-depth_relative, NaN before the first observation), y = the standard
-deviation of ln s (inf while unknown), z = the filter state
-(``endo_flow.scale.ScaleState`` value), the image's header; the clouds carry
-the grey level as rgb; the map holds the voxels fused from at least
-``map_min_count`` points.
+The messages are the ``flow`` node's, built by the same functions
+(:mod:`endo_flow.messages`: ``scale_message``, ``grey_cloud`` and its CDR
+bytes built directly, ``grey_cloud_cdr``); the map holds the voxels fused
+from at least ``map_min_count`` points.
 """
 
 from __future__ import annotations
@@ -22,14 +19,11 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
-from geometry_msgs.msg import Vector3Stamped
 from sensor_msgs.msg import PointCloud2
 
+from endo_flow.messages import grey_cloud
 from endo_flow.node import pipeline_options
 from endo_flow.pipeline import FlowFrame, FlowOptions, FlowOutput, FlowPipeline
-from endo_flow.scale import ScaleEstimate
-from endo_io.pointcloud import xyz_to_pointcloud2
-from endo_io.stamp import ns_to_stamp
 from endo_process.errors import ParameterFileError
 from endo_process.shading import ShadedFrame
 
@@ -44,25 +38,6 @@ def flow_options(values: dict[str, Any]) -> FlowOptions:
         return pipeline_options(values)
     except (TypeError, ValueError) as error:
         raise ParameterFileError(f"flow: {error}") from None
-
-
-def scale_message(estimate: ScaleEstimate, stamp_ns: int, frame_id: str) -> Vector3Stamped:
-    """The scale estimate as the scale topic's message (see the module docstring)."""
-    msg = Vector3Stamped()
-    msg.header.stamp = ns_to_stamp(stamp_ns)
-    msg.header.frame_id = frame_id
-    msg.vector.x = float(estimate.value) if np.isfinite(estimate.value) else float("nan")
-    msg.vector.y = float(estimate.log_std) if np.isfinite(estimate.log_std) else float("inf")
-    msg.vector.z = float(int(estimate.state))
-    return msg
-
-
-def grey_cloud(points: np.ndarray, grey: np.ndarray, stamp_ns: int, frame_id: str) -> PointCloud2:
-    """(N, 3) world points with (N,) grey levels 0–255 as a PointCloud2 (xyz + rgb)."""
-    level = np.clip(np.rint(np.asarray(grey, np.float64)), 0, 255).astype(np.uint8)
-    return xyz_to_pointcloud2(
-        np.asarray(points, np.float32), stamp_ns, frame_id, np.repeat(level[:, None], 3, axis=1)
-    )
 
 
 class FlowStage:

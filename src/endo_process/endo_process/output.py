@@ -43,6 +43,8 @@ from endo_io.tf import StampedTransform, TransformError, add_tf_topic, serialize
 IMAGE_TYPE = "sensor_msgs/msg/Image"
 #: The ROS type of the pose topics.
 POSE_TYPE = "geometry_msgs/msg/PoseStamped"
+#: The ROS type of the point cloud topics.
+POINTS_TYPE = "sensor_msgs/msg/PointCloud2"
 #: Flush the writer (close the current chunk) every this many frames.
 DEFAULT_FLUSH_EVERY = 30
 #: Writer calls queued for the writer thread at most (a few frames' outputs).
@@ -212,6 +214,14 @@ class OutputBag:
             self._writer.call(self._bag.add_topic, topic, msgtype_of(message))
         self.release(log_time_ns)
         self._writer.call(self._bag.write, topic, serialize(message), log_time_ns)
+        self.counts[topic] += 1
+
+    def write_cdr(self, topic: str, msgtype: str, data: bytes, log_time_ns: int) -> None:
+        """Write one frame output given as CDR bytes of ``msgtype``, as :meth:`write` does."""
+        if topic not in self.counts:
+            self._writer.call(self._bag.add_topic, topic, msgtype)
+        self.release(log_time_ns)
+        self._writer.call(self._bag.write, topic, data, log_time_ns)
         self.counts[topic] += 1
 
     def write_image(

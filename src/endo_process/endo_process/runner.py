@@ -44,6 +44,7 @@ from sensor_msgs.msg import CameraInfo, Image
 
 from endo_calib.calibration import PhotometricCalibration
 from endo_calib.errors import CalibrationError
+from endo_flow.messages import grey_cloud_cdr, scale_message
 from endo_flow.warm_up import warm_up_pipeline
 from endo_io import topics
 from endo_io.bag import BagMessage, BagReader
@@ -55,7 +56,7 @@ from endo_io.progress import Progress
 from endo_io.stamp import NS_PER_S, ns_to_stamp, stamp_to_ns
 from endo_io.tf import StampedTransform, static_transforms
 from endo_process.errors import ProcessInputError
-from endo_process.flow_stage import FlowStage, flow_options, grey_cloud, scale_message
+from endo_process.flow_stage import FlowStage, flow_options
 from endo_process.inputs import (
     CameraInfoPairing,
     InputTopics,
@@ -67,7 +68,7 @@ from endo_process.inputs import (
     open_recording,
     recording_streams,
 )
-from endo_process.output import DEFAULT_FLUSH_EVERY, POSE_TYPE, OutputBag
+from endo_process.output import DEFAULT_FLUSH_EVERY, POINTS_TYPE, POSE_TYPE, OutputBag
 from endo_process.parallel import DEFAULT_CHUNK_FRAMES, ShadingPool, StageConfig
 from endo_process.settings import ProcessSettings, load_settings
 from endo_process.shading import RawFrame, ShadedFrame, ShadingStage
@@ -380,8 +381,8 @@ def _flow_frame(
         output.write_image(topics.DEPTH, result.depth, "32FC1", stamp, shaded.frame_id)
         report.frames_metric += 1
     if len(result.points):
-        output.write(topics.POINTS, grey_cloud(result.points, result.intensity, stamp,
-                                               world_frame), stamp)  # fmt: skip
+        output.write_cdr(topics.POINTS, POINTS_TYPE, grey_cloud_cdr(
+            result.points, result.intensity, stamp, world_frame), stamp)  # fmt: skip
     output.write(topics.SCALE, scale_message(result.scale, stamp, shaded.frame_id), stamp)
     report.stage_seconds["flow_write"] += time.perf_counter() - now
 
