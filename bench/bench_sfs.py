@@ -702,8 +702,8 @@ def breakdown(bag: str, calibration: str, frames: int, threads: int, downsample:
         options = {}
         for name, module in chains.items():
             extra: dict[str, int] = {}
-            if "highlight_downsample" in module.SfsOptions.__dataclass_fields__:
-                extra["highlight_downsample"] = downsample
+            if downsample and "highlight_downsample" in module.SfsOptions.__dataclass_fields__:
+                extra["highlight_downsample"] = downsample  # 0: each tree's default
             options[name] = module.SfsOptions(roughness=0.3, solve_scale=scale,
                                               mask_highlights=True, threads=threads, **extra)
         previous = {name: module.solve(sequence[0][0], camera, options[name], mask=mask)
@@ -783,8 +783,9 @@ def main() -> None:
     parser.add_argument("--breakdown", action="store_true",
                         help="only time the stages of a warm phantom frame at solve_scale 1 and "
                         "0.5 (--phantom-bag, --calibration, --threads, --frames)")
-    parser.add_argument("--highlight-downsample", type=int, default=1,
-                        help="--breakdown: SfsOptions.highlight_downsample")
+    parser.add_argument("--highlight-downsample", type=int, default=0,
+                        help="--breakdown: SfsOptions.highlight_downsample (0: each tree's "
+                        "default)")
     parser.add_argument("--reference", metavar="TREE",
                         help="--breakdown: also solve with the endo_sfs of this older checkout, "
                         "frame by frame in one process (ratios)")

@@ -69,6 +69,8 @@ and the limits.
 
 from __future__ import annotations
 
+import functools
+
 import cv2
 import numpy as np
 from numba import njit, prange
@@ -120,15 +122,110 @@ def _disc(radius: int) -> np.ndarray:
     return cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * radius + 1, 2 * radius + 1))
 
 
+#: From this radius on the baseline's erosions and dilations run in numba
+#: (:func:`_disc_minimum`); OpenCV is faster below.
+_NUMBA_DISC_RADIUS = 8
+
+
+@functools.lru_cache(maxsize=32)
+def _disc_half_widths(radius: int) -> np.ndarray:
+    """(2·radius + 1,) int64: row k of :func:`_disc` spans columns radius ± half_widths[k].
+
+    OpenCV's ellipse is symmetric and each of its rows one run, which is what
+    lets the disc filters work row by row.
+    """
+    widths = []
+    for row in _disc(radius):
+        columns = np.flatnonzero(row)
+        left, right = int(columns[0]), int(columns[-1])
+        if right - left + 1 != columns.size or left + right != 2 * radius:
+            raise AssertionError(f"the disc of radius {radius} is not symmetric runs")
+        widths.append(radius - left)
+    return np.array(widths, dtype=np.int64)
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _disc_minimum(values: np.ndarray, half_widths: np.ndarray) -> np.ndarray:
+    """``cv2.erode(values, _disc(radius))`` on float32, the same values, ~2× faster for r ≥ 8.
+
+    values: (H, W) float32; half_widths: :func:`_disc_half_widths`. Cells
+    beyond the grid take no part (OpenCV's default border for erosion). The
+    minimum over a row's run of width 2w + 1 is the smaller of two
+    overlapping power-of-two windows of a sparse table (the row padded with
+    +∞), one per distinct w; the disc's minimum is the smallest of those
+    over its 2·radius + 1 rows. Only comparisons: no rounding.
+    """
+    rows, columns = values.shape
+    radius = (half_widths.shape[0] - 1) // 2
+    widest = 0
+    for w in half_widths:
+        widest = max(widest, w)
+    padded = columns + 2 * widest
+    levels = 1
+    while (1 << levels) <= 2 * widest + 1:
+        levels += 1
+    infinity = np.float32(np.inf)
+    table = np.full((levels, rows, padded), infinity, dtype=np.float32)
+    for y in range(rows):
+        for x in range(columns):
+            table[0, y, x + widest] = values[y, x]
+    for k in range(1, levels):
+        step = 1 << (k - 1)
+        for y in range(rows):
+            for i in range(padded - step):
+                a = table[k - 1, y, i]
+                b = table[k - 1, y, i + step]
+                table[k, y, i] = a if a < b else b
+    runs = np.empty((widest + 1, rows, columns), dtype=np.float32)
+    done = np.zeros(widest + 1, dtype=np.bool_)
+    for w in half_widths:
+        if done[w]:
+            continue
+        done[w] = True
+        level = 0
+        while (1 << (level + 1)) <= 2 * w + 1:
+            level += 1
+        second = w - (1 << level) + 1  # the right window's start, relative to x
+        for y in range(rows):
+            for x in range(columns):
+                a = table[level, y, x + widest - w]
+                b = table[level, y, x + widest + second]
+                runs[w, y, x] = a if a < b else b
+    out = np.full((rows, columns), infinity, dtype=np.float32)
+    for y in range(rows):
+        for d in range(max(-radius, -y), min(radius, rows - 1 - y) + 1):
+            w = half_widths[d + radius]
+            for x in range(columns):
+                a = out[y, x]
+                b = runs[w, y + d, x]
+                out[y, x] = a if a < b else b
+    return out
+
+
+def _disc_fraction(part: np.ndarray, radius: int) -> np.ndarray:
+    """(H, W) float32 share of each cell's disc of ``radius`` inside ``part`` ((H, W) bool)."""
+    disc = _disc(radius).astype(np.float32)
+    return cv2.filter2D(part.astype(np.float32), -1, disc / disc.sum(),
+                        borderType=cv2.BORDER_CONSTANT)  # fmt: skip
+
+
 def _erode(values: np.ndarray, part: np.ndarray, radius: int) -> np.ndarray:
     """Minimum over a disc of the cells in ``part`` (others neither count nor change)."""
-    out = cv2.erode(np.where(part, values, _NO_PART).astype(np.float32), _disc(radius))
+    outside = np.where(part, values, _NO_PART).astype(np.float32)
+    if radius >= _NUMBA_DISC_RADIUS:
+        out = _disc_minimum(outside, _disc_half_widths(radius))
+    else:
+        out = cv2.erode(outside, _disc(radius))
     return np.where(part, out, values).astype(np.float32)
 
 
 def _dilate(values: np.ndarray, part: np.ndarray, radius: int) -> np.ndarray:
     """Maximum over a disc of the cells in ``part`` (others neither count nor change)."""
-    out = cv2.dilate(np.where(part, values, -_NO_PART).astype(np.float32), _disc(radius))
+    if radius >= _NUMBA_DISC_RADIUS:  # the maximum is minus the minimum of the negated values
+        negated = np.where(part, -values, _NO_PART).astype(np.float32)
+        out = -_disc_minimum(negated, _disc_half_widths(radius))
+    else:
+        out = cv2.dilate(np.where(part, values, -_NO_PART).astype(np.float32), _disc(radius))
     return np.where(part, out, values).astype(np.float32)
 
 
@@ -183,10 +280,7 @@ def diffuse_excess(
     baseline = cv2.resize(baseline, (width, height), interpolation=cv2.INTER_LINEAR)
     # Where the opening's disc leaves the data, the baseline has too little
     # support to tell a highlight from a bright band along the edge.
-    disc = _disc(opening).astype(np.float32)
-    support = cv2.filter2D(
-        part.astype(np.float32), -1, disc / disc.sum(), borderType=cv2.BORDER_CONSTANT
-    )
+    support = _disc_fraction(part, opening)
     support = cv2.resize(support, (width, height), interpolation=cv2.INTER_LINEAR)
     # The fine image is the normalised blur of ln I over the data.
     blurred_log = cv2.GaussianBlur(weighted_log, (0, 0), fine_sigma,
@@ -228,9 +322,7 @@ def _broad_excess(
     opening = max(1, round(opening_radius * rows))
     closed = _erode(_dilate(logs, takes_part, closing), takes_part, closing)
     baseline = _dilate(_erode(closed, takes_part, opening), takes_part, opening)
-    disc = _disc(opening).astype(np.float32)
-    support = cv2.filter2D(takes_part.astype(np.float32), -1, disc / disc.sum(),
-                           borderType=cv2.BORDER_CONSTANT)  # fmt: skip
+    support = _disc_fraction(takes_part, opening)
     with_data = cv2.resize(has_data.astype(np.float32), size, interpolation=cv2.INTER_AREA) > 0.5
     return np.where(with_data & (support >= min_support), logs - baseline, 0.0).astype(
         np.float32)
@@ -289,8 +381,11 @@ def block_means(
     (the last row and column of blocks may be partial) is in the small
     region when at least half of its pixels are in ``region``. Its value is
     NaN (saturated) when any of its region pixels is NaN or saturated,
-    else the mean of its region pixels that are > 0 (0 when there are none:
-    dark, not saturated). Returns ((h, w) float32, (h, w) bool) with
+    else the geometric mean of its region pixels that are > 0 (0 when there
+    are none: dark, not saturated): the detection works on ln I, and the
+    mean of ln I is what the full image's baseline grid averages too (the
+    arithmetic mean moved the phantom's AbsRel at solve_scale 0.5 from
+    0.0797 to 0.0802, the geometric one leaves it there). Returns ((h, w) float32, (h, w) bool) with
     h = ceil(H / factor), w = ceil(W / factor).
     """
     height, width = image.shape
@@ -315,13 +410,13 @@ def block_means(
                     if not (value < saturation):  # NaN or saturated
                         saturated = True
                     elif value > 0.0:
-                        total += value
+                        total += np.log(np.float32(value))  # float32 as the full image's ln I
                         count += 1
             inside[r, c] = 2 * in_region >= pixels
             if saturated:
                 small[r, c] = np.nan
             elif count > 0:
-                small[r, c] = total / count
+                small[r, c] = np.exp(total / count)
     return small, inside
 
 
@@ -461,8 +556,9 @@ def detect_highlights(
         if mask is None:
             # NaN holes enclosed by data are saturated: the same as a mask around them.
             region = filled(np.isfinite(image))
+        pixels = image if image.dtype in (np.float32, np.float64) else image.astype(np.float64)
         small, small_region = block_means(
-            np.ascontiguousarray(image, dtype=np.float64), np.ascontiguousarray(region),
+            np.ascontiguousarray(pixels), np.ascontiguousarray(region),
             np.inf if saturation is None else float(saturation), downsample,
         )
         found = _detect(
@@ -470,15 +566,18 @@ def detect_highlights(
             closing_radius, min_support, FINE_SIGMA / downsample,
         )
         height, width = image.shape
-        full = np.repeat(np.repeat(found, downsample, axis=0), downsample, axis=1)
-        return grown_regions(full[:height, :width] & region, region, shoulder_growth,
+        # each pixel its block's answer (nearest neighbour at an integer factor)
+        full = cv2.resize(found.view(np.uint8), (found.shape[1] * downsample,
+                          found.shape[0] * downsample), interpolation=cv2.INTER_NEAREST)
+        return grown_regions(full[:height, :width].view(bool) & region, region, shoulder_growth,
                              opening_radius)
+    enclosed = None
+    if mask is None:
+        region = enclosed = filled(np.isfinite(image))  # the data and the NaN holes it encloses
     found = _detect(
         image, mask, saturation, core_excess, shoulder_excess, opening_radius, closing_radius,
-        min_support, FINE_SIGMA,
+        min_support, FINE_SIGMA, enclosed,
     )
-    if shoulder_growth > 1.0 and mask is None and found.any():
-        region = filled(np.isfinite(image))  # the data and the NaN holes it encloses
     return grown_regions(found, region, shoulder_growth, opening_radius)
 
 
@@ -492,15 +591,20 @@ def _detect(
     closing_radius: float,
     min_support: float,
     fine_sigma: float,
+    enclosed: np.ndarray | None = None,
 ) -> np.ndarray:
-    """:func:`detect_highlights` on checked arguments, at the image's own resolution."""
+    """:func:`detect_highlights` on checked arguments, at the image's own resolution.
+
+    enclosed: without a mask, ``filled(np.isfinite(image))`` if the caller
+    has it already (computed here otherwise).
+    """
     region = np.ones(image.shape, dtype=bool) if mask is None else np.asarray(mask, dtype=bool)
     region = np.ascontiguousarray(region)
     saturated, data = _classify(
         np.ascontiguousarray(image), region, np.inf if saturation is None else float(saturation)
     )
     if mask is None:
-        saturated &= filled(np.isfinite(image))
+        saturated &= filled(np.isfinite(image)) if enclosed is None else enclosed
     if saturated.any():
         margin = max(1, round(image.shape[0] / 240))
         saturated = cv2.dilate(saturated.astype(np.uint8), _disc(margin)).astype(bool) & region

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from endo_sfs import SfsOptions, reconstruct
-from endo_sfs.errors import SfsInputError
+from endo_sfs.errors import InvalidOptionError, SfsInputError
 from endo_sfs.evaluation import depth_error
 from endo_sfs.highlights import block_means, detect_highlights
 from endo_sfs.synthetic import (
@@ -153,12 +153,15 @@ def test_detection_on_the_halved_image_finds_the_same_lobes(use_mask):
 
 
 def test_block_means_average_the_data_and_keep_saturation():
-    image = np.array([[1.0, 3.0, 5.0], [np.nan, 7.0, 0.0], [2.0, 2.0, 9.0]])
+    image = np.array([[1.0, 3.0, 5.0], [np.nan, 7.0, 0.0], [2.0, 8.0, 11.0]])
     region = np.array([[True, True, True], [True, True, True], [True, True, False]])
-    small, inside = block_means(image, region, 8.0, 2)
+    small, inside = block_means(image, region, 10.0, 2)
     # Block (0, 0) holds a NaN (saturated); (0, 1) averages 5 (0 is dark, not data);
-    # (1, 0) averages 2 and 2; (1, 1) is out of the region (its one pixel is not in it).
-    assert np.isnan(small[0, 0]) and small[0, 1] == 5.0 and small[1, 0] == 2.0
+    # (1, 0) is the geometric mean of 2 and 8 (the detection works on ln I);
+    # (1, 1) is out of the region (its one pixel, saturated, is not in it).
+    assert np.isnan(small[0, 0])
+    assert small[0, 1] == pytest.approx(5.0, rel=1e-6)
+    assert small[1, 0] == pytest.approx(4.0, rel=1e-6)
     np.testing.assert_array_equal(inside, [[True, True], [True, False]])
     small, _ = block_means(np.full((2, 2), 9.0), np.ones((2, 2), bool), 8.0, 2)
     assert np.isnan(small[0, 0])  # at or above the saturation level
@@ -174,3 +177,28 @@ def test_holes_are_filled_as_scipy_fills_them():
         height, width = rng.integers(1, 40, 2)
         inside = rng.random((height, width)) < rng.random()
         np.testing.assert_array_equal(filled(inside), ndimage.binary_fill_holes(inside))
+
+
+@pytest.mark.parametrize("radius", [8, 18])
+def test_disc_minimum_equals_opencvs_erosion(radius):
+    import cv2
+
+    from endo_sfs.highlights import _disc, _disc_half_widths, _disc_minimum
+
+    rng = np.random.default_rng(radius)
+    for shape in ((120, 160), (7, 30), (45, 3)):
+        values = rng.standard_normal(shape).astype(np.float32)
+        values[rng.random(shape) < 0.2] = 1e30  # cells that take no part
+        widths = _disc_half_widths(radius)
+        np.testing.assert_array_equal(_disc_minimum(values, widths),
+                                      cv2.erode(values, _disc(radius)))
+
+
+def test_detection_follows_the_solve_grid_unless_set():
+    assert SfsOptions().detection_downsample == 1
+    assert SfsOptions(solve_scale=0.5).detection_downsample == 2
+    assert SfsOptions(solve_scale=0.25).detection_downsample == 2
+    assert SfsOptions(solve_scale=0.5, highlight_downsample=1).detection_downsample == 1
+    assert SfsOptions(highlight_downsample=3).detection_downsample == 3
+    with pytest.raises(InvalidOptionError, match="highlight_downsample"):
+        SfsOptions(highlight_downsample=-1)
