@@ -395,6 +395,9 @@ def block_means(
     inside = np.zeros((rows, columns), dtype=np.bool_)
     for r in prange(rows):
         for c in range(columns):
+            # ln of the product, one logarithm per block (not per pixel); the
+            # product is folded into the sum before it could leave float64's range
+            product = 1.0
             total = 0.0
             count = 0
             in_region = 0
@@ -410,13 +413,52 @@ def block_means(
                     if not (value < saturation):  # NaN or saturated
                         saturated = True
                     elif value > 0.0:
-                        total += np.log(np.float32(value))  # float32 as the full image's ln I
+                        product *= value
                         count += 1
+                        if not 1e-100 < product < 1e100:
+                            total += np.log(product)
+                            product = 1.0
             inside[r, c] = 2 * in_region >= pixels
             if saturated:
                 small[r, c] = np.nan
             elif count > 0:
-                small[r, c] = np.exp(total / count)
+                small[r, c] = np.exp((total + np.log(product)) / count)
+    return small, inside
+
+
+@njit(cache=True, nogil=True, error_model="numpy", parallel=True)
+def _halved(
+    image: np.ndarray, region: np.ndarray, saturation: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`block_means` for factor 2 on a float32 image of even size, without branches.
+
+    A product of four float32 values cannot leave float64's range, so each
+    block takes one logarithm and no range check.
+    """
+    rows, columns = image.shape[0] // 2, image.shape[1] // 2
+    small = np.zeros((rows, columns), dtype=np.float32)
+    inside = np.zeros((rows, columns), dtype=np.bool_)
+    for r in prange(rows):
+        for c in range(columns):
+            product = 1.0
+            count = 0
+            in_region = 0
+            saturated = 0
+            for y in range(2 * r, 2 * r + 2):
+                for x in range(2 * c, 2 * c + 2):
+                    value = np.float64(image[y, x])
+                    taken = bool(region[y, x])
+                    below = value < saturation
+                    good = taken and below and value > 0.0
+                    in_region += 1 if taken else 0
+                    saturated += 1 if taken and not below else 0  # NaN or saturated
+                    count += 1 if good else 0
+                    product *= value if good else 1.0
+            inside[r, c] = in_region >= 2
+            if saturated:
+                small[r, c] = np.nan
+            elif count > 0:
+                small[r, c] = np.exp(np.log(product) / count)
     return small, inside
 
 
@@ -557,10 +599,14 @@ def detect_highlights(
             # NaN holes enclosed by data are saturated: the same as a mask around them.
             region = filled(np.isfinite(image))
         pixels = image if image.dtype in (np.float32, np.float64) else image.astype(np.float64)
-        small, small_region = block_means(
-            np.ascontiguousarray(pixels), np.ascontiguousarray(region),
-            np.inf if saturation is None else float(saturation), downsample,
-        )
+        pixels, region = np.ascontiguousarray(pixels), np.ascontiguousarray(region)
+        level = np.inf if saturation is None else float(saturation)
+        if downsample == 2 and pixels.dtype == np.float32 and not (
+            pixels.shape[0] % 2 or pixels.shape[1] % 2
+        ):
+            small, small_region = _halved(pixels, region, level)
+        else:
+            small, small_region = block_means(pixels, region, level, downsample)
         found = _detect(
             small, small_region, None, core_excess, shoulder_excess, opening_radius,
             closing_radius, min_support, FINE_SIGMA / downsample,

@@ -202,3 +202,18 @@ def test_detection_follows_the_solve_grid_unless_set():
     assert SfsOptions(highlight_downsample=3).detection_downsample == 3
     with pytest.raises(InvalidOptionError, match="highlight_downsample"):
         SfsOptions(highlight_downsample=-1)
+
+
+def test_halved_blocks_equal_block_means():
+    from endo_sfs.highlights import _halved
+
+    rng = np.random.default_rng(5)
+    image = np.exp(rng.normal(0.0, 2.0, (40, 60))).astype(np.float32)
+    image[rng.random(image.shape) < 0.05] = np.nan
+    image[rng.random(image.shape) < 0.05] = 0.0
+    image[rng.random(image.shape) < 0.05] = 50.0
+    region = rng.random(image.shape) < 0.8
+    small, inside = _halved(image, region, 40.0)
+    expected, expected_inside = block_means(image, region, 40.0, 2)
+    np.testing.assert_array_equal(inside, expected_inside)
+    np.testing.assert_allclose(small, expected, rtol=1e-6)  # NaN where saturated in both
