@@ -10,8 +10,9 @@ so that configurations are compared inside one run. Each run is its own
 process (``python bench_process.py --one ...``) so that its CPU time is
 its own: the main process's, and its workers' (reaped, so counted as
 children). The wall figures are the frame loop's (setup and scoring not
-counted; the workers' start-up is, since they load their kernels on the
-first frame).
+counted; the wait for the workers' start-up is, and is also given apart:
+"after the first frame" is the steady state, the frames after the first
+one was written, ``ProcessReport.steady_real_time_factor``).
 
 A second table times what endo-process itself does to write a frame: three
 640×480 32FC1 images (corrected, relative depth, metric depth) through
@@ -79,6 +80,8 @@ def one_run(args: argparse.Namespace) -> None:
     frames = report.frames_in
     print(json.dumps({
         "fps": report.frames_per_second, "real_time": report.real_time_factor,
+        "steady_real_time": getattr(report, "steady_real_time_factor", 0.0),
+        "first_frame_s": getattr(report, "first_frame_seconds", 0.0),
         "frames": frames, "main_ms": main_cpu / frames * 1e3,
         "workers_ms": workers_cpu / frames * 1e3,
         "setup_s": report.setup_seconds, "loop_s": report.seconds,
@@ -207,10 +210,14 @@ def main() -> None:
             figures = json.loads(done.stdout.strip().splitlines()[-1])
             figures.setdefault("loop_s", figures["frames"] / figures["fps"])  # an older tree
             figures.setdefault("stages_ms", {})
+            figures.setdefault("steady_real_time", 0.0)
+            figures.setdefault("first_frame_s", 0.0)
             figures.setdefault("shading_ms", {})
             results[(tree, scale, jobs)].append(figures)
             print(f"round {round_index + 1} {tree} solve_scale {scale:g} jobs {jobs}: "
-                  f"{figures['fps']:.1f} frames/s, {figures['real_time']:.2f}x real time, CPU "
+                  f"{figures['fps']:.1f} frames/s, {figures['real_time']:.2f}x real time "
+                  f"({figures['steady_real_time']:.2f}x after the first frame, which took "
+                  f"{figures['first_frame_s']:.2f} s), CPU "
                   f"main {figures['main_ms']:.0f} + workers {figures['workers_ms']:.0f} ms per "
                   f"frame, median solve {figures['solve_ms']:.1f} ms, load {load()}",
                   flush=True)  # fmt: skip
@@ -225,8 +232,9 @@ def main() -> None:
     print()
     print(f"| {label}solve_scale | jobs | frames/s (run 1, run 2) | × real time (run 1, run 2) | "
           "× real time with the set-up (run 1, run 2) | "
+          "× real time after the first frame (run 1, run 2) | first frame s | "
           "CPU ms per frame: main + workers = total (run 1; run 2) | median solve ms |")
-    print("|---" * (7 + bool(label)) + "|")
+    print("|---" * (9 + bool(label)) + "|")
     for tree, scale, jobs in configs:
         rows = results[(tree, scale, jobs)]
         fps = ", ".join(f"{r['fps']:.1f}" for r in rows)
@@ -239,8 +247,11 @@ def main() -> None:
             for r in rows
         )
         solve = ", ".join(f"{r['solve_ms']:.0f}" for r in rows)
+        steady = ", ".join(f"{r['steady_real_time']:.2f}" for r in rows)
+        first_s = ", ".join(f"{r['first_frame_s']:.2f}" for r in rows)
         first = f"{tree} | " if label else ""
-        print(f"| {first}{scale:g} | {jobs} | {fps} | {rt} | {with_setup} | {cpu} | {solve} |")
+        print(f"| {first}{scale:g} | {jobs} | {fps} | {rt} | {with_setup} | {steady} | "
+              f"{first_s} | {cpu} | {solve} |")
     print()
     print("Where the frame loop's wall time goes, ms per frame (run 1 / run 2): the main "
           "process's steps (endo_process.runner.LOOP_STAGES; 'shading' is the wait for the "

@@ -112,6 +112,10 @@ class ProcessReport:
     this process's CPU seconds (all its threads) in the frame loop;
     ``worker_cpu_seconds``: the worker processes' CPU seconds from their
     first frame to their last (``ShadedFrame.worker_cpu_s``), start-up aside.
+    ``first_frame_seconds``: wall seconds from the loop's start until the
+    first frame was written (with workers, mostly the wait for their
+    start-up: loading kernels, warming up); the rest of the loop is the
+    steady state (:attr:`steady_real_time_factor`).
     """
 
     frames_in: int = 0
@@ -133,6 +137,7 @@ class ProcessReport:
     seconds: float = 0.0
     setup_seconds: float = 0.0
     loop_cpu_seconds: float = 0.0
+    first_frame_seconds: float = 0.0
     worker_cpu_seconds: float = 0.0
     bag_seconds: float = 0.0
     solve_ms: list[float] = field(default_factory=list)
@@ -151,6 +156,14 @@ class ProcessReport:
     def real_time_factor(self) -> float:
         """Recording seconds processed per wall second (>1: faster than real time)."""
         return self.bag_seconds / self.seconds if self.seconds > 0 else 0.0
+
+    @property
+    def steady_real_time_factor(self) -> float:
+        """:attr:`real_time_factor` of the frames after the first (the pipeline filled)."""
+        steady = self.seconds - self.first_frame_seconds
+        if self.frames_in < 2 or steady <= 0:
+            return 0.0
+        return self.bag_seconds * (self.frames_in - 1) / self.frames_in / steady
 
     @property
     def median_solve_ms(self) -> float:
@@ -536,7 +549,9 @@ def process_bag(options: ProcessOptions, stop: threading.Event | None = None) ->
                 output.hold_tf(topics.TF, [edge], shaded.stamp_ns)
             clock["write"] += time.perf_counter() - step
             _flow_frame(output, flow, shaded, T_world_camera, world_frame, report)
-            first_stamp = shaded.stamp_ns if first_stamp is None else first_stamp
+            if first_stamp is None:
+                first_stamp = shaded.stamp_ns
+                report.first_frame_seconds = time.perf_counter() - loop_start
             last_stamp = shaded.stamp_ns
             if count % options.flush_every == 0:
                 step = time.perf_counter()

@@ -102,6 +102,8 @@ def test_every_frame_is_processed_and_the_truth_copied(full_run: tuple[ProcessRe
     assert set(report.stage_seconds) <= set(LOOP_STAGES)
     assert all(report.stage_seconds[name] > 0.0 for name in ("read", "shading", "write", "flow"))
     assert sum(report.stage_seconds.values()) <= report.seconds
+    assert 0.0 < report.first_frame_seconds < report.seconds
+    assert report.steady_real_time_factor > 0.0
     assert report.shading_seconds["correct"] > 0.0
     assert report.shading_seconds["sfs.sweeps"] < report.shading_seconds["solve"]
 
