@@ -18,6 +18,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
+from endo_flow.keyframes import TrackViews
 from endo_flow.pipeline import FlowFrame, FlowOptions
 from endo_flow.tracking import TrackingOptions
 from endo_io.camera import CameraModel
@@ -32,6 +33,38 @@ S_TRUE = 0.04
 #: hand–eye error of the issue: 1 mm, 0.3°
 HANDEYE_ERROR = rigid_transform(np.radians(0.3) * np.array([0.6, 0.0, 0.8]),
                                 1e-3 * np.array([0.0, 0.6, 0.8]))
+
+
+def synthetic_track_views(
+    points: np.ndarray, centres: np.ndarray, *, angle_noise: float = 0.0, seed: int = 0,
+    scale: float | None = None,
+) -> TrackViews:
+    """Every point seen from every centre by cameras looking along +z (world axes).
+
+    Args:
+        points: (N, 3) world points, metres.
+        centres: (V, 3) camera centres, metres.
+        angle_noise: standard deviation of the Gaussian noise added to each unit ray, radians.
+        seed: seed of that noise.
+        scale: with a scale, the views carry the optical axes and the exact
+            depth_relative (z depth / scale) that the reprojection fit needs.
+
+    Returns:
+        The (N, V) views, all valid.
+    """
+    rng = np.random.default_rng(seed)
+    n, v = len(points), len(centres)
+    c = np.broadcast_to(centres, (n, v, 3)).copy()
+    d = points[:, None, :] - c
+    relative = d[..., 2] / scale if scale is not None else None
+    d /= np.linalg.norm(d, axis=2, keepdims=True)
+    if angle_noise:
+        d += rng.normal(0.0, angle_noise, d.shape)
+        d /= np.linalg.norm(d, axis=2, keepdims=True)
+    if scale is None:
+        return TrackViews(c, d, np.ones((n, v), bool))
+    axes = np.broadcast_to(np.array([0.0, 0.0, 1.0]), (n, v, 3)).copy()
+    return TrackViews(c, d, np.ones((n, v), bool), axes, relative)
 
 
 @dataclasses.dataclass

@@ -10,6 +10,8 @@ from endo_flow.pipeline import FlowOptions
 from endo_flow.reprojection import fit_log_scale, track_leverage
 from endo_flow.triangulation import TriangulationGates, triangulate
 
+from .conftest import synthetic_track_views
+
 #: metres of depth per unit of depth_relative (the scale to recover)
 SCALE = 0.04
 AXIS = np.array([0.0, 0.0, 1.0])
@@ -18,17 +20,8 @@ AXIS = np.array([0.0, 0.0, 1.0])
 def _views(points: np.ndarray, centres: np.ndarray, angle_noise: float = 0.0,
            seed: int = 0) -> TrackViews:
     """Every point seen from every centre (cameras looking along +z), relative depth exact."""
-    rng = np.random.default_rng(seed)
-    n, v = len(points), len(centres)
-    c = np.broadcast_to(centres, (n, v, 3)).copy()
-    d = points[:, None, :] - c
-    relative = d[..., 2] / SCALE
-    d /= np.linalg.norm(d, axis=2, keepdims=True)
-    if angle_noise:
-        d += rng.normal(0.0, angle_noise, d.shape)
-        d /= np.linalg.norm(d, axis=2, keepdims=True)
-    axes = np.broadcast_to(AXIS, (n, v, 3)).copy()
-    return TrackViews(c, d, np.ones((n, v), bool), axes, relative)
+    return synthetic_track_views(points, centres, angle_noise=angle_noise, seed=seed,
+                                 scale=SCALE)
 
 
 def test_exact_views_give_the_scale_from_any_start():

@@ -9,18 +9,12 @@ from endo_flow.pipeline import geometric_parallax
 from endo_flow.triangulation import TriangulationGates, midpoint, triangulate
 from endo_io.pose import rigid_transform
 
+from .conftest import synthetic_track_views
+
 
 def _views(points: np.ndarray, centres: np.ndarray, angle_noise: float = 0.0,
            seed: int = 0) -> TrackViews:
-    rng = np.random.default_rng(seed)
-    n, v = len(points), len(centres)
-    c = np.broadcast_to(centres, (n, v, 3)).copy()
-    d = points[:, None, :] - c
-    d /= np.linalg.norm(d, axis=2, keepdims=True)
-    if angle_noise:
-        d += rng.normal(0.0, angle_noise, d.shape)
-        d /= np.linalg.norm(d, axis=2, keepdims=True)
-    return TrackViews(c, d, np.ones((n, v), bool))
+    return synthetic_track_views(points, centres, angle_noise=angle_noise, seed=seed)
 
 
 def test_midpoint_recovers_points_exactly_without_noise():
