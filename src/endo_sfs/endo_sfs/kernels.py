@@ -342,6 +342,47 @@ def second_order_neighbour(
 #: Node states of the sweeping kernels (one uint8 grid instead of separate
 #: "active" and "locked" masks, so that a visit reads one cache line less).
 OUTSIDE, LOCKED, UNLOCKED = 0, 1, 2
+#: FRESH + s (s = 0…3): not solved yet this frame, first solved in sweep s
+#: of the first iteration, the sweep whose direction meets the node's
+#: predicted upwind neighbours first (:func:`mark_first_sweeps`).
+FRESH = 3
+
+
+@njit(cache=True, nogil=True, error_model="numpy", parallel=True)
+def mark_first_sweeps(state: np.ndarray, key: np.ndarray) -> None:
+    """Mark each unlocked node FRESH + s, s the sweep that first solves it.
+
+    state: (ny+4, nx+4) uint8 (:func:`initial_state`), changed in place;
+    key: (ny+4, nx+4) float64 the predicted values (the previous frame's v +
+    shift, +inf outside). From a start at v*, a node solved in a sweep that
+    runs against its upwind neighbours sees them still at v* and is solved
+    again once they fall; so each node is first solved in the sweep (of the
+    four of :func:`_sweeps`: (+i, +j), (+i, −j), (−i, −j), (−i, +j)) that
+    visits its lower neighbour along each axis (by ``key``) before it; an
+    axis with no lower neighbour takes either direction.
+    """
+    ny, nx = state.shape
+    for i in prange(2, ny - 2):
+        for j in range(2, nx - 2):
+            if state[i, j] != UNLOCKED:
+                continue
+            centre = key[i, j]
+            left = key[i, j - 1]
+            right = key[i, j + 1]
+            up = key[i - 1, j]
+            down = key[i + 1, j]
+            # dj: +1 when the lower x-neighbour is on the left, −1 on the
+            # right, 0 when neither is below the node (di likewise).
+            dj = 0
+            if min(left, right) < centre:
+                dj = 1 if left <= right else -1
+            di = 0
+            if min(up, down) < centre:
+                di = 1 if up <= down else -1
+            if di >= 0:
+                state[i, j] = FRESH + (1 if dj < 0 else 0)
+            else:
+                state[i, j] = FRESH + (3 if dj > 0 else 2)
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
@@ -782,6 +823,7 @@ def near_light_sweep(
     split: int,
     seam: np.ndarray,
     sweep_split: int,
+    first_sweeps: np.ndarray,
 ) -> tuple[int, float, int]:
     """Fast sweeping of the near-light perspective SFS equation, in place.
 
@@ -818,10 +860,19 @@ def near_light_sweep(
     [2, sweep_split) and [sweep_split, ny − 2) each until it settles, then
     on one thread over the whole grid (nodes within the stencil reach of
     the seam unlocked again first).
+
+    first_sweeps: (ny+4, nx+4) float64 predicted values (+inf outside), or
+    empty. When given and there is no first pass (causal orders), each node
+    is first solved in the sweep that visits its predicted lower neighbours
+    before it (:func:`mark_first_sweeps`) rather than in the first sweep
+    that reaches it: the same fixed point (to the tolerance), fewer solves
+    against neighbours still at their start values.
     Returns (iterations, last max change of v, node updates computed).
     """
     ny, nx = v.shape
     state = initial_state(valid)  # the padding of ``valid`` is 0: OUTSIDE
+    if first_pass.size == 0 and first_sweeps.size > 0 and order != 3:
+        mark_first_sweeps(state, first_sweeps)
     reach = 1 if order == 1 else 2
     updates = 0
     if first_pass.size > 0:
@@ -939,6 +990,8 @@ def _sweeps(
     instead of testing every node of them, and never test the nodes outside
     the rows' spans (the field of view's corners): the same visits of the
     unlocked nodes in the same order, so the same result bit for bit.
+    A node in state FRESH + s (:func:`mark_first_sweeps`) is passed over
+    until sweep s (its row stays flagged), then solved as an unlocked one.
     Returns (iterations, last max change, node solves).
     """
     reach = 1 if order == 1 else 2
@@ -947,7 +1000,7 @@ def _sweeps(
     for i in range(row_begin, row_end):
         dirty[i] = 0
         for j in range(spans[i, 0], spans[i, 1]):
-            if state[i, j] == UNLOCKED:
+            if state[i, j] >= UNLOCKED:
                 dirty[i] = 1
                 break
     updates = 0
@@ -968,9 +1021,14 @@ def _sweeps(
                 begin = spans[i, 0]
                 end = spans[i, 1]
                 j0 = begin if dj > 0 else end - 1
+                fresh = FRESH + sweep
                 for jj in range(end - begin):
                     j = j0 + dj * jj
-                    if state[i, j] != UNLOCKED:
+                    s = state[i, j]
+                    if s != UNLOCKED and s != fresh:
+                        if s > UNLOCKED:
+                            # A fresh node of a later sweep: keep the row.
+                            dirty[i] = 1
                         continue
                     state[i, j] = LOCKED
                     updates += 1

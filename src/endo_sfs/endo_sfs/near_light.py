@@ -123,6 +123,7 @@ def solve_near_light(
     warm_start_slope: np.ndarray | None = None,
     threads: int = 1,
     first_pass: bool = True,
+    first_sweeps: bool = False,
     timings: dict[str, float] | None = None,
 ) -> tuple[np.ndarray, np.ndarray, SolveInfo]:
     """Log-distance v = ln r per node of a stereographic solve grid.
@@ -143,7 +144,10 @@ def solve_near_light(
     first_pass: solve every node once in predicted value order before
     sweeping (orders 1 and 2); False sweeps from the start, which is
     cheaper when the predicted order is poor (see
-    :func:`endo_sfs.relative_depth.solve`, which chooses). timings: if
+    :func:`endo_sfs.relative_depth.solve`, which chooses). first_sweeps:
+    with a warm start and no first pass, solve each node first in the sweep
+    that meets its predicted upwind neighbours first
+    (:func:`endo_sfs.kernels.mark_first_sweeps`). timings: if
     given, receives the wall seconds of the stages ("inputs", "order",
     "sweeps", "outputs").
     Returns ((ny, nx) float64 v, NaN at invalid nodes; (ny, nx) float64
@@ -191,11 +195,12 @@ def solve_near_light(
     # Causal schemes: one pass in increasing order of the start values first
     # (nearly the order of the solution), then sweeps repair the rest.
     no_pass = np.empty(0, dtype=np.int64)
+    no_key = np.empty((0, 0))
     nodes = int(np.count_nonzero(valid_p))
     if order == 3 and warm_start is None:
         _, _, updates = kernels.near_light_sweep(
             v, node, valid_p, hx, hy, reflectance, 2, tolerance, max_iterations, eps, table,
-            value_order(key, valid_p, FIRST_PASS_BUCKETS), 0, no_pass, 0,
+            value_order(key, valid_p, FIRST_PASS_BUCKETS), 0, no_pass, 0, no_key,
         )
     ordered, split, seam, sweep_split = no_pass, 0, no_pass, 0
     parallel = threads > 1 and nodes >= MIN_PARALLEL_NODES
@@ -211,6 +216,7 @@ def solve_near_light(
     iterations, change, more = kernels.near_light_sweep(
         v, node, valid_p, hx, hy, reflectance, order, tolerance, max_iterations, eps, table,
         ordered, split, seam, sweep_split,
+        key if first_sweeps and warm_start is not None else no_key,
     )
     stages["sweeps"] = (now := time.perf_counter()) - start
     start = now

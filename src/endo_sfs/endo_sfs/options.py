@@ -82,6 +82,11 @@ class SfsOptions:
             model on large grids, for the first pass of the solver (two
             halves at once), ≥ 1. 1 gives bit-identical results run to
             run; 2 gives results equal to those to the tolerance.
+        first_sweeps: near-light, warm-started frames solved by sweeps
+            alone (no first pass): each node is first solved in the sweep
+            that meets its upwind neighbours (by the previous frame's
+            solution) before it, not in the first sweep that reaches it
+            (see docs/sfs.md, "Cost per frame").
 
     Raises:
         UnknownModelError: ``model`` is not one of :data:`MODELS`.
@@ -104,6 +109,7 @@ class SfsOptions:
     mask_highlights: bool = False
     highlight_downsample: int = 0
     threads: int = 1
+    first_sweeps: bool = True
 
     def __post_init__(self) -> None:
         # Plain Python numbers from here on (an int for a float, numpy
@@ -116,6 +122,7 @@ class SfsOptions:
             _coerce(self, "saturation", float)
         object.__setattr__(self, "concave", bool(self.concave))
         object.__setattr__(self, "mask_highlights", bool(self.mask_highlights))
+        object.__setattr__(self, "first_sweeps", bool(self.first_sweeps))
         if self.model not in MODELS:
             raise UnknownModelError(
                 f"unknown model {self.model!r}; expected one of {', '.join(MODELS)}"

@@ -410,7 +410,7 @@ def _solve_near_light(
         tolerance=options.tolerance, max_iterations=options.max_iterations,
         warm_start=warm_log_r, warm_start_intensity=warm_irradiance,
         warm_start_slope=warm_slope, threads=options.threads, first_pass=first_pass,
-        timings=timings,
+        first_sweeps=options.first_sweeps, timings=timings,
     )
     ordered_work: float | None = None
     frames_since_ordered = 0

@@ -173,14 +173,15 @@ def test_any_first_pass_order_reaches_the_fixed_point_of_the_sweeps(split):
     hx, hy = grid.spacing
     empty = np.empty(0, dtype=np.int64)
 
-    def run(first_pass: np.ndarray, parts: int, seam: np.ndarray, rows: int = 0) -> np.ndarray:
+    def run(first_pass: np.ndarray, parts: int, seam: np.ndarray, rows: int = 0,
+            key: np.ndarray | None = None) -> np.ndarray:
         v, node, valid_p, _ = kernels.near_light_inputs(
             intensity, valid, grid.conformal_factor_sq, np.empty((0, 0)), np.empty((0, 0)),
             0.0, reflectance,
         )
         _, change, _ = kernels.near_light_sweep(
             v, node, valid_p, hx, hy, reflectance, 2, 1e-9, 500, 0.0, table, first_pass,
-            parts, seam, rows,
+            parts, seam, rows, np.empty((0, 0)) if key is None else key,
         )
         assert change <= 1e-9
         return v[2:-2, 2:-2]
@@ -202,3 +203,21 @@ def test_any_first_pass_order_reaches_the_fixed_point_of_the_sweeps(split):
     np.testing.assert_allclose(run(scrambled, parts, seam), reference, atol=1e-6)
     # Sweeps alone, the two halves of the rows first swept on two threads.
     np.testing.assert_allclose(run(empty, 0, empty, ny // 2 + 2), reference, atol=1e-6)
+    # Each node first solved in the sweep its predicted upwind neighbours
+    # suggest (a noisy prediction, as the previous frame's solution is).
+    key = np.pad(reference + rng.normal(0.0, 0.01, reference.shape), 2, constant_values=np.inf)
+    np.testing.assert_allclose(run(empty, 0, empty, key=key), reference, atol=1e-6)
+    np.testing.assert_allclose(run(empty, 0, empty, ny // 2 + 2, key), reference, atol=1e-6)
+
+
+def test_first_sweeps_meet_the_predicted_upwind_neighbours_first():
+    # Sweeps (+i, +j), (+i, −j), (−i, −j), (−i, +j); a key rising along +j
+    # and +i has its lower neighbours at −j and −i: sweep 0, and so on.
+    i, j = np.mgrid[0:6, 0:7].astype(float)
+    for key, sweep in ((i + j, 0), (i - j, 1), (-i - j, 2), (j - i, 3), (0.0 * i, 0), (-j, 1)):
+        state = kernels.initial_state(np.pad(np.ones(key.shape, dtype=np.uint8), 2))
+        kernels.mark_first_sweeps(state, np.pad(key, 2, constant_values=np.inf))
+        # Inside (an edge node has no lower neighbour across the edge).
+        assert np.all(state[3:-3, 3:-3] == kernels.FRESH + sweep)
+        assert np.all(state[2:-2, 2:-2] >= kernels.FRESH)
+        assert np.all(state[:2] == kernels.OUTSIDE)
