@@ -12,7 +12,10 @@ its own: the main process's, and its workers' (reaped, so counted as
 children). The wall figures are the frame loop's (setup and scoring not
 counted; the wait for the workers' start-up is, and is also given apart:
 "after the first frame" is the steady state, the frames after the first
-one was written, ``ProcessReport.steady_real_time_factor``).
+one was written, ``ProcessReport.steady_real_time_factor``). "Whole run"
+is what a user waits for: the run's process from its start to its exit
+(Python, the imports, the set-up, the loop, the output closed), timed by
+this script around it, as × real time of the recording.
 
 A second table times what endo-process itself does to write a frame: three
 640×480 32FC1 images (corrected, relative depth, metric depth) through
@@ -66,14 +69,25 @@ def reference_path(tree: Path) -> str:
 
 def one_run(args: argparse.Namespace) -> None:
     """One configuration in this process; prints its figures as one JSON line."""
+    import endo_process
+
+    workers = None
+    # As endo-process does: the workers first, importing beside this process. An
+    # older tree (--reference) has no worker_start (looked up by file: the editable
+    # install's finder would import this tree's module into the older package).
+    if args.jobs > 1 and (Path(endo_process.__file__).parent / "worker_start.py").exists():
+        from endo_process.worker_start import start_workers
+
+        workers = start_workers(args.jobs)
     from endo_process.runner import ProcessOptions, process_bag
 
     before = os.times()
+    extra = {} if workers is None else {"workers": workers}
     report = process_bag(ProcessOptions(
         bag=args.bag, output=args.out, calibration=args.photometric, handeye=args.handeye,
         params=args.params, solve_scale=args.scale, jobs=args.jobs, progress=False,
         compression=COMPRESSION, max_frames=args.max_frames,
-    ))  # fmt: skip
+    ), **extra)  # fmt: skip
     after = os.times()
     main_cpu = (after[0] - before[0]) + (after[1] - before[1])
     workers_cpu = (after[2] - before[2]) + (after[3] - before[3])
@@ -202,12 +216,17 @@ def main() -> None:
             env = dict(os.environ)
             if tree == "reference":
                 env["PYTHONPATH"] = reference_path(args.reference)
+            run_start = time.perf_counter()
             done = subprocess.run([
                 sys.executable, __file__, "--one", "--bag", str(args.bag), "--out", str(out),
                 "--photometric", str(photometric.result), "--handeye", str(handeye.result),
                 "--params", str(params), "--scale", str(scale), "--jobs", str(jobs),
             ], capture_output=True, text=True, check=True, env=env)  # fmt: skip
+            run_s = time.perf_counter() - run_start
             figures = json.loads(done.stdout.strip().splitlines()[-1])
+            figures["run_s"] = run_s
+            # the recording's seconds (the loop's real-time factor × its wall time)
+            figures["whole_real_time"] = figures["real_time"] * figures["loop_s"] / run_s
             figures.setdefault("loop_s", figures["frames"] / figures["fps"])  # an older tree
             figures.setdefault("stages_ms", {})
             figures.setdefault("steady_real_time", 0.0)
@@ -217,7 +236,8 @@ def main() -> None:
             print(f"round {round_index + 1} {tree} solve_scale {scale:g} jobs {jobs}: "
                   f"{figures['fps']:.1f} frames/s, {figures['real_time']:.2f}x real time "
                   f"({figures['steady_real_time']:.2f}x after the first frame, which took "
-                  f"{figures['first_frame_s']:.2f} s), CPU "
+                  f"{figures['first_frame_s']:.2f} s; whole run {figures['run_s']:.2f} s, "
+                  f"{figures['whole_real_time']:.2f}x), CPU "
                   f"main {figures['main_ms']:.0f} + workers {figures['workers_ms']:.0f} ms per "
                   f"frame, median solve {figures['solve_ms']:.1f} ms, load {load()}",
                   flush=True)  # fmt: skip
@@ -233,8 +253,9 @@ def main() -> None:
     print(f"| {label}solve_scale | jobs | frames/s (run 1, run 2) | × real time (run 1, run 2) | "
           "× real time with the set-up (run 1, run 2) | "
           "× real time after the first frame (run 1, run 2) | first frame s | "
+          "whole run s (× real time) | "
           "CPU ms per frame: main + workers = total (run 1; run 2) | median solve ms |")
-    print("|---" * (9 + bool(label)) + "|")
+    print("|---" * (10 + bool(label)) + "|")
     for tree, scale, jobs in configs:
         rows = results[(tree, scale, jobs)]
         fps = ", ".join(f"{r['fps']:.1f}" for r in rows)
@@ -249,9 +270,10 @@ def main() -> None:
         solve = ", ".join(f"{r['solve_ms']:.0f}" for r in rows)
         steady = ", ".join(f"{r['steady_real_time']:.2f}" for r in rows)
         first_s = ", ".join(f"{r['first_frame_s']:.2f}" for r in rows)
+        whole = ", ".join(f"{r['run_s']:.2f} ({r['whole_real_time']:.2f})" for r in rows)
         first = f"{tree} | " if label else ""
         print(f"| {first}{scale:g} | {jobs} | {fps} | {rt} | {with_setup} | {steady} | "
-              f"{first_s} | {cpu} | {solve} |")
+              f"{first_s} | {whole} | {cpu} | {solve} |")
     print()
     print("Where the frame loop's wall time goes, ms per frame (run 1 / run 2): the main "
           "process's steps (endo_process.runner.LOOP_STAGES; 'shading' is the wait for the "

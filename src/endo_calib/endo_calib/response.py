@@ -20,8 +20,6 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 
 import numpy as np
-import scipy.linalg
-import scipy.optimize
 from numpy.typing import ArrayLike, NDArray
 
 from endo_calib.errors import CalibrationError, FitError
@@ -186,6 +184,9 @@ def fit_shoulder(
         gap = np.clip(e_sat - e, 1e-15, None)
         return root_w * (v - (top_code - (gap / np.exp(log_scale)) ** (1.0 / beta)))
 
+    # Imported here: a process that only corrects images (endo-process's workers) skips it.
+    import scipy.optimize
+
     best = None
     for beta in (0.4, 0.6, 0.8, 1.0):
         e_sat = 1.03 * e_top
@@ -293,6 +294,8 @@ def fit_tail(
     def residuals(params: NDArray[np.float64]) -> NDArray[np.float64]:
         tail = LogitPowerTail(float(params[0]), float(params[1]), float(params[2]))
         return root_w * (tail(e, top_code) - v)
+
+    import scipy.optimize  # here: a process that only corrects images skips it
 
     best = None
     for contrast in (1.0, 1.6, 2.5):
@@ -504,6 +507,9 @@ def fit_forward_response(
     Returns the fitted :class:`PiecewiseLinearResponse` (``data_low``: the
     ``LOW_DATA_QUANTILE`` quantile of E, robust to a few stray dark samples).
     """
+    import scipy.linalg  # here, as scipy.optimize: not loaded by a process that only corrects
+    import scipy.optimize
+
     knots = np.asarray(knots, dtype=np.float64)
     n = knots.size - 1
     if n < 2 or knots[0] != 0.0 or np.any(np.diff(knots) <= 0.0):

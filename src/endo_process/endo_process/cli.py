@@ -27,6 +27,7 @@ from typing import TYPE_CHECKING
 from endo_io import topics
 from endo_io.cli import EXIT_BAD_INPUT, report_error
 from endo_io.errors import Endo3dError
+from endo_process.worker_start import StartedWorkers, start_workers
 
 if TYPE_CHECKING:
     from endo_process.runner import ProcessOptions, ProcessReport
@@ -141,6 +142,18 @@ def exit_status(report: ProcessReport) -> int:
 def main(argv: Sequence[str] | None = None) -> int:
     """Console entry point of ``endo-process``."""
     args = build_parser().parse_args(argv)
+    # The shading workers first: they import their modules beside this
+    # process's own imports below (~2 s), not after them.
+    workers = start_workers(args.jobs) if args.jobs > 1 else None
+    try:
+        return _run(args, workers)
+    finally:
+        if workers is not None:
+            workers.close()  # a no-op once the run took them
+
+
+def _run(args: argparse.Namespace, workers: StartedWorkers | None) -> int:
+    """The run and its summary, with the workers started in :func:`main`."""
     from endo_io.bag import BagError
     from endo_process.accuracy import Accuracy, score_recording
     from endo_process.report import write_report_figure
@@ -152,7 +165,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         options = _options(args)
         with _StopOnSignal() as stop:
-            report = process_bag(options, stop)
+            report = process_bag(options, stop, workers)
     except (Endo3dError, BagError) as error:
         return report_error(PROGRAM, error)
     accuracy = None

@@ -44,9 +44,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import math
-import multiprocessing
 import queue
-import signal
 import time
 import traceback
 from collections import deque
@@ -63,6 +61,7 @@ from endo_calib.calibration import PhotometricCalibration
 from endo_io.camera import CameraModel
 from endo_process.errors import WorkerError
 from endo_process.shading import RawFrame, ShadedFrame, ShadingStage
+from endo_process.worker_start import StartedWorkers, start_workers
 from endo_sfs.warm_up import warm_up_frame
 
 #: Consecutive frames per worker turn (1: frames dealt one at a time).
@@ -168,30 +167,33 @@ class _SlotRing:
                 self.memory.unlink()
 
 
-def _worker(
-    config: StageConfig,
-    inbox: Any,
-    outbox: Any,
-    camera: CameraModel | None = None,
-    ring: tuple[str, int, int] | None = None,
-) -> None:
-    """Worker process body: (frame, slot) in, shaded frames out, None ends it.
+def serve(inbox: Any, outbox: Any) -> None:
+    """Worker process body: its set-up, then (frame, slot) in, shaded frames out; None ends it.
 
-    With ``camera`` it first solves a synthetic frame of that camera
-    (:func:`endo_sfs.warm_up.warm_up_frame`: the kernels loaded, the solve
-    grids built), while the parent sets up; the first real frame then costs
-    what any other does. ``ring``: (name, pixels, slots) of the caller's
-    :class:`_SlotRing` for this worker; a frame that comes with a slot goes
-    back through it when its images fit.
+    The first message is the set-up, (config, warm_up_camera, ring), or None
+    (stop before starting). With ``warm_up_camera`` the worker first solves a
+    synthetic frame of that camera (:func:`endo_sfs.warm_up.warm_up_frame`:
+    the kernels loaded, the solve grids built). Without it (what
+    :class:`ShadingPool` does by default) the first real frames, sent as soon
+    as the pool is made, do that work: the synthetic frame's rendering and
+    its two solves cost a worker 0.1-0.4 CPU-s on top, while the caller's own
+    set-up and the other worker share the two cores. ``ring``: (name, pixels,
+    slots) of the caller's :class:`_SlotRing` for this worker; a frame that
+    comes with a slot goes back through it when its images fit. Started by
+    :func:`endo_process.worker_start.start_workers`.
     """
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent decides when to stop
     slots = None
     try:
+        if (setup := inbox.get()) is None:
+            return
+        config: StageConfig = setup[0]
+        warm_up_camera: CameraModel | None = setup[1]
+        ring: tuple[str, int, int] | None = setup[2]
         stage = config.build()
         if ring is not None:
             slots = _SlotRing(ring[1], ring[2], name=ring[0])
-        if camera is not None:
-            warm_up_frame(camera, stage.options)
+        if warm_up_camera is not None:
+            warm_up_frame(warm_up_camera, stage.options)
         cpu_start: float | None = None
         while (item := inbox.get()) is not None:
             frame, slot = item
@@ -220,10 +222,17 @@ class ShadingPool:
         jobs: SFS chains (1: in this process; N ≥ 2: N worker processes).
         chunk_frames: consecutive frames per worker turn with ``jobs`` > 1.
         stage: with ``jobs`` == 1, an already built stage to use.
-        warm_up_camera: with ``jobs`` > 1, the workers warm up for this camera
-            as soon as they start (see :func:`_worker`), and their shared
-            memory slots are sized for its images; with ``jobs`` == 1 the
-            caller warms up (:meth:`ShadingStage.warm_up`), when it suits it.
+        camera: with ``jobs`` > 1, the recording's first camera: the
+            workers' shared memory slots are sized for its images.
+        warm_up: with ``jobs`` > 1 and ``camera``, the workers solve a
+            synthetic frame of it first (see :func:`serve`); by default
+            they start on the first real frames, which :meth:`map` sends
+            at once. With ``jobs`` == 1 the caller warms up
+            (:meth:`ShadingStage.warm_up`), when it suits it.
+        workers: with ``jobs`` > 1, worker processes started earlier
+            (:func:`endo_process.worker_start.start_workers`, ``jobs`` of
+            them), which the pool takes over and stops; None: it starts
+            its own.
     """
 
     def __init__(
@@ -232,7 +241,9 @@ class ShadingPool:
         jobs: int = 1,
         chunk_frames: int = DEFAULT_CHUNK_FRAMES,
         stage: ShadingStage | None = None,
-        warm_up_camera: CameraModel | None = None,
+        camera: CameraModel | None = None,
+        warm_up: bool = False,
+        workers: StartedWorkers | None = None,
     ) -> None:
         if jobs < 1 or chunk_frames < 1:
             raise ValueError("jobs and chunk_frames must be >= 1")
@@ -251,31 +262,27 @@ class ShadingPool:
         if jobs == 1:
             self._stage = stage or config.build()
             return
-        # spawn, not fork: the parent may already run numba or tqdm threads.
-        context = multiprocessing.get_context("spawn")
         worker_config = StageConfig(
             config.calibration_path, config.channel, dict(config.sfs_parameters, threads=1),
             config.mask_extrapolated,
         )
         try:
-            for _ in range(self.worker_count):
+            if workers is None or len(workers) != self.worker_count or workers.taken:
+                workers = start_workers(self.worker_count)
+            workers.taken = True  # this pool stops them
+            self._workers = list(workers.processes)
+            self._inboxes = list(workers.inboxes)
+            self._outboxes = list(workers.outboxes)
+            for inbox in self._inboxes:
                 ring = None
-                if warm_up_camera is not None:
-                    pixels = warm_up_camera.width * warm_up_camera.height
+                if camera is not None:
+                    pixels = camera.width * camera.height
                     slots = max(2, min(math.ceil(self.depth / self.worker_count) + 1,
                                        SLOT_RING_BYTES // (8 * pixels)))  # fmt: skip
                     self._rings.append(_SlotRing(pixels, slots))
                     self._free.append(deque(range(slots)))
                     ring = (self._rings[-1].name, pixels, slots)
-                inbox, outbox = context.Queue(), context.Queue()
-                process = context.Process(
-                    target=_worker, args=(worker_config, inbox, outbox, warm_up_camera, ring),
-                    daemon=True,
-                )
-                process.start()
-                self._workers.append(process)
-                self._inboxes.append(inbox)
-                self._outboxes.append(outbox)
+                inbox.put((worker_config, camera if warm_up else None, ring))
         except BaseException:
             self.close()
             raise
@@ -314,29 +321,44 @@ class ShadingPool:
         return slot
 
     def map(self, frames: Iterable[RawFrame]) -> Iterator[ShadedFrame]:
-        """Yield the shaded frames in the order of ``frames``.
+        """The shaded frames in the order of ``frames``.
 
         ``frames[k].index`` must be k (the dealing follows it); frames are
-        pulled from the iterable only as far ahead as the workers need.
+        pulled from the iterable only as far ahead as the workers need. With
+        workers, the first frames (up to :attr:`depth`) are read and sent
+        at once, in this call, so that the workers start on them while the
+        caller goes on setting up; with one job nothing runs before the
+        first result is asked for.
         """
         if self._stage is not None:
-            for frame in frames:
-                yield self._stage.process(frame)
-            return
+            stage = self._stage
+            return (stage.process(frame) for frame in frames)
         pending: deque[tuple[int, int | None]] = deque()  # (frame index, its slot)
         source = iter(frames)
-        exhausted = False
+        exhausted = self._send_ahead(source, pending)
+        return self._collect(source, pending, exhausted)
+
+    def _send_ahead(
+        self, source: Iterator[RawFrame], pending: deque[tuple[int, int | None]]
+    ) -> bool:
+        """Send frames from ``source`` until :attr:`depth` are in flight; whether it ran out."""
+        while len(pending) < self.depth:
+            frame = next(source, None)
+            if frame is None:
+                return True
+            start = self.chunked and frame.index % self.chunk_frames == 0
+            if start != frame.chunk_start:
+                frame = dataclasses.replace(frame, chunk_start=start)
+            pending.append((frame.index, self._send(frame)))
+        return False
+
+    def _collect(
+        self, source: Iterator[RawFrame], pending: deque[tuple[int, int | None]], exhausted: bool
+    ) -> Iterator[ShadedFrame]:
+        """Receive the frames in flight in order, sending more as each comes back."""
         while True:
-            while not exhausted and len(pending) < self.depth:
-                next_frame = next(source, None)
-                if next_frame is None:
-                    exhausted = True
-                    break
-                frame = next_frame
-                start = self.chunked and frame.index % self.chunk_frames == 0
-                if start != frame.chunk_start:
-                    frame = dataclasses.replace(frame, chunk_start=start)
-                pending.append((frame.index, self._send(frame)))
+            if not exhausted:
+                exhausted = self._send_ahead(source, pending)
             if not pending:
                 return
             index, slot = pending.popleft()

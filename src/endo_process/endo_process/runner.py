@@ -72,6 +72,7 @@ from endo_process.output import DEFAULT_FLUSH_EVERY, POINTS_TYPE, POSE_TYPE, Out
 from endo_process.parallel import DEFAULT_CHUNK_FRAMES, ShadingPool, StageConfig
 from endo_process.settings import ProcessSettings, load_settings
 from endo_process.shading import RawFrame, ShadedFrame, ShadingStage
+from endo_process.worker_start import StartedWorkers
 from endo_tracker_bridge.chain import CameraPose, CameraPoseChain
 from endo_tracker_bridge.errors import HandEyeFileError
 from endo_tracker_bridge.handeye_file import HandEyeCalibration
@@ -418,13 +419,22 @@ def _write_map(
         report.ply_vertices = flow.pipeline.voxel_map.export_ply(options.ply)
 
 
-def process_bag(options: ProcessOptions, stop: threading.Event | None = None) -> ProcessReport:
+def process_bag(
+    options: ProcessOptions,
+    stop: threading.Event | None = None,
+    workers: StartedWorkers | None = None,
+) -> ProcessReport:
     """Run the offline graph over ``options.bag`` into ``options.output``.
 
     Args:
         options: the run's inputs, outputs and settings.
         stop: set it (from a signal handler) to end the run after the
             current frame; the output is finalised either way.
+        workers: with ``options.jobs`` > 1, the shading workers, started
+            before this process loaded its modules
+            (:func:`endo_process.worker_start.start_workers`); the run
+            takes them over. None: the run starts its own. The caller
+            closes them (a no-op once taken) if the run fails before.
 
     Returns:
         The run's report (``damage`` set when the bag was cut short,
@@ -449,19 +459,26 @@ def process_bag(options: ProcessOptions, stop: threading.Event | None = None) ->
     camera = None
     with contextlib.suppress(Endo3dError):  # a bad camera_info is the frame loop's to report
         camera = first_camera(inputs)
-    # Workers start first: they load their kernels and build their solve grids
-    # (warm_up_camera) while this process sets up and warms up the flow step.
-    pool = ShadingPool(config, options.jobs, options.chunk_frames, stage,
-                       warm_up_camera=camera)  # fmt: skip
+    # Workers start first, and get their first frames at once (pool.map sends
+    # them): loading their kernels and building their solve grids on real
+    # frames while this process sets up and warms up the flow step.
+    pool = ShadingPool(config, options.jobs, options.chunk_frames, stage, camera=camera,
+                       workers=workers)  # fmt: skip
     streams: RecordingStreams | None = None
     try:  # the workers are running: stop them if the set-up fails
         report = ProcessReport(frames_total=inputs.frame_count, output=options.output)
+        streams = recording_streams(inputs)
+        infos: dict[int, CameraInfo | None] = {}
+        frames = _raw_frames(
+            CameraInfoPairing(inputs, streams), iter_images(streams), infos, report, stop,
+            options.max_frames,
+        )  # fmt: skip
+        shaded_frames = enumerate(pool.map(frames), start=1)
         with BagReader(options.bag) as reader:
             copied = {name: reader.topics[name] for name in inputs.ground_truth}
         output = OutputBag(options.output, options.compression, copied,
                            threaded=pool.worker_count == 0)  # fmt: skip
         world_frame = str(settings.flow["world_frame"])
-        streams = recording_streams(inputs)
         poses = iter_camera_poses(iter_tracker_poses(streams), settings, handeye, report)
         first_pose = next(poses, None)
         if first_pose is not None:
@@ -486,7 +503,7 @@ def process_bag(options: ProcessOptions, stop: threading.Event | None = None) ->
         )
         flow = FlowStage(flow_options(settings.flow), int(settings.flow["map_min_count"]))
         if camera is not None and pool.worker_count > 0:
-            # Overlapped with the workers' own warm-up; with one job it would only add.
+            # Overlapped with the workers' first frames; with one job it would only add.
             warm_up_pipeline(flow.pipeline.options, camera)
         truth: Iterator[BagMessage] = iter_ground_truth(streams)
         truth_pending: list[BagMessage] = []
@@ -505,13 +522,8 @@ def process_bag(options: ProcessOptions, stop: threading.Event | None = None) ->
     loop_start, loop_cpu_start = time.perf_counter(), time.process_time()
     worker_cpu: dict[int, float] = {}
     try:
-        infos: dict[int, CameraInfo | None] = {}
-        frames = _raw_frames(
-            CameraInfoPairing(inputs, streams), iter_images(streams), infos, report, stop,
-            options.max_frames,
-        )  # fmt: skip
         clock = report.stage_seconds
-        shaded_frames = enumerate(pool.map(frames), start=1)
+        clock["read"] = 0.0  # the first frames' reading (pool.map above) is the set-up's
         while True:
             # "shading" is the wait for the next shaded frame less the reading it includes.
             read_before, step = clock["read"], time.perf_counter()
