@@ -14,7 +14,6 @@ calibration, the SFS parameters, its shared memory) as its first message.
 
 from __future__ import annotations
 
-import contextlib
 import multiprocessing
 import signal
 from dataclasses import dataclass, field
@@ -44,14 +43,12 @@ class StartedWorkers:
         if self.taken:
             return
         self.taken = True
-        for inbox in self.inboxes:
-            with contextlib.suppress(OSError, ValueError):
-                inbox.put(None)
+        # Terminated, not asked: they hold nothing yet (no set-up, no shared
+        # memory), and one still importing would answer only after its imports.
         for process in self.processes:
-            process.join(timeout=2.0)
-            if process.is_alive():
-                process.terminate()
-                process.join(timeout=2.0)
+            process.terminate()
+        for process in self.processes:
+            process.join(timeout=5.0)
         for box in self.inboxes + self.outboxes:
             box.cancel_join_thread()
             box.close()

@@ -57,5 +57,5 @@ def test_workers_get_the_first_frames_at_once_and_results_come_in_order(
 def test_workers_no_run_took_are_stopped() -> None:
     started = start_workers(2)
     started.close()
-    assert all(not process.is_alive() for process in started.processes)
-    assert [process.exitcode for process in started.processes] == [0, 0]
+    assert all(process.exitcode is not None for process in started.processes)
+    started.close()  # again: nothing left to do
