@@ -156,7 +156,6 @@ def _run(args: argparse.Namespace, workers: StartedWorkers | None) -> int:
     """The run and its summary, with the workers started in :func:`main`."""
     from endo_io.bag import BagError
     from endo_process.accuracy import Accuracy, score_recording
-    from endo_process.report import write_report_figure
     from endo_process.runner import process_bag
     from endo_process.settings import load_settings
     from endo_process.simulated import registration_mismatch
@@ -177,6 +176,9 @@ def _run(args: argparse.Namespace, workers: StartedWorkers | None) -> int:
         if mismatch is not None:
             print(f"{PROGRAM}: warning: {mismatch}", file=sys.stderr)
     if args.report is not None and report.frames_shaded:
+        # Only here: matplotlib is ~0.3 CPU-s of imports a run without --report skips.
+        from endo_process.report import write_report_figure
+
         write_report_figure(options.output, accuracy or Accuracy(), options.calibration,
                             args.report)  # fmt: skip
     if args.summary_json is not None:
