@@ -259,6 +259,7 @@ class ShadingPool:
         self._outboxes: list[Any] = []
         self._rings: list[_SlotRing] = []
         self._free: list[deque[int]] = []
+        self._stopped = False
         if jobs == 1:
             self._stage = stage or config.build()
             return
@@ -368,11 +369,22 @@ class ShadingPool:
                 self._free[worker].append(slot)
             yield shaded
 
-    def close(self) -> None:
-        """Stop the workers (idempotent); frames still queued are abandoned."""
+    def stop(self) -> None:
+        """Tell the workers to exit once their queued frames are done, without waiting.
+
+        A worker's exit (its interpreter's teardown) takes a few tenths of a
+        second: the caller finishes its output meanwhile, then :meth:`close`.
+        """
+        if self._stopped:
+            return
+        self._stopped = True
         for inbox in self._inboxes:
             with contextlib.suppress(OSError, ValueError):
                 inbox.put(None)
+
+    def close(self) -> None:
+        """Stop the workers and wait for them (idempotent); frames still queued are abandoned."""
+        self.stop()
         for process in self._workers:
             process.join(timeout=2.0)
             if process.is_alive():

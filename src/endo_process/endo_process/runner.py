@@ -579,20 +579,23 @@ def process_bag(
         report.seconds = time.perf_counter() - loop_start
         report.loop_cpu_seconds = time.process_time() - loop_cpu_start
         report.worker_cpu_seconds = sum(worker_cpu.values())
-        pool.close()
-        progress.close()
-        # A partial run (stopped, or --max-frames short of the end) ends at its last frame.
-        partial = stop.is_set() or report.interrupted or (
-            options.max_frames is not None and report.frames_in < inputs.frame_count
-        )
-        end = last_stamp if partial and last_stamp is not None else np.iinfo(np.int64).max
-        if not partial:
-            feed.drain()
-        output.copy_until(truth, truth_pending, end)
-        if last_stamp is not None:
-            _write_map(output, flow, options, last_stamp, world_frame, report)
-        output.close(end if partial else None)
-        streams.close()
+        pool.stop()  # the workers exit (a few tenths of a second) while the output is finished
+        try:
+            progress.close()
+            # A partial run (stopped, or --max-frames short of the end) ends at its last frame.
+            partial = stop.is_set() or report.interrupted or (
+                options.max_frames is not None and report.frames_in < inputs.frame_count
+            )
+            end = last_stamp if partial and last_stamp is not None else np.iinfo(np.int64).max
+            if not partial:
+                feed.drain()
+            output.copy_until(truth, truth_pending, end)
+            if last_stamp is not None:
+                _write_map(output, flow, options, last_stamp, world_frame, report)
+            output.close(end if partial else None)
+            streams.close()
+        finally:
+            pool.close()
     report.interrupted = report.interrupted or stop.is_set()
     report.written = Counter(output.counts)
     report.poses_written = report.written[topics.CAMERA_POSE]
