@@ -31,7 +31,7 @@ docs/benchmarks.md, "endo-process".
 Workers solve with one thread each. Results come back in frame order.
 Memory is bounded: at most ``N × max(PIPELINE_DEPTH, C + 1)`` frames are
 in flight. The shaded images come back through shared memory
-(:class:`_SlotRing`): a ring of slots per worker, each the size of one
+(:class:`SlotRing`): a ring of slots per worker, each the size of one
 frame's irradiance and relative depth, which the worker fills and the
 calling process copies out; through the result queue they were pickled,
 pushed through a pipe in 64 kB pieces and unpickled, ~2.4 MB per frame
@@ -45,24 +45,16 @@ import contextlib
 import dataclasses
 import math
 import queue
-import time
-import traceback
 from collections import deque
 from collections.abc import Iterable, Iterator
-from dataclasses import dataclass
 from multiprocessing.context import SpawnProcess
-from multiprocessing.shared_memory import SharedMemory
-from pathlib import Path
 from typing import Any
 
-import numpy as np
-
-from endo_calib.calibration import PhotometricCalibration
 from endo_io.camera import CameraModel
 from endo_process.errors import WorkerError
 from endo_process.shading import RawFrame, ShadedFrame, ShadingStage
+from endo_process.worker import SlotFrame, SlotRing, StageConfig
 from endo_process.worker_start import StartedWorkers, start_workers
-from endo_sfs.warm_up import warm_up_frame
 
 #: Consecutive frames per worker turn (1: frames dealt one at a time).
 DEFAULT_CHUNK_FRAMES = 1
@@ -72,146 +64,6 @@ PIPELINE_DEPTH = 8
 SLOT_RING_BYTES = 64 * 2**20
 #: Seconds between checks that a worker is still alive while waiting for it.
 _POLL_S = 0.5
-
-
-@dataclass(frozen=True)
-class StageConfig:
-    """What a worker needs to build its own :class:`ShadingStage` (picklable)."""
-
-    calibration_path: Path
-    channel: str
-    sfs_parameters: dict[str, Any]
-    mask_extrapolated: bool = False
-
-    def build(self) -> ShadingStage:
-        """Load the calibration and return a stage."""
-        calibration = PhotometricCalibration.load(self.calibration_path)
-        return ShadingStage(calibration, self.channel, self.sfs_parameters,
-                            mask_extrapolated=self.mask_extrapolated)  # fmt: skip
-
-
-@dataclass(frozen=True)
-class _SlotFrame:
-    """A shaded frame whose images wait in slot ``slot`` of its worker's ring.
-
-    frame: the :class:`ShadedFrame` without its two images; irradiance,
-    depth_relative: the (H, W) shapes they had (None: the image was None).
-    """
-
-    frame: ShadedFrame
-    slot: int
-    irradiance: tuple[int, int] | None
-    depth_relative: tuple[int, int] | None
-
-
-class _SlotRing:
-    """Slots of shared memory, each holding one frame's two (H, W) float32 images.
-
-    The calling process creates the ring (``name`` None) and unlinks it in
-    :meth:`close`; a worker attaches to it by name. A slot is handed to a
-    worker with the frame it is for, filled by the worker (:meth:`put`) and
-    read back by the caller (:meth:`take`), which then hands it out again:
-    no slot is written while it is read.
-
-    Args:
-        pixels: H × W of the frames the slots are sized for.
-        slots: how many.
-        name: the shared memory to attach to (a worker), or None (create it).
-    """
-
-    def __init__(self, pixels: int, slots: int, name: str | None = None) -> None:
-        self.pixels = pixels
-        self.slots = slots
-        size = max(1, 2 * pixels * slots) * 4
-        self.memory = SharedMemory(name=name, create=name is None, size=size if name is None else 0)
-        self._owner = name is None
-        self._images = np.ndarray((slots, 2, pixels), np.float32, buffer=self.memory.buf)
-
-    @property
-    def name(self) -> str:
-        """The shared memory's name (for a worker to attach)."""
-        return self.memory.name
-
-    def fits(self, image: np.ndarray | None) -> bool:
-        """Whether ``image`` can travel in a slot (None can: nothing to copy)."""
-        return image is None or (
-            image.ndim == 2 and image.size == self.pixels and image.dtype == np.float32
-        )
-
-    def put(self, slot: int, shaded: ShadedFrame) -> _SlotFrame:
-        """Copy ``shaded``'s two images into ``slot`` (both must :meth:`fit`); its message."""
-        shapes: list[tuple[int, int] | None] = []
-        for k, image in enumerate((shaded.irradiance, shaded.depth_relative)):
-            if image is None:
-                shapes.append(None)
-                continue
-            self._images[slot, k] = image.reshape(-1)
-            shapes.append((int(image.shape[0]), int(image.shape[1])))
-        bare = dataclasses.replace(shaded, irradiance=None, depth_relative=None)
-        return _SlotFrame(bare, slot, shapes[0], shapes[1])
-
-    def take(self, item: _SlotFrame) -> ShadedFrame:
-        """The shaded frame of ``item``, its images copied out of the slot."""
-        images = [
-            None if shape is None else self._images[item.slot, k].reshape(shape).copy()
-            for k, shape in enumerate((item.irradiance, item.depth_relative))
-        ]
-        return dataclasses.replace(item.frame, irradiance=images[0], depth_relative=images[1])
-
-    def close(self) -> None:
-        """Detach (and, in the process that created it, unlink) the shared memory."""
-        del self._images
-        self.memory.close()
-        if self._owner:
-            with contextlib.suppress(FileNotFoundError):
-                self.memory.unlink()
-
-
-def serve(inbox: Any, outbox: Any) -> None:
-    """Worker process body: its set-up, then (frame, slot) in, shaded frames out; None ends it.
-
-    The first message is the set-up, (config, warm_up_camera, ring), or None
-    (stop before starting). With ``warm_up_camera`` the worker first solves a
-    synthetic frame of that camera (:func:`endo_sfs.warm_up.warm_up_frame`:
-    the kernels loaded, the solve grids built). Without it (what
-    :class:`ShadingPool` does by default) the first real frames, sent as soon
-    as the pool is made, do that work: the synthetic frame's rendering and
-    its two solves cost a worker 0.1-0.4 CPU-s on top, while the caller's own
-    set-up and the other worker share the two cores. ``ring``: (name, pixels,
-    slots) of the caller's :class:`_SlotRing` for this worker; a frame that
-    comes with a slot goes back through it when its images fit. Started by
-    :func:`endo_process.worker_start.start_workers`.
-    """
-    slots = None
-    try:
-        if (setup := inbox.get()) is None:
-            return
-        config: StageConfig = setup[0]
-        warm_up_camera: CameraModel | None = setup[1]
-        ring: tuple[str, int, int] | None = setup[2]
-        stage = config.build()
-        if ring is not None:
-            slots = _SlotRing(ring[1], ring[2], name=ring[0])
-        if warm_up_camera is not None:
-            warm_up_frame(warm_up_camera, stage.options)
-        cpu_start: float | None = None
-        while (item := inbox.get()) is not None:
-            frame, slot = item
-            cpu_start = time.process_time() if cpu_start is None else cpu_start
-            shaded = stage.process(frame)
-            # The CPU time is taken before the copy into the slot (or the
-            # pickling), the last thing the worker does for the frame.
-            shaded = dataclasses.replace(shaded, worker_cpu_s=time.process_time() - cpu_start)
-            if (slots is not None and slot is not None and slots.fits(shaded.irradiance)
-                    and slots.fits(shaded.depth_relative)):  # fmt: skip
-                outbox.put(slots.put(slot, shaded))
-            else:
-                outbox.put(shaded)
-    except BaseException:  # reported to the parent, which raises WorkerError
-        outbox.put(("error", traceback.format_exc(limit=4)))
-    finally:
-        if slots is not None:
-            slots.close()
 
 
 class ShadingPool:
@@ -225,7 +77,7 @@ class ShadingPool:
         camera: with ``jobs`` > 1, the recording's first camera: the
             workers' shared memory slots are sized for its images.
         warm_up: with ``jobs`` > 1 and ``camera``, the workers solve a
-            synthetic frame of it first (see :func:`serve`); by default
+            synthetic frame of it first (see :func:`endo_process.worker.serve`); by default
             they start on the first real frames, which :meth:`map` sends
             at once. With ``jobs`` == 1 the caller warms up
             (:meth:`ShadingStage.warm_up`), when it suits it.
@@ -257,7 +109,7 @@ class ShadingPool:
         self._workers: list[SpawnProcess] = []
         self._inboxes: list[Any] = []
         self._outboxes: list[Any] = []
-        self._rings: list[_SlotRing] = []
+        self._rings: list[SlotRing] = []
         self._free: list[deque[int]] = []
         self._stopped = False
         if jobs == 1:
@@ -280,7 +132,7 @@ class ShadingPool:
                     pixels = camera.width * camera.height
                     slots = max(2, min(math.ceil(self.depth / self.worker_count) + 1,
                                        SLOT_RING_BYTES // (8 * pixels)))  # fmt: skip
-                    self._rings.append(_SlotRing(pixels, slots))
+                    self._rings.append(SlotRing(pixels, slots))
                     self._free.append(deque(range(slots)))
                     ring = (self._rings[-1].name, pixels, slots)
                 inbox.put((worker_config, camera if warm_up else None, ring))
@@ -309,7 +161,7 @@ class ShadingPool:
                 continue
             if isinstance(item, tuple):
                 raise WorkerError(f"shading worker {worker} failed:\n{item[1]}")
-            if isinstance(item, _SlotFrame):
+            if isinstance(item, SlotFrame):
                 return self._rings[worker].take(item)
             return item
 

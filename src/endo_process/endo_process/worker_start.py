@@ -57,7 +57,7 @@ class StartedWorkers:
 def _run(inbox: Any, outbox: Any) -> None:
     """Worker process entry: ignore SIGINT, import the shading modules, then serve."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent decides when to stop
-    from endo_process.parallel import serve  # the heavy imports, beside the parent's
+    from endo_process.worker import serve  # the heavy imports, beside the parent's
 
     serve(inbox, outbox)
 
