@@ -8,6 +8,7 @@ from pathlib import Path
 
 import pytest
 
+from endo_process.runner import ProcessOptions, process_bag
 from endo_process.simulated import write_simulated_parameters
 
 BAGS = Path(__file__).resolve().parents[3] / "bags"
@@ -39,3 +40,15 @@ def phantom_params(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return write_simulated_parameters(
         PHANTOM, tmp_path_factory.mktemp("params") / "endo3d.yaml"
     )
+
+
+def process_first_frames(
+    output: Path, calibrations: tuple[Path, Path], params: Path, frames: int
+) -> Path:
+    """endo-process on the phantom's first ``frames`` frames, --jobs 1 at solve_scale 0.5."""
+    report = process_bag(ProcessOptions(
+        bag=PHANTOM, output=output, calibration=calibrations[0], handeye=calibrations[1],
+        params=params, solve_scale=0.5, jobs=1, max_frames=frames, progress=False,
+    ))  # fmt: skip
+    assert report.frames_shaded == frames
+    return output

@@ -28,7 +28,7 @@ from endo_process.report import headline, write_report_figure
 from endo_process.runner import LOOP_STAGES, ProcessOptions, ProcessReport, process_bag
 from endo_process.summary import summary_document
 
-from .conftest import PHANTOM
+from .conftest import PHANTOM, process_first_frames
 
 
 @pytest.fixture(scope="module")
@@ -54,12 +54,7 @@ def one_chain(
 ) -> Path:
     """The first frames with --jobs 1: one warm-started chain in this process."""
     output = tmp_path_factory.mktemp("one") / "one.mcap"
-    report = process_bag(ProcessOptions(
-        bag=PHANTOM, output=output, calibration=calibrations[0], handeye=calibrations[1],
-        params=phantom_params, solve_scale=0.5, jobs=1, max_frames=CHAIN_FRAMES, progress=False,
-    ))  # fmt: skip
-    assert report.frames_shaded == CHAIN_FRAMES
-    return output
+    return process_first_frames(output, calibrations, phantom_params, CHAIN_FRAMES)
 
 
 def assert_same_depth_to_the_solver_tolerance(one: Path, other: Path) -> None:

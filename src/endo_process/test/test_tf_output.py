@@ -25,10 +25,9 @@ from endo_io.bag import BagReader, deserialize
 from endo_io.pose import pose_to_matrix
 from endo_io.pose_buffer import PoseBuffer
 from endo_io.tf import StampedTransform
-from endo_process.runner import ProcessOptions, process_bag
 from endo_tracker_bridge.handeye_file import HandEyeCalibration
 
-from .conftest import PHANTOM
+from .conftest import process_first_frames
 
 FRAMES = 12
 
@@ -38,12 +37,7 @@ def short_run(
     calibrations: tuple[Path, Path], phantom_params: Path, tmp_path_factory: pytest.TempPathFactory
 ) -> Path:
     output = tmp_path_factory.mktemp("tf") / "phantom_tf.mcap"
-    report = process_bag(ProcessOptions(
-        bag=PHANTOM, output=output, calibration=calibrations[0], handeye=calibrations[1],
-        params=phantom_params, solve_scale=0.5, jobs=1, max_frames=FRAMES, progress=False,
-    ))  # fmt: skip
-    assert report.frames_shaded == FRAMES
-    return output
+    return process_first_frames(output, calibrations, phantom_params, FRAMES)
 
 
 def _edge(t) -> tuple[str, str, int, np.ndarray]:
