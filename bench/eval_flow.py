@@ -191,14 +191,29 @@ def read_bag(path: Path, calibration: PhotometricCalibration, light_error: float
     return Sequence(camera, stamps, images, relative, true_depth, true_pose, poses)
 
 
-def oracle_scale(seq: Sequence) -> float:
-    """exp(median of ln(true / relative)) over every pixel of every ground-truth frame."""
-    logs = []
+def log_ratios(seq: Sequence) -> dict[int, np.ndarray]:
+    """ln(true / relative) at every valid pixel of each ground-truth frame, by stamp."""
+    logs = {}
     for stamp, truth in seq.true_depth.items():
         rel = seq.relative[stamp]
         ok = np.isfinite(truth) & np.isfinite(rel) & (rel > 0) & (truth > 0)
-        logs.append(np.log(truth[ok] / rel[ok]))
-    return float(np.exp(np.median(np.concatenate(logs))))
+        logs[stamp] = np.log(truth[ok] / rel[ok])
+    return logs
+
+
+def oracle_scale(seq: Sequence) -> float:
+    """exp(median of ln(true / relative)) over every pixel of every ground-truth frame."""
+    return float(np.exp(np.median(np.concatenate(list(log_ratios(seq).values())))))
+
+
+def per_frame_scales(seq: Sequence) -> dict[int, float]:
+    """Each ground-truth frame's own best-fit scale: exp(median of its ln(true / relative)).
+
+    The oracle (:func:`oracle_scale`) is one constant per sequence; the spread of
+    these around it is SFS's own per-frame scale wander, which no per-frame
+    scale estimate can follow and stay at the oracle.
+    """
+    return {stamp: float(np.exp(np.median(logs))) for stamp, logs in log_ratios(seq).items()}
 
 
 def depth_figures(depth: np.ndarray, truth: np.ndarray, lo: float, hi: float) -> tuple[float,
@@ -222,7 +237,8 @@ def cloud_rms(points: np.ndarray, truth: np.ndarray, pose: np.ndarray,
 
 def evaluate(seq: Sequence, options: FlowOptions, depth_range: tuple[float, float],
              label: str, trace: bool = False, settle_s: float = 1.5,
-             true_poses: bool = False) -> dict[str, object]:
+             true_poses: bool = False,
+             series: dict[str, list[float]] | None = None) -> dict[str, object]:
     """Run the pipeline over the sequence and score it.
 
     Scale figures are taken at every frame from the filter's first
@@ -233,7 +249,9 @@ def evaluate(seq: Sequence, options: FlowOptions, depth_range: tuple[float, floa
     there (median of s*·d_rel / z_true at the same tracks).
 
     ``true_poses`` feeds the simulator's exact camera poses instead of the
-    tracker's (a diagnosis: what the pose errors cost).
+    tracker's (a diagnosis: what the pose errors cost). ``series``, if given,
+    receives the per-frame trace: ``t`` (s since the first frame), ``usable``
+    (s/s* once usable, NaN before) and ``estimate`` (s/s* at every frame).
     """
     pipe = FlowPipeline(options)
     s_oracle = oracle_scale(seq)
@@ -268,6 +286,10 @@ def evaluate(seq: Sequence, options: FlowOptions, depth_range: tuple[float, floa
         scales.append((t, out.scale.value / s_oracle if out.scale.usable else np.nan,
                        out.scale.state.name))
         raw_scales.append((t, out.scale.value / s_oracle))
+        if series is not None:
+            for key, value in (("t", t), ("usable", scales[-1][1]),
+                               ("estimate", raw_scales[-1][1])):
+                series.setdefault(key, []).append(value)
         d = out.diagnostics
         events["exposure_steps"] += int(d.exposure_step)
         events["cusum_steps"] += int(d.step)
