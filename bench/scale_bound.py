@@ -134,7 +134,7 @@ def first_time(times: np.ndarray, condition: np.ndarray) -> float:
 
 
 def vision_trajectory_fit(seq, track: dict, true_poses: bool, min_common: int = 30,
-                          bar_sigmas: float = 3.0) -> dict[str, np.ndarray]:
+                          anchor_every: int = 0, max_anchors: int = 10) -> dict[str, np.ndarray]:
     """The scale fitted over the vision-relative trajectory against the tracker's centres.
 
     Lucas–Kanade tracks (``FeatureTracker``, the pipeline's options) carry an
@@ -142,13 +142,17 @@ def vision_trajectory_fit(seq, track: dict, true_poses: bool, min_common: int = 
     unit) into each later frame; with the rotation from the poses, each
     frame's camera centre relative to the anchor follows linearly
     (``known_rotation_translation``): the vision-relative trajectory, in SFS's
-    unit. A new anchor (a new segment) when fewer than ``min_common`` tracks
-    are shared. ln s is the weighted least-squares fit of the frames' tracker
-    centres against it over every segment so far (``segmented_scale_fit``,
-    the bound's estimator), its σ from the tracker's noise model;
-    "converged" once 3σ ≤ 2 % (``bar_sigmas``).
+    unit, one segment per anchor. A new anchor when no anchor shares
+    ``min_common`` tracks with the frame, and with ``anchor_every`` > 0 also
+    every that many frames (at most ``max_anchors`` alive: several anchors
+    average their frames' SFS errors; a frame measured against n anchors
+    counts each time with its covariance × n, so that it weighs as one
+    sample). ln s is the weighted least-squares fit of the frames' tracker
+    centres against every segment so far (``segmented_scale_fit``, the
+    bound's estimator), its σ from the tracker's noise model.
 
-    Returns ``t``, ``log_scale`` (ln s − ln s*, NaN before a fit), ``sigma``.
+    Returns ``t``, ``log_scale`` (ln s − ln s*, NaN before a fit), ``sigma``,
+    ``segments`` (1,).
     """
     options = FlowOptions()
     tracker = FeatureTracker(options.tracking)
@@ -156,38 +160,48 @@ def vision_trajectory_fit(seq, track: dict, true_poses: bool, min_common: int = 
     sigma_p, sigma_r = track["position_noise_rms_m"], track["rotation_noise_rms_rad"]
     hand_eye = track["T_marker_camera"]
     segments: list[tuple[list, list, list]] = []
-    anchor: dict | None = None
+    anchors: list[dict] = []
+    since_anchor = 0
     out: dict[str, list[float]] = {"t": [], "log_scale": [], "sigma": []}
     t0 = seq.stamps[0]
     for stamp in seq.stamps:
         features = tracker.track(seq.images[stamp])
         pose = seq.true_pose.get(stamp) if true_poses else seq.poses[stamp]
         out["t"].append((stamp - t0) / 1e9)
+        since_anchor += 1
         if pose is not None and len(features.ids):
             rays = seq.camera.pixels_to_rays(features.uv)
             depth = sample_bilinear(seq.relative[stamp], features.uv)
             points = depth[:, None] / rays[:, 2:3] * rays
             cov = camera_centre_covariances(lever_arms(pose[None], hand_eye), sigma_p, sigma_r)[0]
-            common = (np.intersect1d(anchor["ids"], features.ids) if anchor is not None
-                      else np.empty(0, np.int64))
-            if anchor is not None and len(common) >= min_common:
+            measured = []
+            for anchor in anchors:
+                common = np.intersect1d(anchor["ids"], features.ids)
+                if len(common) < min_common:
+                    anchor["alive"] = False
+                    continue
                 a = np.searchsorted(anchor["ids"], common)
                 b = np.searchsorted(features.ids, common)
                 R = pose[:3, :3].T @ anchor["R"]  # R_view_anchor
                 try:
                     t, _ = known_rotation_translation(anchor["points"][a], rays[b], R)
-                    relative = anchor["R"] @ (-R.T @ t)
-                    segments[-1][0].append(relative)
-                    segments[-1][1].append(pose[:3, 3])
-                    segments[-1][2].append(cov)
                 except Exception:
-                    pass
-            else:
+                    continue
+                measured.append((anchor["segment"], anchor["R"] @ (-R.T @ t)))
+            anchors = [anchor for anchor in anchors if anchor["alive"]]
+            for segment, relative in measured:
+                segments[segment][0].append(relative)
+                segments[segment][1].append(pose[:3, 3])
+                segments[segment][2].append(cov * len(measured))
+            if not anchors or (anchor_every and since_anchor >= anchor_every):
                 finite = np.isfinite(points).all(axis=1)
                 order = np.argsort(features.ids[finite])
-                anchor = {"ids": features.ids[finite][order], "points": points[finite][order],
-                          "R": pose[:3, :3].copy()}
+                anchors.append({"ids": features.ids[finite][order],
+                                "points": points[finite][order], "R": pose[:3, :3].copy(),
+                                "segment": len(segments), "alive": True})
+                anchors = anchors[-max_anchors:]
                 segments.append(([np.zeros(3)], [pose[:3, 3]], [cov]))
+                since_anchor = 0
         fit = [(np.array(r), np.array(m), np.array(c)) for r, m, c in segments if len(r) > 1]
         log_s, sigma = segmented_scale_fit(fit) if fit else (math.nan, math.inf)
         out["log_scale"].append(log_s - math.log(s_oracle))
@@ -198,7 +212,7 @@ def vision_trajectory_fit(seq, track: dict, true_poses: bool, min_common: int = 
 
 
 def analyse(bag: Path, calibration: PhotometricCalibration, cache: Path | None,
-            vision: bool = False) -> dict:
+            vision: bool = False, anchor_every: int = 0) -> dict:
     """Every figure of one sequence (see the module docstring)."""
     track = tracker_track(bag)
     t = track["t"]
@@ -229,7 +243,8 @@ def analyse(bag: Path, calibration: PhotometricCalibration, cache: Path | None,
     vision_fits = {}
     if vision:
         for name, true_poses in (("tracker", False), ("true_poses", True)):
-            vision_fits[name] = vision_trajectory_fit(seq, track, true_poses)
+            vision_fits[name] = vision_trajectory_fit(seq, track, true_poses,
+                                                      anchor_every=anchor_every)
     runs = {}
     for name, true_poses in (("tracker", False), ("true_poses", True)):
         series: dict[str, list[float]] = {}
@@ -275,6 +290,10 @@ def analyse(bag: Path, calibration: PhotometricCalibration, cache: Path | None,
         "sfs_wander_max_after_conv_pct": 100 * float(np.max(np.abs(wander[late])))
         if late.any() else math.nan,
         "sfs_wander_std_pct": 100 * float(np.std(wander)),
+        # what a cumulative estimator inherits: the running mean of the per-frame wander
+        "sfs_running_mean_max_after_conv_pct": 100 * float(np.max(np.abs(
+            (np.cumsum(wander) / np.arange(1, len(wander) + 1))[late]))) if late.any()
+        else math.nan,
         "sfs_wander_range_pct": 100 * float(np.ptp(wander)),
         "sfs_wander_trace": [(round(float(a), 2), round(100 * float(b), 2))
                              for a, b in zip(frame_t, wander, strict=True)],
@@ -326,6 +345,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--json", type=Path, default=None, help="append results here")
     parser.add_argument("--vision-fit", action="store_true",
                         help="also the scale fitted over the vision-relative trajectory")
+    parser.add_argument("--anchor-every", type=int, default=0,
+                        help="with --vision-fit: a new anchor every N frames (0: when the "
+                        "tracks run out)")
     args = parser.parse_args(argv)
     calibration = PhotometricCalibration.load(args.calibration)
     header = ("sequence", "2mm s", "conv s", "σa@conv", "σb@conv", "σa@2mm+1s", "σb@2mm+1s",
@@ -333,7 +355,7 @@ def main(argv: list[str] | None = None) -> int:
               "filter max", "true-pose max")
     rows = []
     for bag in args.bags:
-        result = analyse(bag, calibration, args.cache, args.vision_fit)
+        result = analyse(bag, calibration, args.cache, args.vision_fit, args.anchor_every)
         if args.json:
             with args.json.open("a") as stream:
                 stream.write(json.dumps(result) + "\n")
