@@ -24,6 +24,11 @@ A second table times what endo-process itself does to write a frame: three
 (``endo_io.image.array_to_image_cdr``), under each chunk compression, with
 the bytes per frame on disk.
 
+A configuration is ``solve_scale:jobs``, optionally ``:compression`` and
+``:crc`` (the output's chunk compression, default lz4, and whether chunk
+CRCs are stored, default not: endo-process's defaults), e.g.
+``--configs 0.5:2,0.5:2:none,0.5:2:lz4:crc``.
+
 Run by hand: ``.venv/bin/python bench/bench_process.py [--rounds 2] [--bag B]``;
 prints Markdown for docs/benchmarks.md ("endo-process").
 """
@@ -31,6 +36,7 @@ prints Markdown for docs/benchmarks.md ("endo-process").
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import datetime
 import json
 import os
@@ -49,6 +55,31 @@ BAGS = ROOT / "bags"
 CONFIGS = [(0.5, 1), (0.5, 2), (1.0, 1), (1.0, 2)]
 #: The output compression endo-process uses by default (its --compression).
 COMPRESSION = "lz4"
+
+
+@dataclasses.dataclass(frozen=True)
+class Config:
+    """One configuration: solve scale, jobs, output compression, chunk CRCs stored."""
+
+    scale: float
+    jobs: int
+    compression: str = COMPRESSION
+    crc: bool = False
+
+    @classmethod
+    def parse(cls, text: str) -> Config:
+        parts = text.split(":")
+        if len(parts) < 2 or len(parts) > 4 or (len(parts) == 4 and parts[3] != "crc"):
+            raise SystemExit(f"--configs: {text!r} is not scale:jobs[:compression[:crc]]")
+        return cls(float(parts[0]), int(parts[1]),
+                   parts[2] if len(parts) > 2 else COMPRESSION, len(parts) == 4)  # fmt: skip
+
+    @property
+    def label(self) -> str:
+        """The table's first columns: solve_scale | jobs, and the output's if not the default."""
+        output = "" if (self.compression, self.crc) == (COMPRESSION, False) else (
+            f" ({self.compression}{', CRC' if self.crc else ''})")
+        return f"{self.scale:g} | {self.jobs}{output}"
 
 
 def machine() -> str:
@@ -83,10 +114,12 @@ def one_run(args: argparse.Namespace) -> None:
 
     before = os.times()
     extra = {} if workers is None else {"workers": workers}
+    fields = {f.name for f in dataclasses.fields(ProcessOptions)}
+    crcs = {"chunk_crcs": args.crc} if "chunk_crcs" in fields else {}  # not in an older tree
     report = process_bag(ProcessOptions(
         bag=args.bag, output=args.out, calibration=args.photometric, handeye=args.handeye,
         params=args.params, solve_scale=args.scale, jobs=args.jobs, progress=False,
-        compression=COMPRESSION, max_frames=args.max_frames,
+        compression=args.compression, max_frames=args.max_frames, **crcs,
     ), **extra)  # fmt: skip
     after = os.times()
     main_cpu = (after[0] - before[0]) + (after[1] - before[1])
@@ -111,7 +144,7 @@ def one_run(args: argparse.Namespace) -> None:
 
 
 def writing_table(bag: Path, rounds: int) -> list[str]:
-    """CPU ms to write three 640×480 32FC1 images per frame, per encoding path and compression."""
+    """CPU ms to write three 640×480 32FC1 images per frame, per encoding, compression and CRC."""
     from endo_io import topics
     from endo_io.bag.streams import read_depth_frames
     from endo_io.image import array_to_image
@@ -121,7 +154,10 @@ def writing_table(bag: Path, rounds: int) -> list[str]:
     # the field of view), which compress like the outputs; 30 frames.
     truth = list(read_depth_frames(bag, topics.TRUE_DEPTH).values())
     frames = [truth[k % len(truth)] * np.float32(1 + k / 1000) for k in range(30)]
-    rows: dict[tuple[str, bool], list[tuple[float, float]]] = {}
+    # (compression, encoded straight from the array, chunk CRCs stored)
+    cases = [(c, direct, crc) for c in ("lz4", "zstd", "none")
+             for direct, crc in ((False, True), (True, True), (True, False))]  # fmt: skip
+    rows: dict[tuple[str, bool, bool], list[tuple[float, float]]] = {}
     with tempfile.TemporaryDirectory() as work:
         # One-off costs (the rosbags type store, the codecs) before any timing.
         warm = OutputBag(Path(work) / "warm.mcap", "zstd")
@@ -129,31 +165,31 @@ def writing_table(bag: Path, rounds: int) -> list[str]:
         warm.write_image("/v", frames[0], "32FC1", 1, "optical")
         warm.close()
         for round_index in range(rounds):
-            for compression in ("lz4", "zstd", "none"):
-                for direct in (False, True):
-                    path = Path(work) / f"w_{round_index}_{compression}_{direct}.mcap"
-                    output = OutputBag(path, compression)
-                    start = time.process_time()
-                    for index, image in enumerate(frames):
-                        stamp = 10**9 + index * 33_333_333
-                        for topic in ("/a", "/b", "/c"):
-                            if direct:
-                                output.write_image(topic, image, "32FC1", stamp, "optical")
-                            else:
-                                message = array_to_image(image, "32FC1", stamp, "optical")
-                                output.write(topic, message, stamp)
-                    output.close()
-                    cpu = (time.process_time() - start) / len(frames) * 1e3
-                    size = path.stat().st_size / len(frames) / 1e6
-                    rows.setdefault((compression, direct), []).append((cpu, size))
+            for compression, direct, crc in cases:
+                path = Path(work) / f"w_{round_index}_{compression}_{direct}_{crc}.mcap"
+                output = OutputBag(path, compression, crcs=crc)
+                start = time.process_time()
+                for index, image in enumerate(frames):
+                    stamp = 10**9 + index * 33_333_333
+                    for topic in ("/a", "/b", "/c"):
+                        if direct:
+                            output.write_image(topic, image, "32FC1", stamp, "optical")
+                        else:
+                            message = array_to_image(image, "32FC1", stamp, "optical")
+                            output.write(topic, message, stamp)
+                output.close()
+                cpu = (time.process_time() - start) / len(frames) * 1e3
+                size = path.stat().st_size / len(frames) / 1e6
+                rows.setdefault((compression, direct, crc), []).append((cpu, size))
     lines = [
-        "| compression | encoding | CPU ms per frame (each run) | MB per frame |",
-        "|---|---|---|---|",
+        "| compression | encoding | chunk CRC | CPU ms per frame (each run) | MB per frame |",
+        "|---|---|---|---|---|",
     ]
-    for (compression, direct), values in rows.items():
+    for (compression, direct, crc), values in rows.items():
         how = "array_to_image_cdr" if direct else "message + serialize"
         cpu = ", ".join(f"{v[0]:.2f}" for v in values)
-        lines.append(f"| {compression} | {how} | {cpu} | {values[0][1]:.2f} |")
+        lines.append(f"| {compression} | {how} | {'yes' if crc else 'no'} | {cpu} | "
+                     f"{values[0][1]:.2f} |")  # fmt: skip
     return lines
 
 
@@ -174,6 +210,8 @@ def main() -> None:
     parser.add_argument("--scale", type=float, help=argparse.SUPPRESS)
     parser.add_argument("--jobs", type=int, help=argparse.SUPPRESS)
     parser.add_argument("--max-frames", type=int, help=argparse.SUPPRESS)
+    parser.add_argument("--compression", default=COMPRESSION, help=argparse.SUPPRESS)
+    parser.add_argument("--crc", action="store_true", help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.one:
         one_run(args)
@@ -191,10 +229,10 @@ def main() -> None:
         BAGS / "graycard.mcap", BAGS / "handeye.mcap", work, dict(os.environ)
     )
     params = write_simulated_parameters(args.bag, work / "endo3d.yaml")
-    pairs = [(float(c.split(":")[0]), int(c.split(":")[1])) for c in args.configs.split(",")]
+    pairs = [Config.parse(c) for c in args.configs.split(",")]
     trees = ["this tree"] + (["reference"] if args.reference else [])
-    configs = [(tree, scale, jobs) for scale, jobs in pairs for tree in trees]
-    results: dict[tuple[str, float, int], list[dict[str, Any]]] = {c: [] for c in configs}
+    configs = [(tree, config) for config in pairs for tree in trees]
+    results: dict[tuple[str, Config], list[dict[str, Any]]] = {c: [] for c in configs}
     # One short unmeasured run per tree first: a tree's first run may compile its kernels.
     for tree in trees:
         env = dict(os.environ)
@@ -204,14 +242,15 @@ def main() -> None:
         subprocess.run([
             sys.executable, __file__, "--one", "--bag", str(args.bag), "--out", str(out),
             "--photometric", str(photometric.result), "--handeye", str(handeye.result),
-            "--params", str(params), "--scale", str(pairs[0][0]), "--jobs", "2",
+            "--params", str(params), "--scale", str(pairs[0].scale), "--jobs", "2",
             "--max-frames", "4",
         ], capture_output=True, text=True, check=True, env=env)  # fmt: skip
         out.unlink()
     loads = [load()]
     for round_index in range(args.rounds):
         order = configs if round_index % 2 == 0 else configs[::-1]
-        for tree, scale, jobs in order:
+        for tree, config in order:
+            scale, jobs = config.scale, config.jobs
             out = work / f"out_{scale}_{jobs}_{round_index}.mcap"
             env = dict(os.environ)
             if tree == "reference":
@@ -221,6 +260,7 @@ def main() -> None:
                 sys.executable, __file__, "--one", "--bag", str(args.bag), "--out", str(out),
                 "--photometric", str(photometric.result), "--handeye", str(handeye.result),
                 "--params", str(params), "--scale", str(scale), "--jobs", str(jobs),
+                "--compression", config.compression, *(["--crc"] if config.crc else []),
             ], capture_output=True, text=True, check=True, env=env)  # fmt: skip
             run_s = time.perf_counter() - run_start
             figures = json.loads(done.stdout.strip().splitlines()[-1])
@@ -232,8 +272,9 @@ def main() -> None:
             figures.setdefault("steady_real_time", 0.0)
             figures.setdefault("first_frame_s", 0.0)
             figures.setdefault("shading_ms", {})
-            results[(tree, scale, jobs)].append(figures)
-            print(f"round {round_index + 1} {tree} solve_scale {scale:g} jobs {jobs}: "
+            results[(tree, config)].append(figures)
+            print(f"round {round_index + 1} {tree} solve_scale {scale:g} jobs {jobs} "
+                  f"{config.compression}{' crc' if config.crc else ''}: "
                   f"{figures['fps']:.1f} frames/s, {figures['real_time']:.2f}x real time "
                   f"({figures['steady_real_time']:.2f}x after the first frame, which took "
                   f"{figures['first_frame_s']:.2f} s; whole run {figures['run_s']:.2f} s, "
@@ -247,7 +288,7 @@ def main() -> None:
     frames = int(results[configs[0]][0]["frames"])
     label = "tree | " if args.reference else ""
     print(f"Machine: {machine()}; {datetime.date.today().isoformat()}; bag {args.bag.name} "
-          f"({frames} frames); output compression {COMPRESSION}; "
+          f"({frames} frames); output {COMPRESSION} without chunk CRCs unless said; "
           f"load average before/after each round: {' | '.join(loads)}")  # fmt: skip
     print()
     print(f"| {label}solve_scale | jobs | frames/s (run 1, run 2) | × real time (run 1, run 2) | "
@@ -256,8 +297,8 @@ def main() -> None:
           "whole run s (× real time) | "
           "CPU ms per frame: main + workers = total (run 1; run 2) | median solve ms |")
     print("|---" * (10 + bool(label)) + "|")
-    for tree, scale, jobs in configs:
-        rows = results[(tree, scale, jobs)]
+    for tree, config in configs:
+        rows = results[(tree, config)]
         fps = ", ".join(f"{r['fps']:.1f}" for r in rows)
         rt = ", ".join(f"{r['real_time']:.2f}" for r in rows)
         with_setup = ", ".join(
@@ -272,7 +313,7 @@ def main() -> None:
         first_s = ", ".join(f"{r['first_frame_s']:.2f}" for r in rows)
         whole = ", ".join(f"{r['run_s']:.2f} ({r['whole_real_time']:.2f})" for r in rows)
         first = f"{tree} | " if label else ""
-        print(f"| {first}{scale:g} | {jobs} | {fps} | {rt} | {with_setup} | {steady} | "
+        print(f"| {first}{config.label} | {fps} | {rt} | {with_setup} | {steady} | "
               f"{first_s} | {whole} | {cpu} | {solve} |")
     print()
     print("Where the frame loop's wall time goes, ms per frame (run 1 / run 2): the main "
@@ -290,8 +331,8 @@ def main() -> None:
     print(f"| {label}solve_scale | jobs | loop ms per frame | loop CPU ms per frame: main, "
           "worker | setup s | " + " | ".join(stage_names + shading_names) + " |")
     print("|---" * (5 + bool(label) + len(stage_names) + len(shading_names)) + "|")
-    for tree, scale, jobs in configs:
-        rows = results[(tree, scale, jobs)]
+    for tree, config in configs:
+        rows = results[(tree, config)]
         loop = " / ".join(f"{r['loop_s'] / r['frames'] * 1e3:.1f}" for r in rows)
         loop_cpu = " / ".join(
             f"{r.get('loop_cpu_ms', 0.0):.1f}, {r.get('worker_loop_cpu_ms', 0.0):.1f}"
@@ -303,7 +344,7 @@ def main() -> None:
         cells += [" / ".join(f"{r['shading_ms'].get(n, 0.0):.1f}" for r in rows)
                   for n in shading_names]
         first = f"{tree} | " if label else ""
-        print(f"| {first}{scale:g} | {jobs} | {loop} | {loop_cpu} | {setup} | "
+        print(f"| {first}{config.label} | {loop} | {loop_cpu} | {setup} | "
               + " | ".join(cells) + " |")
     if args.no_writing:
         return

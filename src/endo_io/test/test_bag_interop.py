@@ -19,6 +19,8 @@ import numpy as np
 import pytest
 from geometry_msgs.msg import PoseStamped
 from mcap.reader import make_reader
+from mcap.records import Chunk, Footer
+from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, IndexType
 from mcap.writer import Writer as McapWriter
 from mcap_ros2.decoder import DecoderFactory
@@ -159,9 +161,11 @@ def to_mcap_ros2(msg: Any) -> Any:
     return msg
 
 
-def write_ours(path: Path, compression: str = "zstd") -> list[tuple[str, Any, int]]:
+def write_ours(
+    path: Path, compression: str = "zstd", *, crcs: bool = True
+) -> list[tuple[str, Any, int]]:
     originals = samples()
-    with BagWriter(path, compression=compression, chunk_size=2048) as writer:
+    with BagWriter(path, compression=compression, chunk_size=2048, crcs=crcs) as writer:
         for topic, msg, t in originals:
             writer.write_message(topic, msg, t)
     return originals
@@ -205,6 +209,29 @@ def test_mcap_ros2_reads_our_bag(tmp_path):
         for m in ros2_reader.read_ros2_messages(str(path))
     ]
     assert high_level == [(topic, plain(msg), t) for topic, msg, t in originals]
+
+
+@pytest.mark.parametrize("compression", ["lz4", "none"])
+def test_bag_without_crcs_reads_everywhere(tmp_path, compression):
+    """crcs=False (endo-process, rosbag2 by default): CRCs stored as 0; every reader reads it."""
+    path = tmp_path / "no_crc.mcap"
+    originals = write_ours(path, compression, crcs=False)
+    with path.open("rb") as stream:
+        reader = make_reader(stream, decoder_factories=[DecoderFactory()])
+        summary = reader.get_summary()
+        assert summary is not None and len(summary.chunk_indexes) > 1
+        got = [(c.topic, plain(d), m.log_time) for _, c, m, d in reader.iter_decoded_messages()]
+    assert got == [(topic, plain(msg), t) for topic, msg, t in originals]
+    with path.open("rb") as stream:
+        records = list(StreamReader(stream, emit_chunks=True).records)
+    assert {r.uncompressed_crc for r in records if isinstance(r, Chunk)} == {0}
+    assert next(r for r in records if isinstance(r, Footer)).summary_crc == 0
+    with BagReader(path) as ours:
+        assert [(m.topic, plain(deserialize(m)), m.log_time_ns) for m in ours.messages()] == [
+            (topic, plain(msg), t) for topic, msg, t in originals
+        ]
+    with AnyReader([path]) as rosbags_reader:
+        assert len(list(rosbags_reader.messages())) == len(originals)
 
 
 @pytest.mark.parametrize(

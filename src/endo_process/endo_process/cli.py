@@ -73,6 +73,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "above 1 each turn starts cold)")
     parser.add_argument("--compression", choices=("zstd", "lz4", "none"), default="lz4",
                         help="output chunk compression (default lz4: fast)")
+    parser.add_argument("--chunk-crc", action="store_true",
+                        help="store each output chunk's CRC-32 (off by default, as in "
+                        "rosbag2's MCAP writer: it costs CPU on every byte written)")
     parser.add_argument("--report", type=Path,
                         help="draw a figure of the run (PNG): frames, errors, cloud, scale, "
                         "calibration")
@@ -128,7 +131,7 @@ def _options(args: argparse.Namespace) -> ProcessOptions:
         topics=InputTopics(args.image_topic, args.camera_info_topic, args.tracker_topic),
         camera_info=args.camera_info, ply=args.ply, jobs=args.jobs,
         chunk_frames=args.chunk_frames, compression=args.compression,
-        progress=not args.quiet, max_frames=args.max_frames,
+        chunk_crcs=args.chunk_crc, progress=not args.quiet, max_frames=args.max_frames,
     )  # fmt: skip
 
 

@@ -130,6 +130,11 @@ class OutputBag:
             writes directly: the main process waits for the worker anyway,
             and the thread's lz4 and CRC beside the worker slowed it
             (docs/benchmarks.md, "endo-process").
+        crcs: store the chunks' CRC-32 (:class:`BagWriter`'s ``crcs``).
+            ``endo-process`` leaves them out unless ``--chunk-crc`` is
+            given, as rosbag2's MCAP plugin does by default (``noChunkCRC``):
+            zlib's CRC over ~4 MB per 640×480 frame is CPU the two cores
+            need for the solve (docs/process.md, "Output").
     """
 
     def __init__(
@@ -139,8 +144,9 @@ class OutputBag:
         copied_topics: dict[str, TopicInfo] | None = None,
         *,
         threaded: bool = True,
+        crcs: bool = True,
     ) -> None:
-        writer = BagWriter(path, compression=compression)
+        writer = BagWriter(path, compression=compression, crcs=crcs)
         self.path = Path(path)
         self.counts: Counter[str] = Counter()
         self._held: list[tuple[int, int, str, bytes]] = []

@@ -95,6 +95,7 @@ class ProcessOptions:
     jobs: int = 1
     chunk_frames: int = DEFAULT_CHUNK_FRAMES
     compression: str = "zstd"
+    chunk_crcs: bool = False
     progress: bool = True
     flush_every: int = DEFAULT_FLUSH_EVERY
     max_frames: int | None = None
@@ -477,7 +478,7 @@ def process_bag(
         with BagReader(options.bag) as reader:
             copied = {name: reader.topics[name] for name in inputs.ground_truth}
         output = OutputBag(options.output, options.compression, copied,
-                           threaded=pool.worker_count == 0)  # fmt: skip
+                           threaded=pool.worker_count == 0, crcs=options.chunk_crcs)  # fmt: skip
         world_frame = str(settings.flow["world_frame"])
         poses = iter_camera_poses(iter_tracker_poses(streams), settings, handeye, report)
         first_pose = next(poses, None)

@@ -36,3 +36,35 @@ def test_writes_arrive_in_order_and_a_writer_error_is_raised(
             failing.write_image("/depth", frames[0], "32FC1", 1_000 + k, "optical")
         failing.close()
     failing.close()  # the file closed; the error was raised already
+
+
+@pytest.mark.parametrize("crcs", [False, True])
+def test_chunk_crcs_only_when_asked_and_the_file_reads_back_the_same(
+    tmp_path: Path, crcs: bool
+) -> None:
+    """endo-process stores no chunk CRCs by default (as rosbag2's MCAP writer); --chunk-crc does."""
+    from mcap.records import Chunk
+    from mcap.stream_reader import StreamReader
+
+    from endo_process.cli import build_parser
+    from endo_process.runner import ProcessOptions
+
+    assert ProcessOptions(Path("a"), Path("b"), Path("c"), Path("d")).chunk_crcs is False
+    argv = ["in.mcap", "-o", "out.mcap", "--calibration", "p.yaml", "--handeye", "h.yaml"]
+    assert build_parser().parse_args(argv).chunk_crc is False
+    assert build_parser().parse_args([*argv, "--chunk-crc"]).chunk_crc is True
+
+    path = tmp_path / f"crc_{crcs}.mcap"
+    output = OutputBag(path, "lz4", crcs=crcs)
+    frames = [np.linspace(0.0, 1.0, 640 * 480, dtype=np.float32).reshape(480, 640) * k
+              for k in range(1, 4)]  # fmt: skip
+    for k, frame in enumerate(frames):  # 1.2 MB each: a chunk per image
+        output.write_image("/depth", frame, "32FC1", 1_000 + k, "optical")
+    output.close()
+    with path.open("rb") as stream:
+        chunks = [r for r in StreamReader(stream, emit_chunks=True).records if isinstance(r, Chunk)]
+    assert len(chunks) >= len(frames)
+    assert all((chunk.uncompressed_crc != 0) == crcs for chunk in chunks)
+    with BagReader(path) as reader:
+        read = [image_to_array(deserialize(m)) for m in reader.messages(["/depth"])]
+    assert all(np.array_equal(a, b) for a, b in zip(read, frames, strict=True))
