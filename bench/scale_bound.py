@@ -48,6 +48,7 @@ from eval_flow import (  # bench/ is on sys.path when run as bench/scale_bound.p
 )
 
 from endo_calib.calibration import PhotometricCalibration
+from endo_flow.errors import FlowInputError
 from endo_flow.pipeline import FlowOptions, sample_bilinear
 from endo_flow.scale_information import (
     camera_centre_covariances,
@@ -59,6 +60,7 @@ from endo_flow.scale_information import (
 )
 from endo_flow.tracking import FeatureTracker
 from endo_io.bag import BagReader, deserialize
+from endo_io.errors import PoseLookupError
 from endo_io.pose import invert_transform, pose_to_matrix
 from endo_io.pose_buffer import PoseBuffer
 from endo_io.stamp import stamp_to_ns
@@ -103,7 +105,7 @@ def tracker_track(bag: Path) -> dict[str, np.ndarray]:
     for sample_ns, T in sorted(samples, key=lambda item: item[0]):
         try:
             pose = gt.query(sample_ns)
-        except Exception:  # before the first / after the last image: no truth there
+        except PoseLookupError:  # before the first / after the last image: no truth there
             continue
         times.append((sample_ns - first_image) / 1e9)
         true.append(pose)
@@ -185,7 +187,7 @@ def vision_trajectory_fit(seq, track: dict, true_poses: bool, min_common: int = 
                 R = pose[:3, :3].T @ anchor["R"]  # R_view_anchor
                 try:
                     t, _ = known_rotation_translation(anchor["points"][a], rays[b], R)
-                except Exception:
+                except FlowInputError:  # too few tracks left off the anchor's centre
                     continue
                 measured.append((anchor["segment"], anchor["R"] @ (-R.T @ t)))
             anchors = [anchor for anchor in anchors if anchor["alive"]]

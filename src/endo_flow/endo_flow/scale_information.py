@@ -9,7 +9,10 @@ camera centre at its own samples:
 
 with r_i the vision-relative centre (world axes, unknown unit), s the scale,
 t0 an unknown offset (3,) and Σ_i the (3, 3) covariance of the tracker's
-camera-centre error. With θ = ln s the model's Jacobian at sample i is
+camera-centre error, independent from sample to sample (endo_sim's noise is
+white; a real tracker's jitter is correlated over time, which makes the
+bound optimistic for it: correlated samples carry less information than as
+many independent ones). With θ = ln s the model's Jacobian at sample i is
 J_i = [c_i − t0, I₃] (3 × 4; the true centre minus the offset is s · r_i),
 the Fisher information over samples 0..k is F_k = Σ J_iᵀ Σ_i⁻¹ J_i, and no
 unbiased estimator of ln s from those samples has a standard deviation below
@@ -248,7 +251,8 @@ def known_rotation_translation(
         frame is −Rᵀ t.
 
     Raises:
-        FlowInputError: shapes that disagree or fewer than 3 finite points.
+        FlowInputError: shapes that disagree or fewer than 3 finite points off
+            the reference centre.
     """
     X = np.asarray(points, dtype=np.float64)
     b = np.asarray(rays, dtype=np.float64)
@@ -257,9 +261,12 @@ def known_rotation_translation(
         raise FlowInputError(
             f"points {X.shape} and rays {b.shape} must be (N, 3), rotation {R.shape} (3, 3)"
         )
-    ok = np.isfinite(X).all(axis=1) & np.isfinite(b).all(axis=1)
+    # A point at the reference centre has no direction: it cannot weigh in.
+    ok = np.isfinite(X).all(axis=1) & np.isfinite(b).all(axis=1) & (np.linalg.norm(X, axis=1) > 0.0)
     if ok.sum() < 3:
-        raise FlowInputError(f"{int(ok.sum())} finite points: a translation needs at least 3")
+        raise FlowInputError(
+            f"{int(ok.sum())} finite points off the centre: a translation needs at least 3"
+        )
     Y, b = X[ok] @ R.T, b[ok]
     distance = np.linalg.norm(Y, axis=1)
     # [b]× rows: b × t = −b × Y
@@ -302,14 +309,23 @@ def segmented_scale_fit(
     Returns:
         (ln s, its standard deviation from the covariances); (NaN, inf)
         while the segments hold no motion, NaN ln s if s ≤ 0.
+
+    Raises:
+        FlowInputError: a segment with no sample, shapes that disagree,
+            non-finite values or a covariance that is not positive definite.
     """
     information = 0.0
     score = 0.0
-    for relative, measured, covariances in segments:
-        W = np.linalg.inv(np.asarray(covariances, dtype=np.float64))
-        r = np.asarray(relative, dtype=np.float64)
+    for index, (relative, measured, covariances) in enumerate(segments):
+        r = _check_centres(relative, f"segment {index}'s relative centres")
+        y = _check_centres(measured, f"segment {index}'s measured centres")
+        if len(r) == 0 or len(y) != len(r):
+            raise FlowInputError(
+                f"segment {index} holds {len(r)} relative and {len(y)} measured centres:"
+                " it needs the same number, at least 1"
+            )
+        W = np.linalg.inv(_check_covariances(covariances, len(r)))
         r = r - r[0]
-        y = np.asarray(measured, dtype=np.float64)
         y = y - y[0]
         Wr = np.einsum("nij,nj->ni", W, r)
         sum_W = W.sum(axis=0)

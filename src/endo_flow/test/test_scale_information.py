@@ -158,3 +158,18 @@ def test_segmented_fit_shares_one_scale():
     assert abs(log_s - math.log(scale)) < 3.0 * std
     assert math.isnan(segmented_scale_fit([(np.zeros((3, 3)), np.zeros((3, 3)),
                                             np.tile(np.eye(3), (3, 1, 1)))])[0])
+
+
+def test_segmented_fit_and_translation_name_bad_input():
+    eye = np.tile(np.eye(3), (3, 1, 1))
+    with pytest.raises(FlowInputError, match="segment 0 holds 0 relative"):
+        segmented_scale_fit([(np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 3, 3)))])
+    with pytest.raises(FlowInputError, match="segment 1 holds 3 relative and 2 measured"):
+        segmented_scale_fit([(np.ones((3, 3)), np.ones((3, 3)), eye),
+                             (np.ones((3, 3)), np.ones((2, 3)), eye)])
+    with pytest.raises(FlowInputError, match="NaN"):
+        segmented_scale_fit([(np.full((3, 3), np.nan), np.ones((3, 3)), eye)])
+    # three points on the reference centre have no direction: too few are left
+    points = np.vstack([np.zeros((3, 3)), [[0.0, 0.0, 0.05]]])
+    with pytest.raises(FlowInputError, match="off the centre"):
+        known_rotation_translation(points, np.tile([0.0, 0.0, 1.0], (4, 1)), np.eye(3))
