@@ -3,14 +3,21 @@
 A thin adapter around :class:`endo_flow.pipeline.FlowPipeline` (the per-frame
 step the offline processor calls too).
 
-Subscriptions (sensor-data QoS):
+Subscriptions:
 
-* ``/endoscope/image_corrected`` (32FC1 linear irradiance), ``/endoscope/depth_relative``
-  (32FC1) and ``/endoscope/camera_info``, paired by header stamp with
+* ``/endoscope/depth_relative`` (32FC1), the frame input (newest frame): its
+  arrival drives the node;
+* ``/endoscope/image_corrected`` (32FC1 linear irradiance) and
+  ``/endoscope/camera_info``, taken by stamp when a depth arrives
+  (:meth:`endo_io.diagnostics.InputHealth.subscribe_passive`: they wait in
+  DDS, :data:`endo_io.qos.BY_STAMP_QOS`, and cost no executor wake-up each),
+  paired with the depth by header stamp with
   :class:`endo_io.stamp_matching.StampMatcher` (exact stamps by default), so a
   frame never mixes two images;
 * ``/endoscope/pose`` (``T_world_camera`` on the camera clock, from the tracker
-  bridge) into a :class:`endo_io.pose_buffer.PoseBuffer`.
+  bridge) into a :class:`endo_io.pose_buffer.PoseBuffer`, taken the same way:
+  when a depth arrives, while a frame waits for its pose (every 20 ms), and
+  before each /diagnostics status.
 
 A complete frame waits (at most ``pose_wait_s``, and behind at most
 ``max_pending`` earlier frames) until a pose after its stamp has arrived, then
@@ -87,7 +94,7 @@ from endo_flow.shape_correction import SHAPE_CORRECTION_MODES, ShapeCorrectionOp
 from endo_flow.tracking import TrackingOptions
 from endo_flow.warm_up import warm_up_pipeline
 from endo_io import topics
-from endo_io.camera import CameraModel
+from endo_io.camera import CameraInfoCache, CameraModel
 from endo_io.clock_jump import ClockJumpDetector
 from endo_io.diagnostics import HEALTH_PARAMETERS, InputHealth
 from endo_io.errors import (
@@ -104,9 +111,9 @@ from endo_io.pose import pose_to_matrix
 from endo_io.pose_buffer import PoseBuffer
 from endo_io.process import describing_only, run_node
 from endo_io.qos import (
+    BY_STAMP_QOS,
     NEWEST_FRAME_QOS,
     POSE_STREAM_QOS,
-    SENSOR_DATA_QOS,
     create_reliable_publisher,
     reliable_qos,
 )
@@ -237,8 +244,7 @@ class FlowNode(Node):
         self.poses = PoseBuffer(capacity=6000,
                                 max_gap_ns=round(values["pose_max_gap_s"] * NS_PER_S))
         self._pending: deque[_Pending] = deque()
-        self._camera: CameraModel | None = None
-        self._camera_key: tuple[Any, ...] | None = None
+        self._cameras = CameraInfoCache()
         self.health = InputHealth(self, "frames", settings=self.parameters)
         self.pose_health = InputHealth(self, "poses", settings=self.parameters)
         self._frame_time = ClockJumpDetector()
@@ -247,18 +253,25 @@ class FlowNode(Node):
         self.scale_pub = create_reliable_publisher(self, Vector3Stamped, topics.SCALE)
         self.map_pub = self.create_publisher(PointCloud2, topics.MAP,
                                              reliable_qos(1, latched=True))
-        # "processed" counts frames (_process), not the three inputs' callbacks. The
-        # depth drives a frame: only the newest is processed, stale ones are skipped;
-        # the images wait (as deep) for the depth of their stamp.
+        # "processed" counts frames (_process), not the inputs' messages. The depth
+        # drives a frame: only the newest is processed, stale ones are skipped. The
+        # image, camera_info and poses wait in DDS and are taken when a depth comes
+        # (no executor wake-up for each: rclpy rebuilds its whole wait set at each).
         # image_from_cdr: the pixels stay a view of the received bytes (no copy)
-        self.health.subscribe(Image, topics.IMAGE_CORRECTED, self._on_image, NEWEST_FRAME_QOS,
-                              processed=False, gaps=True, decode=image_from_cdr)
         self.health.subscribe(Image, topics.DEPTH_RELATIVE, self._on_depth, NEWEST_FRAME_QOS,
                               processed=False, gaps=True, newest=True, decode=image_from_cdr)
-        self.health.subscribe(CameraInfo, topics.CAMERA_INFO, self._on_info, SENSOR_DATA_QOS,
-                              processed=False)
-        self.pose_health.subscribe(PoseStamped, topics.CAMERA_POSE, self._on_pose,
-                                   POSE_STREAM_QOS)
+        self._image_input = self.health.subscribe_passive(
+            Image, topics.IMAGE_CORRECTED, BY_STAMP_QOS, decode=image_from_cdr)
+        self._info_input = self.health.subscribe_passive(CameraInfo, topics.CAMERA_INFO,
+                                                         BY_STAMP_QOS)
+        self._pose_input = self.pose_health.subscribe_passive(PoseStamped, topics.CAMERA_POSE,
+                                                              POSE_STREAM_QOS)
+        self.pose_health.on_refresh(self._take_poses)
+        self._guarded_image = self.health.guard(self._on_image, processed=False)
+        self._guarded_info = self.health.guard(self._on_info, processed=False)
+        self._guarded_pose = self.pose_health.guard(self._on_pose)
+        # until when a depth that came before its image or camera_info retakes them
+        self._inputs_due = 0.0
         self.create_service(Trigger, "~/reset_map", self._reset_map)
         self.create_service(Trigger, "~/export_map", self._export_map)
         # runs only while a frame waits for its pose: idle, it would wake the executor
@@ -305,6 +318,19 @@ class FlowNode(Node):
 
     # ------------------------------------------------------------------ inputs
 
+    def _take_frame_inputs(self) -> None:
+        """Take the images and camera_infos waiting in DDS into the stamp matchers."""
+        for image, _ in self._image_input.take():
+            self._guarded_image(image)
+        for info, _ in self._info_input.take():
+            self._guarded_info(info)
+
+    def _take_poses(self) -> None:
+        """Take the poses waiting in DDS into the pose buffer, then process what can go."""
+        for msg, arrival_ns in self._pose_input.take():
+            self._guarded_pose(msg, arrival_ns)
+        self._drain()
+
     def _on_image(self, msg: ImageMessage) -> None:
         self._offer_pair(self._images.add_first(stamp_to_ns(msg.header.stamp), msg))
 
@@ -312,9 +338,15 @@ class FlowNode(Node):
         self._offer_pair(self._images.add_second(stamp_to_ns(msg.header.stamp), msg))
 
     def _on_depth(self, msg: ImageMessage) -> None:
+        self._take_frame_inputs()
+        self._take_poses()
         pair = self._frames.add_second(stamp_to_ns(msg.header.stamp), msg)
         if pair is not None:
             self._enqueue(pair.stamp_ns, pair.first[0], msg, pair.first[1])
+        else:  # its image or camera_info is not here yet: look again while a pose would wait
+            self._inputs_due = time.monotonic() + self.parameters["pose_wait_s"]
+            if self._expiry.is_canceled():
+                self._expiry.reset()
 
     def _offer_pair(self, pair: Any) -> None:
         if pair is None:
@@ -323,12 +355,10 @@ class FlowNode(Node):
         if triple is not None:
             self._enqueue(triple.stamp_ns, pair.first, triple.second, pair.second)
 
-    def _on_pose(self, msg: PoseStamped) -> None:
+    def _on_pose(self, msg: PoseStamped, arrival_ns: int | None = None) -> None:
         T, stamp = pose_to_matrix(msg)
-        try:
-            self.poses.insert(stamp, T, arrival_ns=time.monotonic_ns())
-        finally:
-            self._drain()
+        self.poses.insert(stamp, T,
+                          arrival_ns=time.monotonic_ns() if arrival_ns is None else arrival_ns)
 
     def _enqueue(self, stamp_ns: int, image: ImageMessage, depth: ImageMessage,
                  info: CameraInfo) -> None:
@@ -339,8 +369,11 @@ class FlowNode(Node):
             self._expiry.reset()
 
     def _expire_pending(self) -> None:
-        self._drain()
-        if not self._pending:
+        inputs_due = time.monotonic() < self._inputs_due
+        if inputs_due:
+            self._take_frame_inputs()
+        self._take_poses()
+        if not self._pending and not inputs_due:
             self._expiry.cancel()
 
     def _drain(self) -> None:
@@ -373,13 +406,7 @@ class FlowNode(Node):
     # ------------------------------------------------------------------ processing
 
     def _camera_model(self, info: CameraInfo) -> CameraModel:
-        key = (info.width, info.height, info.distortion_model, tuple(info.d), tuple(info.k),
-               tuple(info.p), info.binning_x, info.binning_y, info.roi.x_offset,
-               info.roi.y_offset, info.roi.width, info.roi.height, info.header.frame_id)
-        if self._camera is None or key != self._camera_key:
-            self._camera = CameraModel.from_camera_info(info)  # keeps its ray table cached
-            self._camera_key = key
-        return self._camera
+        return self._cameras.model_of(info)[0]  # rebuilt only for another camera
 
     def _process(self, pending: _Pending, pose: np.ndarray | None) -> None:
         if self._frame_time.is_late(pending.stamp_ns):

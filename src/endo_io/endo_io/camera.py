@@ -601,6 +601,39 @@ class CameraModel:
 # ---------------------------------------------------------------------- helpers
 
 
+class CameraInfoCache:
+    """The model of a stream's CameraInfo, rebuilt only when the message describes another camera.
+
+    A node gets a CameraInfo with every frame; building the model (and
+    comparing it with the last) costs ~0.4 ms, comparing the message's fields
+    a few microseconds. The cached model keeps its ray table.
+
+    Attributes:
+        model: the last model (None before the first message).
+    """
+
+    def __init__(self) -> None:
+        self.model: CameraModel | None = None
+        self._key: tuple[Any, ...] | None = None
+
+    def model_of(self, msg: CameraInfo) -> tuple[CameraModel, bool]:
+        """(the model of ``msg``, whether it differs from the previous message's).
+
+        Raises:
+            CameraModelError: as :meth:`CameraModel.from_camera_info`.
+        """
+        roi = msg.roi
+        key = (msg.width, msg.height, msg.distortion_model, tuple(msg.d), tuple(msg.k),
+               tuple(msg.r), tuple(msg.p), msg.binning_x, msg.binning_y, roi.x_offset,
+               roi.y_offset, roi.width, roi.height, msg.header.frame_id)
+        if self.model is not None and key == self._key:
+            return self.model, False
+        model = CameraModel.from_camera_info(msg)
+        changed = self.model is None or model != self.model
+        self.model, self._key = model, key
+        return model, changed
+
+
 def _to_published(M: np.ndarray, bx: int, by: int, rx: int, ry: int) -> np.ndarray:
     """Full-sensor K (3,3) or P (3,4) -> published image (image_geometry's formulas)."""
     out = np.array(M, dtype=np.float64)

@@ -43,6 +43,14 @@ only the newest; the others are received and **skipped** (counted under
 backlog, nothing was wrong with them). The ``newest_frame`` parameter
 (false) processes every frame in arrival order instead, as before.
 
+Taken by stamp: a subscription made with :meth:`InputHealth.subscribe_passive`
+is never waited on by the executor (no wake-up, no callback per message); its
+messages wait in the subscription's DDS history until the node takes them
+(:meth:`PassiveInput.take`), e.g. the image and camera_info of a frame when
+its depth arrives. They are counted as received when taken; messages the
+history overwrote before anyone asked for them are not counted (they were
+not needed: no frame came for them).
+
 While the process shuts down (SIGINT in the middle of a callback), an
 exception from a publisher whose context is gone is not a dropped message:
 it is neither logged nor counted.
@@ -69,6 +77,7 @@ from endo_io.qos import reliable_qos
 from endo_io.sequence_gaps import SequenceGapCounter
 from endo_io.serialized_stamp import serialized_header_stamp_ns
 from endo_io.stamp import stamp_to_ns
+from endo_io.taking import NeverExecutedGroup, system_to_monotonic_ns, take_waiting
 
 F = TypeVar("F", bound=Callable[..., Any])
 
@@ -132,6 +141,50 @@ class _Events:
         while self.times and now - self.times[0] > window_s:
             self.times.popleft()
         return len(self.times)
+
+
+class PassiveInput:
+    """A subscription whose messages the node takes when it wants them (see the module doc).
+
+    Made by :meth:`InputHealth.subscribe_passive`.
+
+    Attributes:
+        subscription: the rclpy subscription (raw; never executed).
+        name: the resolved topic name it is counted under.
+    """
+
+    def __init__(self, health: InputHealth, subscription: Subscription, msg_type: Any,
+                 name: str, decode: Callable[[bytes], Any] | None) -> None:
+        self._health = health
+        self.subscription = subscription
+        self._msg_type = msg_type
+        self.name = name
+        self._decode = decode
+
+    def take(self) -> list[tuple[Any, int]]:
+        """Every message waiting in the subscription, decoded, oldest first.
+
+        Each is counted as received on :attr:`name`; one that does not decode
+        is dropped (``UndecodableMessageError``, counted and logged) and left
+        out.
+
+        Returns:
+            (message, arrival) pairs; arrival: when the middleware received
+            it, on ``time.monotonic_ns``'s clock (integer ns).
+        """
+        found: list[tuple[Any, int]] = []
+        for data, received_ns in take_waiting(self.subscription):
+            msg = self._health._call(self._decode_one, False, data)
+            if msg is not None:
+                found.append((msg, system_to_monotonic_ns(received_ns)))
+        return found
+
+    def _decode_one(self, data: bytes) -> Any:
+        msg = self._health._decode(data, self._msg_type, self.name, self._decode)
+        header = getattr(msg, "header", None)
+        self._health.received(self.name, stamp_to_ns(header.stamp) if header is not None
+                              else None)
+        return msg
 
 
 class InputHealth:
@@ -412,6 +465,38 @@ class InputHealth:
 
         subscription = self._node.create_subscription(msg_type, topic, guarded, qos, raw=True)
         return subscription
+
+    def subscribe_passive(
+        self,
+        msg_type: Any,
+        topic: str,
+        qos: QoSProfile,
+        *,
+        gaps: bool = False,
+        decode: Callable[[bytes], Any] | None = None,
+    ) -> PassiveInput:
+        """Subscribe to ``topic`` without a callback: the node takes its messages when it asks.
+
+        The executor never waits on the subscription, so its messages cost no
+        wake-up each; they wait in its DDS history (``qos``'s depth: make it
+        deep enough for the time until they are taken) until
+        :meth:`PassiveInput.take`.
+
+        Args:
+            msg_type: the message class.
+            topic: the topic name.
+            qos: the subscription's QoS.
+            gaps: count frames missing from the stamps of the messages taken.
+            decode: as in :meth:`subscribe`.
+
+        Returns:
+            The input, to take messages from.
+        """
+        name = self._node.resolve_topic_name(topic)
+        self.watch(name, gaps=gaps)
+        subscription = self._node.create_subscription(
+            msg_type, topic, lambda _: None, qos, raw=True, callback_group=NeverExecutedGroup())
+        return PassiveInput(self, subscription, msg_type, name, decode)
 
     def _take_newest(
         self, subscription: Subscription, msg_type: Any, name: str, data: bytes

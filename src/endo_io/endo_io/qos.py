@@ -19,6 +19,11 @@
   present, never on a backlog, and no queue grows. Why not keep-last-1: DDS
   would then overwrite the stale frames where the node cannot see them, and
   a skip would be indistinguishable from a frame lost in transport.
+* The inputs a node takes by stamp when its frame arrives (flow's corrected
+  image and camera_info, taken when the relative depth of their stamp comes:
+  :meth:`endo_io.diagnostics.InputHealth.subscribe_passive`) wait in DDS
+  until then: :data:`BY_STAMP_QOS`, best effort, keep last
+  :data:`BY_STAMP_DEPTH`.
 """
 
 from __future__ import annotations
@@ -92,3 +97,11 @@ def create_reliable_publisher(node: Node, msg_type: type, topic: str, depth: int
     return node.create_publisher(
         msg_type, topic, reliable_qos(depth), qos_overriding_options=publisher_overrides()
     )
+
+#: Messages a by-stamp input holds until they are taken: 1 s at 30 fps, longer
+#: than the slowest stage's latency here (SFS's p99 at full resolution, 0.4 s),
+#: so the image of a depth that comes late is still there.
+BY_STAMP_DEPTH = 30
+
+#: Subscription profile of an input taken by stamp (see the module docstring).
+BY_STAMP_QOS = best_effort_qos(BY_STAMP_DEPTH)

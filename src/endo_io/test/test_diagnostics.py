@@ -19,7 +19,7 @@ from sensor_msgs.msg import Image
 
 from endo_io.diagnostics import InputHealth
 from endo_io.errors import ClockJumpError, ImageEncodingError
-from endo_io.image import array_to_image, image_from_cdr
+from endo_io.image import array_to_image, image_from_cdr, image_to_array
 from endo_io.qos import reliable_qos
 from endo_io.sequence_gaps import SequenceGapCounter
 
@@ -196,6 +196,38 @@ def test_undecodable_cdr_is_logged_and_counted_and_good_frames_pass(node):
     assert values["received./diag_test/image"] == "4" and values["processed"] == "2"
     assert "do not decode as Image" in health.last_error
     assert "truncated at header.frame_id: 4294967295 byte(s) needed" in health.last_error
+    executor.shutdown()
+
+
+def test_a_passive_input_waits_in_dds_until_taken_and_counts_what_it_takes(node):
+    health = InputHealth(node, "image input")
+    passive = health.subscribe_passive(Image, "/diag_test/passive", reliable_qos(10),
+                                       decode=image_from_cdr)
+    publisher = node.create_publisher(Image, "/diag_test/passive", reliable_qos(10))
+    executor = SingleThreadedExecutor(context=node.context)
+    executor.add_node(node)
+    deadline = time.monotonic() + 10.0
+    while publisher.get_subscription_count() == 0 and time.monotonic() < deadline:
+        executor.spin_once(timeout_sec=0.05)
+    good = [array_to_image(np.full((4, 6), k, np.float32), "32FC1", (1_000 + k) * MS, "cam")
+            for k in range(3)]
+    for payload in (serialize_message(good[0]), b"\x00\x01\x00\x00" + b"\xff" * 64,
+                    serialize_message(good[1]), good[2]):
+        publisher.publish(payload)
+    taken: list = []
+    deadline = time.monotonic() + 10.0
+    while len(taken) + health.dropped["UndecodableMessageError"] < 4:
+        for _ in range(5):  # the executor never takes them itself
+            executor.spin_once(timeout_sec=0.01)
+        assert time.monotonic() < deadline, _values(health)
+        taken += passive.take()
+    # oldest first, decoded as the nodes decode, each with its arrival on the monotonic clock
+    assert [float(image_to_array(msg)[0, 0]) for msg, _ in taken] == [0.0, 1.0, 2.0]
+    assert all(0 < time.monotonic_ns() - arrival < 20 * 10**9 for _, arrival in taken)
+    assert passive.take() == []
+    values = _values(health)
+    assert values["received./diag_test/passive"] == "4"
+    assert values["dropped.UndecodableMessageError"] == "1" and values["processed"] == "0"
     executor.shutdown()
 
 
