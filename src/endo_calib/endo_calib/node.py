@@ -42,7 +42,13 @@ from endo_calib.raw_image import to_raw_frame
 from endo_io import topics
 from endo_io.diagnostics import HEALTH_PARAMETERS, InputHealth
 from endo_io.errors import ParameterValidationError
-from endo_io.image import ImageMessage, array_to_image, image_from_cdr, image_to_array
+from endo_io.image import (
+    ImageMessage,
+    array_to_image,
+    array_to_image_cdr,
+    image_from_cdr,
+    image_to_array,
+)
 from endo_io.parameters import NodeParameters, ParameterSpec
 from endo_io.process import describing_only, run_node
 from endo_io.provenance import provenance_summary
@@ -199,15 +205,19 @@ class PhotometricCorrectionNode(Node):
 
     def _correct(
         self, calibration: PhotometricCalibration, msg: ImageMessage
-    ) -> tuple[Image, Any]:
-        """(the corrected image message, the raw frame) of one raw image message."""
+    ) -> tuple[bytes, Any]:
+        """(the corrected image's CDR bytes, the raw frame) of one raw image message.
+
+        The bytes are built directly (:func:`endo_io.image.array_to_image_cdr`: one
+        copy of the pixels, not the message's, its conversion's and rclpy's).
+        """
         frame = to_raw_frame(image_to_array(msg), msg.encoding)
         mask = bool(self.parameters["mask_extrapolated"])
         corrected = calibration.correct(frame, mask_extrapolated=mask)
         output = select_channel(calibration, corrected, self.channel)
         encoding = "32FC3" if output.ndim == 3 else "32FC1"
         stamp = stamp_to_ns(msg.header.stamp)
-        return array_to_image(output, encoding, stamp, msg.header.frame_id), frame
+        return array_to_image_cdr(output, encoding, stamp, msg.header.frame_id), frame
 
     def _on_image(self, msg: ImageMessage) -> None:
         calibration = self.calibration

@@ -59,11 +59,11 @@ from rclpy.node import Node
 from sensor_msgs.msg import CameraInfo, Image
 
 from endo_io import topics
-from endo_io.camera import CameraModel
+from endo_io.camera import CameraInfoCache, CameraModel
 from endo_io.clock_jump import ClockJumpDetector
 from endo_io.diagnostics import HEALTH_PARAMETERS, InputHealth
 from endo_io.errors import Endo3dError, ParameterValidationError
-from endo_io.image import ImageMessage, array_to_image, image_from_cdr, image_to_array
+from endo_io.image import ImageMessage, array_to_image_cdr, image_from_cdr, image_to_array
 from endo_io.parameters import NodeParameters, ParameterSpec
 from endo_io.process import describing_only, run_node
 from endo_io.qos import (
@@ -248,6 +248,7 @@ class SfsNode(Node):
         self.health = InputHealth(self, "image input", settings=self.parameters)
         self._frame_time = ClockJumpDetector()
         self._camera: CameraModel | None = None
+        self._cameras = CameraInfoCache()
         self._fov_mask: tuple[float, np.ndarray] | None = None
         self._chain = WarmStartChain(predict=False, keep=self._worker_count)
         self._dealer = FrameDealer(
@@ -334,11 +335,11 @@ class SfsNode(Node):
 
     def _camera_model(self, info: CameraInfo) -> CameraModel:
         """The camera of this frame; the cached model (and its ray table) when unchanged."""
-        camera = CameraModel.from_camera_info(info)
-        if self._camera is None or camera != self._camera:
-            self._camera = camera
+        camera, changed = self._cameras.model_of(info)
+        if changed:
             self._chain.reset()
-        return self._camera
+        self._camera = camera
+        return camera
 
     def _owns(self, stamp_ns: int, *, observe: bool = False) -> bool:
         """Whether this worker solves the frame stamped ``stamp_ns`` (observe: a new input)."""
@@ -406,15 +407,17 @@ class SfsNode(Node):
             # Nothing to reconstruct: say so downstream with an all-NaN depth,
             # then let the guard log and count the cause.
             empty = np.full(irradiance.shape, np.nan, dtype=np.float32)
-            self.depth_publisher.publish(array_to_image(empty, "32FC1", stamp_ns, frame_id))
+            self.depth_publisher.publish(array_to_image_cdr(empty, "32FC1", stamp_ns, frame_id))
             self._chain.reset()
             raise
         elapsed_ms = (time.perf_counter() - start) * 1e3
         self._chain.add(stamp_ns, solution)
-        self.depth_publisher.publish(array_to_image(solution.depth, "32FC1", stamp_ns, frame_id))
+        # CDR bytes built directly: one copy of the pixels, not the message's and rclpy's
+        self.depth_publisher.publish(
+            array_to_image_cdr(solution.depth, "32FC1", stamp_ns, frame_id))
         if self.parameters["publish_normals"]:
             normals = surface_normals(solution.depth, camera)
-            self.normals_publisher.publish(array_to_image(normals, "32FC3", stamp_ns, frame_id))
+            self.normals_publisher.publish(array_to_image_cdr(normals, "32FC3", stamp_ns, frame_id))
         self.health.ok()
         self.health.set_value("solve_ms", f"{elapsed_ms:.1f}")
         self.health.set_value("iterations", solution.info.iterations)
