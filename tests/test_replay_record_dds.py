@@ -25,6 +25,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from geometry_msgs.msg import PoseStamped
+from mcap.reader import make_reader
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import CameraInfo, Image
@@ -209,6 +210,10 @@ def test_replay_then_record_over_dds_reproduces_the_bag_byte_for_byte(
     assert not damaged  # SIGINT finalised the file
     assert len(recorded) == len(expected) == 130
     assert by_topic(recorded) == by_topic(expected)  # same topics, counts, order and raw CDR
+    # taken in batches, written in receive order: log times never go back in the file
+    with output.open("rb") as file:
+        times = [m.log_time for _, _, m in make_reader(file).iter_messages(log_time_order=False)]
+    assert len(times) == 130 and times == sorted(times)
     with BagReader(output) as out, BagReader(input_bag) as inp:
         assert {t: i.msgtype for t, i in out.topics.items()} == {
             t: i.msgtype for t, i in inp.topics.items()
