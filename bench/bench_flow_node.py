@@ -1,6 +1,7 @@
-"""The live ``endo-flow`` node alone at video rate: its CPU per frame, fed from a graph recording.
+"""One live node alone at video rate: its CPU per frame, fed from a graph recording.
 
     .venv/bin/python bench/bench_flow_node.py RECORDING [--runs 2] [--rate 1.0]
+        [--node flow|record] [--baseline SRC_ROOT]
 
 RECORDING is a live graph's recording (``graph.mcap`` of a bench_graph or
 ``endo-demo`` run, with ``camera.yaml`` beside it): ``endo-replay`` plays its
@@ -11,17 +12,27 @@ the large-frame profile. The input is the same in every run, unlike in
 bench_graph, where flow gets whatever depth frames the SFS node let out, so
 the node's CPU per frame can be compared between two versions of it.
 
-Reported per run: the depth frames played, the flow node's CPU time (user +
+``--node record`` plays every topic of the recording into one ``endo-record``
+(the graph's recorder command: lz4 chunks, flushed every 0.2 s) instead; its
+CPU is reported per image_corrected frame played (a frame of the graph).
+
+``--baseline SRC_ROOT`` (a checkout's root, e.g. ``git archive main src | tar
+-x -C /tmp/base``) alternates each run of this tree's node with one of the
+baseline's (its ``src/*`` packages first on PYTHONPATH), so that the two
+compare as a ratio inside one pass, under the same load.
+
+Reported per run: the depth frames played, the node's CPU time (user +
 system, /proc) from the start of the play to 1 s after its end, per depth
-frame played, and per message of any topic played (the node's subscriptions
-wake it for each), and the CPU seconds of each of its threads since it
-started (warm-up included).
+frame played (per image_corrected frame for the recorder), and per message
+of any topic played (the node's subscriptions wake it for each), and the CPU
+seconds of each of its threads since it started (warm-up included).
 """
 
 from __future__ import annotations
 
 import argparse
 import os
+import re
 import statistics
 import sys
 import tempfile
@@ -29,29 +40,52 @@ import time
 from pathlib import Path
 
 from endo_bringup.dds_profile import with_large_frame_profile
-from endo_bringup.graph import NODE_UP, camera_file_path, replay_process
-from endo_bringup.graph_monitor import _cpu_and_rss
+from endo_bringup.graph import (
+    NODE_UP,
+    RECORDER,
+    GraphProcess,
+    camera_file_path,
+    recorder_process,
+    replay_process,
+)
+from endo_bringup.graph_monitor import GraphMonitor, _cpu_and_rss
 from endo_bringup.process_group import ProcessGroup, console_script
 from endo_io.bag import BagReader
-from endo_io.topics import CAMERA_INFO, CAMERA_POSE, DEPTH_RELATIVE, IMAGE_CORRECTED
+from endo_io.topics import CAMERA_INFO, CAMERA_POSE, DEPTH_RELATIVE, IMAGE_CORRECTED, SCALE
 
 PLAYED = (IMAGE_CORRECTED, DEPTH_RELATIVE, CAMERA_INFO, CAMERA_POSE)
 
 
-def run_once(recording: Path, rate: float, env: dict[str, str], logs: Path) -> dict[str, float]:
-    """One play of ``recording`` into a fresh flow node; its CPU figures."""
+def run_once(recording: Path, rate: float, env: dict[str, str], logs: Path,
+             node_name: str = "flow") -> dict[str, float]:
+    """One play of ``recording`` into a fresh node (``flow`` or ``record``); its CPU figures."""
     with BagReader(recording) as reader:
-        counts = {t: reader.topics[t].message_count for t in PLAYED if t in reader.topics}
-    flow = [console_script("endo-flow"), "--ros-args", "-p",
-            f"warm_up_camera_file:={camera_file_path(recording)}"]
-    player = replay_process(recording, list(counts), rate,
-                            {t: 1 for t in counts})  # the flow node's subscription of each
-    with ProcessGroup(dict(env, PYTHONUNBUFFERED="1"), logs) as group:
-        node = group.start("endo-flow", flow)
+        wanted = PLAYED if node_name == "flow" else tuple(reader.topics)
+        counts = {t: reader.topics[t].message_count for t in wanted if t in reader.topics}
+    if node_name == "flow":
+        name = "endo-flow"
+        command = [console_script(name), "--ros-args", "-p",
+                   f"warm_up_camera_file:={camera_file_path(recording)}"]
+        up = NODE_UP
+    else:
+        name = RECORDER
+        process = recorder_process(list(counts), logs / "recorded.mcap")
+        command = [console_script(process.executable), *process.arguments]
+        up = re.compile(r"recording ")
+    # the node's subscription of each topic, and the listener's of the first one
+    waits = {t: 1 for t in counts}
+    waits[next(iter(counts))] += 1
+    player = replay_process(recording, list(counts), rate, waits)
+    # a listener counts the flow node's outputs: one scale per frame it processed
+    watched = [GraphProcess("endo-flow", "endo-flow", publishes=(SCALE,)), player]
+    logs.mkdir(parents=True, exist_ok=True)
+    with GraphMonitor(watched, env) as monitor, \
+            ProcessGroup(dict(env, PYTHONUNBUFFERED="1"), logs) as group:
+        node = group.start(name, command)
         deadline = time.monotonic() + 90.0
-        while not NODE_UP.search(group.log("endo-flow")):
-            if not group.running("endo-flow") or time.monotonic() > deadline:
-                raise RuntimeError(f"endo-flow did not come up:\n{group.log('endo-flow')}")
+        while not up.search(group.log(name)):
+            if not group.running(name) or time.monotonic() > deadline:
+                raise RuntimeError(f"{name} did not come up:\n{group.log(name)}")
             time.sleep(0.1)
         before = _cpu_and_rss(node.pid)
         replay = group.start(player.name, player.command())
@@ -62,8 +96,10 @@ def run_once(recording: Path, rate: float, env: dict[str, str], logs: Path) -> d
         group.stop()
     assert before is not None and after is not None
     cpu_ms = 1e3 * (after[0] - before[0])
-    return {"depth frames": counts.get(DEPTH_RELATIVE, 0), "messages": sum(counts.values()),
-            "cpu ms": cpu_ms, "ms per depth frame": cpu_ms / max(counts.get(DEPTH_RELATIVE, 0), 1),
+    outputs = len(monitor.arrivals.times.get(SCALE, {}))
+    frames = counts.get(DEPTH_RELATIVE if node_name == "flow" else IMAGE_CORRECTED, 0)
+    return {"frames": frames, "processed": outputs, "messages": sum(counts.values()),
+            "cpu ms": cpu_ms, "ms per frame": cpu_ms / max(frames, 1),
             "ms per message": cpu_ms / max(sum(counts.values()), 1), "rss MB": after[1],
             **{f"thread {name} s": seconds for name, seconds in threads.items()}}
 
@@ -89,23 +125,36 @@ def main() -> int:
     parser.add_argument("recording", type=Path)
     parser.add_argument("--runs", type=int, default=2)
     parser.add_argument("--rate", type=float, default=1.0)
+    parser.add_argument("--node", choices=("flow", "record"), default="flow")
+    parser.add_argument("--baseline", type=Path, default=None,
+                        help="a checkout's root whose src/* packages run in alternate runs")
     args = parser.parse_args()
     env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
     env.setdefault("ROS_DOMAIN_ID", "43")
     work = Path(tempfile.mkdtemp(prefix="endo3d_bench_flow_node_"))
     env, note = with_large_frame_profile(env, work)
-    print(f"bench_flow_node: {args.recording}, rate {args.rate:g}; "
+    print(f"bench_flow_node: {args.node} on {args.recording}, rate {args.rate:g}; "
           f"{note}", flush=True)
-    figures = []
+    variants = {"this tree": env}
+    if args.baseline is not None:
+        packages = sorted(str(p) for p in (args.baseline / "src").iterdir() if p.is_dir())
+        variants = {"baseline": dict(env, PYTHONPATH=os.pathsep.join(packages)), **variants}
+    figures: dict[str, list[float]] = {name: [] for name in variants}
     for run in range(1, args.runs + 1):
-        load = os.getloadavg()[0]
-        result = run_once(args.recording, args.rate, env, work / f"logs{run}")
-        figures.append(result)
-        print(f"run {run} (load {load:.1f} -> {os.getloadavg()[0]:.1f}): "
-              + ", ".join(f"{k} {v:.3g}" for k, v in result.items()), flush=True)
-    per_frame = [f["ms per depth frame"] for f in figures]
-    print(f"flow CPU per depth frame: {', '.join(f'{x:.2f}' for x in per_frame)} ms "
-          f"(median {statistics.median(per_frame):.2f})")
+        for name, variant_env in variants.items():
+            load = os.getloadavg()[0]
+            result = run_once(args.recording, args.rate, variant_env,
+                              work / f"logs{run}_{len(figures[name])}_{name.replace(' ', '_')}",
+                              args.node)
+            figures[name].append(result["ms per frame"])
+            print(f"run {run}, {name} (load {load:.1f} -> {os.getloadavg()[0]:.1f}): "
+                  + ", ".join(f"{k} {v:.3g}" for k, v in result.items()), flush=True)
+    for name, per_frame in figures.items():
+        print(f"{args.node} CPU per frame, {name}: {', '.join(f'{x:.2f}' for x in per_frame)} ms "
+              f"(median {statistics.median(per_frame):.2f})")
+    if args.baseline is not None:
+        ratios = [a / b for a, b in zip(figures["this tree"], figures["baseline"], strict=True)]
+        print(f"this tree / baseline, per pass: {', '.join(f'{r:.3f}' for r in ratios)}")
     return 0
 
 

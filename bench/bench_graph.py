@@ -24,6 +24,13 @@ configuration runs ``--runs`` times (2); the runs are passes over all
 configurations, so the ratios inside one pass compare configurations under
 the same load.
 
+``--baseline SRC_ROOT`` (a checkout's root, e.g. ``git archive main src | tar
+-x -C /tmp/base``) runs each configuration a second time in every pass with
+that checkout's ``src/*`` packages first on PYTHONPATH (every process of the
+graph, the bench's own imports stay this tree's), named ``<configuration>
+[baseline]``: a change compares with what it replaces as a ratio inside one
+pass, under the same load.
+
 ``--sweep`` also finds ``endo-demo``'s default playback rate: the phantom at
 the demo's solve_scale and each rate of ``--sweep-rates``; the fastest rate
 at which every stage kept every frame in every run. It goes into its own
@@ -102,6 +109,10 @@ class Result:
     run: int
     figures: GraphFigures
     load_before: float
+    #: CPU ms the bench process (its listener: every node output's bytes) spent per
+    #: frame played, over the whole run (start-up included): not the graph's, but
+    #: taken from the same 2 cores.
+    listener_ms_per_frame: float = float("nan")
 
 
 def ensure_long_bag(path: Path, seconds: float) -> Path:
@@ -116,22 +127,34 @@ def ensure_long_bag(path: Path, seconds: float) -> Path:
     return path
 
 
+BASELINE_SUFFIX = " [baseline]"
+
+
+def baseline_env(env: dict[str, str], root: Path) -> dict[str, str]:
+    """``env`` with the ``src/*`` packages of the checkout at ``root`` first on PYTHONPATH."""
+    packages = sorted(str(p) for p in (root / "src").iterdir() if p.is_dir())
+    return dict(env, PYTHONPATH=os.pathsep.join(packages))
+
+
 def run_once(bag: Path, configuration: Configuration, rate: float, work: Path,
-             env: dict[str, str]) -> GraphFigures:
-    """The graph on ``bag`` in ``configuration`` at ``rate``; its figures."""
+             env: dict[str, str]) -> tuple[GraphFigures, float]:
+    """The graph on ``bag`` in ``configuration`` at ``rate``: figures, listener ms per frame."""
     out = Path(tempfile.mkdtemp(prefix=f"{bag.stem}_", dir=work))
     photometric, handeye, _ = true_calibrations(out, configuration.solve_scale, bag)
     settings = replace(graph_settings_for(bag, rate, configuration.solve_scale),
                        node_parameters=configuration.node_parameters)
     processes = planned_graph(bag, photometric, handeye, out, settings)
     settings = replace(settings, listeners=GraphMonitor.played_listeners(processes))
+    before = os.times()
     with GraphMonitor(processes, env) as monitor, ProcessSampler(processes) as sampler:
         run = run_live_graph(bag, photometric, handeye, out, env, settings)
+    after = os.times()
     figures = graph_figures(run.processes, monitor, sampler, run.played)
+    listener_ms = 1e3 * (after.user + after.system - before.user - before.system)
     bad = {name: code for name, code in run.return_codes.items() if code != 0}
     if bad:
         print(f"  exit codes {bad}; logs in {run.log_dir}", flush=True)
-    return figures
+    return figures, listener_ms / max(figures.frames_played, 1)
 
 
 def _stage(figures: GraphFigures, name: str) -> str:
@@ -247,7 +270,8 @@ def ratio_lines(results: list[Result]) -> list[str]:
     """Each optimisation off against all on, same bag, scale and pass (none: no lines)."""
     if all(r.configuration.name == "all on" for r in results):
         return []
-    lines = ["Each optimisation off against all on (same bag, scale and pass; >1: off is "
+    lines = ["Each other configuration (an optimisation off, or the baseline) against all on "
+             "(same bag, scale and pass; >1: the other is "
              "worse for latency, <1: off gives fewer depth frames):", ""]
     lines += ["| bag | configuration | scale | pass | depth frames off/on | "
               "end-to-end p50 off/on | sfs CPU off/on |", "|---|---|---|---|---|---|---|"]
@@ -273,7 +297,7 @@ def ratio_lines(results: list[Result]) -> list[str]:
 
 def cost_lines(results: list[Result]) -> list[str]:
     """CPU ms per frame of each process (all on), and the cores 30 Hz would need."""
-    runs = [r for r in results if r.configuration.name == "all on"]
+    runs = [r for r in results if r.configuration.name.startswith("all on")]
     if not runs or not runs[0].figures.processes:
         return []
     names = [p.name for p in runs[0].figures.processes]
@@ -286,14 +310,16 @@ def cost_lines(results: list[Result]) -> list[str]:
              "pose; frames it processed without a pose) is charged to those it let out. So Σ "
              "ms per frame is an upper bound of the CPU a frame costs, against the 66 CPU-ms "
              "of 2 cores × 33 ms, and Σ × 30 / 1000 of the cores 30 Hz needs:", "",
-             "| bag | scale | pass | " + " | ".join(names) + " | Σ ms per frame | "
-             "cores for 30 Hz (bound) |",
-             "|---|---|---|" + "---|" * (len(names) + 2)]
+             "| bag | configuration | scale | pass | " + " | ".join(names) + " | Σ ms per frame | "
+             "cores for 30 Hz (bound) | bench listener ms per frame (not in Σ) |",
+             "|---|---|---|---|" + "---|" * (len(names) + 3)]
     for r in runs:
         costs = [r.figures.cpu_ms_per_frame(n) for n in names]
-        lines.append(f"| {r.bag} | {r.configuration.solve_scale:g} | {r.run} | "
+        lines.append(f"| {r.bag} | {r.configuration.name} | {r.configuration.solve_scale:g} | "
+                     f"{r.run} | "
                      + " | ".join(f"{c:.1f}" for c in costs)
-                     + f" | {sum(costs):.0f} | {sum(costs) * 30 / 1000:.2f} |")
+                     + f" | {sum(costs):.0f} | {sum(costs) * 30 / 1000:.2f} | "
+                     f"{getattr(r, 'listener_ms_per_frame', float('nan')):.1f} |")
     return lines
 
 
@@ -350,6 +376,7 @@ def main() -> int:
     parser.add_argument("--long-seconds", type=float, default=60.0)
     parser.add_argument("--long-bag", type=Path, default=LONG_BAG)
     parser.add_argument("--no-long", action="store_true", help="the phantom only")
+    parser.add_argument("--long-only", action="store_true", help="the long bag only")
     parser.add_argument("--sweep", action="store_true", help="find the demo's playback rate")
     parser.add_argument("--sweep-rates", type=float, nargs="+", default=[0.1, 0.25, 0.5, 1.0])
     parser.add_argument("--only", nargs="+", default=None, help="configuration names to run")
@@ -361,6 +388,8 @@ def main() -> int:
                         help="with --report-from: leave out a bag's runs of one pass (a pass "
                         "that was disturbed, e.g. by another graph on the same DDS domain)")
     parser.add_argument("--first-pass", type=int, default=1, help="number of the first pass")
+    parser.add_argument("--baseline", type=Path, default=None, metavar="SRC_ROOT",
+                        help="also run every configuration with this checkout's src/* packages")
     parser.add_argument("--sweep-only", action="store_true", help="only the demo-rate sweep")
     parser.add_argument("--sweep-scale", type=float, default=GRAPH_SOLVE_SCALE,
                         help=f"solve_scale of the sweep (the demo's: {GRAPH_SOLVE_SCALE:g})")
@@ -387,6 +416,8 @@ def main() -> int:
     print(f"bench_graph: {note}; runs in {work}", flush=True)
     no_long = args.no_long or args.sweep_only
     bags = [PHANTOM] if no_long else [PHANTOM, ensure_long_bag(args.long_bag, args.long_seconds)]
+    if args.long_only and not no_long:
+        bags = bags[1:]
     chosen = [c for c in configurations(args.scales) if args.only is None or c.name in args.only]
     results: list[Result] = []
     sweep: list[Result] = []
@@ -399,16 +430,29 @@ def main() -> int:
                 print(f"== pass {run}: {bag.name}, {configuration.name}, solve_scale "
                       f"{configuration.solve_scale:g}, rate {args.rate:g} (load {load:.1f})",
                       flush=True)
-                figures = run_once(bag, configuration, args.rate, work, env)
+                figures, listener = run_once(bag, configuration, args.rate, work, env)
                 print("\n".join("   " + line for line in stage_lines(figures)), flush=True)
-                results.append(Result(bag.stem, configuration, args.rate, run, figures, load))
+                print(f"   bench listener: {listener:.1f} CPU-ms per frame played", flush=True)
+                results.append(Result(bag.stem, configuration, args.rate, run, figures, load,
+                                      listener))
+                save(work, results, sweep)
+                if args.baseline is None:
+                    continue
+                base = replace(configuration, name=configuration.name + BASELINE_SUFFIX)
+                load = os.getloadavg()[0]
+                print(f"== pass {run}: {bag.name}, {base.name} (load {load:.1f})", flush=True)
+                figures, listener = run_once(bag, base, args.rate, work,
+                                             baseline_env(env, args.baseline))
+                print("\n".join("   " + line for line in stage_lines(figures)), flush=True)
+                print(f"   bench listener: {listener:.1f} CPU-ms per frame played", flush=True)
+                results.append(Result(bag.stem, base, args.rate, run, figures, load, listener))
                 save(work, results, sweep)
         if args.sweep:
             for rate in args.sweep_rates:
                 load = os.getloadavg()[0]
                 print(f"== sweep pass {run}: phantom at {rate:g}x (load {load:.1f})", flush=True)
-                figures = run_once(PHANTOM, Configuration("all on", args.sweep_scale), rate,
-                                   work, env)
+                figures, _ = run_once(PHANTOM, Configuration("all on", args.sweep_scale), rate,
+                                      work, env)
                 print("\n".join("   " + line for line in stage_lines(figures)), flush=True)
                 sweep.append(Result(PHANTOM.stem, Configuration("all on", args.sweep_scale),
                                     rate, run, figures, load))
