@@ -261,15 +261,13 @@ class FlowNode(Node):
         self.health.subscribe(Image, topics.DEPTH_RELATIVE, self._on_depth, NEWEST_FRAME_QOS,
                               processed=False, gaps=True, newest=True, decode=image_from_cdr)
         self._image_input = self.health.subscribe_passive(
-            Image, topics.IMAGE_CORRECTED, BY_STAMP_QOS, decode=image_from_cdr)
-        self._info_input = self.health.subscribe_passive(CameraInfo, topics.CAMERA_INFO,
-                                                         BY_STAMP_QOS)
-        self._pose_input = self.pose_health.subscribe_passive(PoseStamped, topics.CAMERA_POSE,
-                                                              POSE_STREAM_QOS)
+            Image, topics.IMAGE_CORRECTED, lambda msg, _: self._on_image(msg), BY_STAMP_QOS,
+            decode=image_from_cdr)
+        self._info_input = self.health.subscribe_passive(
+            CameraInfo, topics.CAMERA_INFO, lambda msg, _: self._on_info(msg), BY_STAMP_QOS)
+        self._pose_input = self.pose_health.subscribe_passive(
+            PoseStamped, topics.CAMERA_POSE, self._on_pose, POSE_STREAM_QOS, processed=True)
         self.pose_health.on_refresh(self._take_poses)
-        self._guarded_image = self.health.guard(self._on_image, processed=False)
-        self._guarded_info = self.health.guard(self._on_info, processed=False)
-        self._guarded_pose = self.pose_health.guard(self._on_pose)
         # until when a depth that came before its image or camera_info retakes them
         self._inputs_due = 0.0
         self.create_service(Trigger, "~/reset_map", self._reset_map)
@@ -320,15 +318,12 @@ class FlowNode(Node):
 
     def _take_frame_inputs(self) -> None:
         """Take the images and camera_infos waiting in DDS into the stamp matchers."""
-        for image, _ in self._image_input.take():
-            self._guarded_image(image)
-        for info, _ in self._info_input.take():
-            self._guarded_info(info)
+        self._image_input.take()
+        self._info_input.take()
 
     def _take_poses(self) -> None:
         """Take the poses waiting in DDS into the pose buffer, then process what can go."""
-        for msg, arrival_ns in self._pose_input.take():
-            self._guarded_pose(msg, arrival_ns)
+        self._pose_input.take()
         self._drain()
 
     def _on_image(self, msg: ImageMessage) -> None:
@@ -355,10 +350,9 @@ class FlowNode(Node):
         if triple is not None:
             self._enqueue(triple.stamp_ns, pair.first, triple.second, pair.second)
 
-    def _on_pose(self, msg: PoseStamped, arrival_ns: int | None = None) -> None:
+    def _on_pose(self, msg: PoseStamped, arrival_ns: int) -> None:
         T, stamp = pose_to_matrix(msg)
-        self.poses.insert(stamp, T,
-                          arrival_ns=time.monotonic_ns() if arrival_ns is None else arrival_ns)
+        self.poses.insert(stamp, T, arrival_ns=arrival_ns)
 
     def _enqueue(self, stamp_ns: int, image: ImageMessage, depth: ImageMessage,
                  info: CameraInfo) -> None:

@@ -149,42 +149,53 @@ class PassiveInput:
     Made by :meth:`InputHealth.subscribe_passive`.
 
     Attributes:
-        subscription: the rclpy subscription (raw; never executed).
+        subscription: the rclpy subscription (raw; never run by the executor: its
+            callback, :meth:`deliver`, is for messages given directly, as tests
+            and offline drivers give them).
         name: the resolved topic name it is counted under.
     """
 
-    def __init__(self, health: InputHealth, subscription: Subscription, msg_type: Any,
-                 name: str, decode: Callable[[bytes], Any] | None) -> None:
+    def __init__(self, health: InputHealth, msg_type: Any, name: str,
+                 callback: Callable[[Any, int], None], processed: bool,
+                 decode: Callable[[bytes], Any] | None) -> None:
         self._health = health
-        self.subscription = subscription
         self._msg_type = msg_type
         self.name = name
+        self._callback = callback
+        self._processed = processed
         self._decode = decode
+        self.subscription: Subscription | None = None
 
-    def take(self) -> list[tuple[Any, int]]:
-        """Every message waiting in the subscription, decoded, oldest first.
+    def take(self) -> int:
+        """Deliver every message waiting in the subscription, oldest first; how many there were.
 
-        Each is counted as received on :attr:`name`; one that does not decode
-        is dropped (``UndecodableMessageError``, counted and logged) and left
-        out.
-
-        Returns:
-            (message, arrival) pairs; arrival: when the middleware received
-            it, on ``time.monotonic_ns``'s clock (integer ns).
+        Each goes through :meth:`deliver` with the time the middleware received it.
         """
-        found: list[tuple[Any, int]] = []
-        for data, received_ns in take_waiting(self.subscription):
-            msg = self._health._call(self._decode_one, False, data)
-            if msg is not None:
-                found.append((msg, system_to_monotonic_ns(received_ns)))
-        return found
+        assert self.subscription is not None
+        taken = take_waiting(self.subscription)
+        for data, received_ns in taken:
+            self.deliver(data, system_to_monotonic_ns(received_ns))
+        return len(taken)
 
-    def _decode_one(self, data: bytes) -> Any:
-        msg = self._health._decode(data, self._msg_type, self.name, self._decode)
+    def deliver(self, data: Any, arrival_ns: int | None = None) -> None:
+        """Decode ``data`` (a message given as such is taken as it is), count it, call back.
+
+        Guarded as :meth:`InputHealth.guard`: an undecodable message or a
+        callback that raises drops that message only (counted and logged).
+
+        Args:
+            data: the serialized message, or the message.
+            arrival_ns: when it arrived, ``time.monotonic_ns``'s clock (None: now).
+        """
+        self._health._call(self._decode_and_call, self._processed, data, arrival_ns)
+
+    def _decode_and_call(self, data: Any, arrival_ns: int | None) -> None:
+        msg = data if isinstance(data, self._msg_type) else self._health._decode(
+            data, self._msg_type, self.name, self._decode)
         header = getattr(msg, "header", None)
         self._health.received(self.name, stamp_to_ns(header.stamp) if header is not None
                               else None)
-        return msg
+        self._callback(msg, time.monotonic_ns() if arrival_ns is None else arrival_ns)
 
 
 class InputHealth:
@@ -470,22 +481,27 @@ class InputHealth:
         self,
         msg_type: Any,
         topic: str,
+        callback: Callable[[Any, int], None],
         qos: QoSProfile,
         *,
+        processed: bool = False,
         gaps: bool = False,
         decode: Callable[[bytes], Any] | None = None,
     ) -> PassiveInput:
-        """Subscribe to ``topic`` without a callback: the node takes its messages when it asks.
+        """Subscribe to ``topic`` without a wake-up per message: the node takes them when it asks.
 
-        The executor never waits on the subscription, so its messages cost no
-        wake-up each; they wait in its DDS history (``qos``'s depth: make it
-        deep enough for the time until they are taken) until
-        :meth:`PassiveInput.take`.
+        The executor never waits on the subscription; its messages wait in its
+        DDS history (``qos``'s depth: make it deep enough for the time until
+        they are taken) until :meth:`PassiveInput.take` delivers them, each to
+        ``callback(message, arrival_ns)`` through the guard.
 
         Args:
             msg_type: the message class.
             topic: the topic name.
+            callback: called with each decoded message and when it arrived
+                (``time.monotonic_ns``'s clock).
             qos: the subscription's QoS.
+            processed: as in :meth:`guard`.
             gaps: count frames missing from the stamps of the messages taken.
             decode: as in :meth:`subscribe`.
 
@@ -494,9 +510,10 @@ class InputHealth:
         """
         name = self._node.resolve_topic_name(topic)
         self.watch(name, gaps=gaps)
-        subscription = self._node.create_subscription(
-            msg_type, topic, lambda _: None, qos, raw=True, callback_group=NeverExecutedGroup())
-        return PassiveInput(self, subscription, msg_type, name, decode)
+        passive = PassiveInput(self, msg_type, name, callback, processed, decode)
+        passive.subscription = self._node.create_subscription(
+            msg_type, topic, passive.deliver, qos, raw=True, callback_group=NeverExecutedGroup())
+        return passive
 
     def _take_newest(
         self, subscription: Subscription, msg_type: Any, name: str, data: bytes
