@@ -7,6 +7,7 @@ frames lost in transport, undecodable CDR, no false drop while shutting down.
 from __future__ import annotations
 
 import time
+from typing import Any
 
 import numpy as np
 import pytest
@@ -170,18 +171,24 @@ def test_gap_counter_counts_missing_frames_at_the_estimated_rate():
     assert sum(counts) <= 2
 
 
+def _matched_publisher(node: Node, topic: str) -> tuple[Any, SingleThreadedExecutor]:
+    """An Image publisher on ``topic`` once the node's subscription matched, and an executor."""
+    publisher = node.create_publisher(Image, topic, reliable_qos(10))
+    executor = SingleThreadedExecutor(context=node.context)
+    executor.add_node(node)
+    deadline = time.monotonic() + 10.0
+    while publisher.get_subscription_count() == 0 and time.monotonic() < deadline:
+        executor.spin_once(timeout_sec=0.05)
+    return publisher, executor
+
+
 def test_undecodable_cdr_is_logged_and_counted_and_good_frames_pass(node):
     health = InputHealth(node, "image input")
     got: list[Image] = []
     # decoded as the image nodes decode (pixels a view of the bytes)
     health.subscribe(Image, "/diag_test/image", got.append, reliable_qos(10), gaps=True,
                      decode=image_from_cdr)
-    publisher = node.create_publisher(Image, "/diag_test/image", reliable_qos(10))
-    executor = SingleThreadedExecutor(context=node.context)
-    executor.add_node(node)
-    deadline = time.monotonic() + 10.0
-    while publisher.get_subscription_count() == 0 and time.monotonic() < deadline:
-        executor.spin_once(timeout_sec=0.05)
+    publisher, executor = _matched_publisher(node, "/diag_test/image")
     good = array_to_image(np.ones((4, 6), np.float32), "32FC1", 1_000 * MS, "cam")
     data = serialize_message(good)
     for payload in (data, data[:40], b"\x00\x01\x00\x00" + b"\xff" * 64, good):
@@ -205,12 +212,7 @@ def test_a_passive_input_waits_in_dds_until_taken_and_counts_what_it_takes(node)
     passive = health.subscribe_passive(Image, "/diag_test/passive",
                                        lambda msg, arrival: taken.append((msg, arrival)),
                                        reliable_qos(10), decode=image_from_cdr)
-    publisher = node.create_publisher(Image, "/diag_test/passive", reliable_qos(10))
-    executor = SingleThreadedExecutor(context=node.context)
-    executor.add_node(node)
-    deadline = time.monotonic() + 10.0
-    while publisher.get_subscription_count() == 0 and time.monotonic() < deadline:
-        executor.spin_once(timeout_sec=0.05)
+    publisher, executor = _matched_publisher(node, "/diag_test/passive")
     good = [array_to_image(np.full((4, 6), k, np.float32), "32FC1", (1_000 + k) * MS, "cam")
             for k in range(3)]
     for payload in (serialize_message(good[0]), b"\x00\x01\x00\x00" + b"\xff" * 64,
