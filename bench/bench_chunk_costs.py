@@ -5,9 +5,10 @@
 RECORDING is a live graph's recording (``graph.mcap`` of a bench_graph run):
 its messages are cut into chunks of 1 MiB (the BagWriter's ``chunk_size``),
 in file order, and each chunk is compressed (zstd at level 3, what
-``mcap``'s Python writer and rosbag2's default MCAP settings use; zstd at
-level 1; lz4 frame, endo-record's choice for the live graph; none) and
-CRC-32'd (the chunk CRC, on by default in both writers). Reported: CPU ms
+``mcap``'s Python writer and so endo-record's default use; zstd at level 1,
+libmcap's ``Default`` level; lz4 frame, endo-record's choice for the live
+graph) and CRC-32'd (the chunk CRC, on in endo-record; rosbag2's MCAP plugin
+writes uncompressed chunks without it by default). Reported: CPU ms
 (process time) per MB of messages, the compression ratio, and so the CPU of
 one frame of the graph at its MB per frame.
 """
