@@ -602,8 +602,14 @@ def convergence_table() -> list[str]:
 
 
 def phantom(bag: str, calibration: str, roughness: float, mask_highlights: bool,
-            solve_scale: float, fov_radius: float, threads: int, first_sweeps: bool = True) -> None:
-    """Median-scaled AbsRel on an endo_sim bag, after endo_calib's correction."""
+            solve_scale: float, fov_radius: float, threads: int, first_sweeps: bool = True,
+            highlight_downsample: int = 0) -> None:
+    """Median-scaled AbsRel on an endo_sim bag, after endo_calib's correction.
+
+    fov_radius: the field-of-view mask's radius in pixels (0: no mask, as the
+    sfs node and endo-process solve by default). highlight_downsample:
+    :attr:`endo_sfs.options.SfsOptions.highlight_downsample` (0: the default).
+    """
     from recorded_frames import read_recorded_frames
 
     from endo_calib.calibration import PhotometricCalibration
@@ -614,11 +620,11 @@ def phantom(bag: str, calibration: str, roughness: float, mask_highlights: bool,
     images, infos, depths, stamps = frames.images, frames.infos, frames.depths, frames.stamps
     correction = PhotometricCalibration.load(calibration)
     camera = CameraModel.from_camera_info(infos[stamps[0]])
-    mask = camera.fov_mask(fov_radius)
+    mask = camera.fov_mask(fov_radius) if fov_radius > 0.0 else None
     previous = None
     options = SfsOptions(roughness=roughness, solve_scale=solve_scale,
                          mask_highlights=mask_highlights, threads=threads,
-                         first_sweeps=first_sweeps)
+                         first_sweeps=first_sweeps, highlight_downsample=highlight_downsample)
     errors, scales, coverage, wall, updates = [], [], [], [], []
     # Every frame in order, warm-started from the previous one as the node
     # does; the error on the frames with ground truth.
@@ -638,7 +644,9 @@ def phantom(bag: str, calibration: str, roughness: float, mask_highlights: bool,
             coverage.append(error.coverage)
     print(f"{bag}: {len(stamps)} frames ({len(errors)} with depth) {camera.width}×"
           f"{camera.height}, σ = {roughness}, "
-          f"mask_highlights {mask_highlights}, solve_scale {solve_scale}, threads {threads}")
+          f"mask_highlights {mask_highlights}, solve_scale {solve_scale}, threads {threads}, "
+          f"mask radius {fov_radius:g} px, highlight_downsample "
+          f"{options.detection_downsample(camera.height)}")
     print("per frame: " + ", ".join(f"{e:.4f}" for e in errors))
     print(f"median-scaled AbsRel: mean {np.mean(errors):.4f}, median {np.median(errors):.4f}, "
           f"max {np.max(errors):.4f}; coverage {np.mean(coverage):.3f}; per-frame scale "
@@ -678,85 +686,108 @@ def load_reference(tree: str) -> Any:
     return importlib.import_module("endo_sfs_reference.relative_depth")
 
 
-def breakdown(bag: str, calibration: str, frames: int, threads: int, downsample: int,
-              reference: str | None) -> None:
-    """Where the wall time of a warm phantom frame goes, stage by stage, at solve_scale 1 and 0.5.
+def breakdown(bag: str, calibration: str, frames: int, threads: list[int], downsample: int,
+              reference: str | None, fov_radius: float = 240.0) -> None:
+    """Where the wall and CPU time of a warm phantom frame go, by stage, at solve_scale 1 and 0.5.
 
     Every frame of the bag in order, warm-started as the node does, highlights
     masked; the median over the frames after the first of each stage of
     :attr:`endo_sfs.relative_depth.SfsSolution.timings` and of the whole
-    ``solve`` call (wall and process CPU). With ``reference`` (an older tree,
-    :func:`load_reference`) its chain is solved too, frame by frame in
-    alternating order, so that load hits both alike: per-frame ratios of this
-    tree's wall and CPU time to the reference's, and the largest relative
-    depth difference between the two.
+    ``solve`` call (wall and process CPU: on the live graph's two shared
+    cores the CPU time is what the other processes lose). One chain per
+    thread count in ``threads``; with ``reference`` (an older tree,
+    :func:`load_reference`) its chains are solved too. All chains take each
+    frame in turn, in an order that alternates, so that load hits them alike:
+    per-frame ratios of this tree's wall and CPU time to the reference's (per
+    thread count) and of each thread count's to the first's, and the largest
+    relative depth difference to the reference. fov_radius: the field-of-view
+    mask's radius in pixels (0: no mask, as the sfs node and endo-process
+    solve by default; highlight detection then fills the NaN holes).
     """
     sequence, camera, _ = phantom_sequence(bag, calibration, np.random.default_rng(0))
     sequence = sequence[:frames]
-    mask = camera.fov_mask(240.0)
-    chains: dict[str, Any] = {"this tree": relative_depth}
+    mask = camera.fov_mask(fov_radius) if fov_radius > 0.0 else None
+    trees: dict[str, Any] = {"this tree": relative_depth}
     if reference:
-        chains["reference"] = load_reference(reference)
+        trees["reference"] = load_reference(reference)
+    chains = {(tree, count): module for tree, module in trees.items() for count in threads}
+
+    def label(chain: tuple[str, int]) -> str:
+        return f"{chain[0]}, {chain[1]} thread{'s' if chain[1] > 1 else ''}"
+
     print(f"\nbreakdown, {bag} ({len(sequence)} frames), threads {threads}, "
-          f"highlight_downsample {downsample}, chains: {', '.join(chains)}")
+          f"highlight_downsample {downsample}, mask radius {fov_radius:g} px, chains: "
+          f"{', '.join(label(chain) for chain in chains)}")
     for scale in (1.0, 0.5):
         options = {}
-        for name, module in chains.items():
+        for chain, module in chains.items():
             extra: dict[str, int] = {}
             if downsample and "highlight_downsample" in module.SfsOptions.__dataclass_fields__:
                 extra["highlight_downsample"] = downsample  # 0: each tree's default
-            options[name] = module.SfsOptions(roughness=0.3, solve_scale=scale,
-                                              mask_highlights=True, threads=threads, **extra)
-        previous = {name: module.solve(sequence[0][0], camera, options[name], mask=mask)
-                    for name, module in chains.items()}
-        walls: dict[str, list[float]] = {name: [] for name in chains}
-        cpus: dict[str, list[float]] = {name: [] for name in chains}
-        work: dict[str, list[float]] = {name: [] for name in chains}
-        stages: dict[str, list[float]] = {}
-        differences: list[np.ndarray] = []
+            options[chain] = module.SfsOptions(roughness=0.3, solve_scale=scale,
+                                               mask_highlights=True, threads=chain[1], **extra)
+        previous = {chain: module.solve(sequence[0][0], camera, options[chain], mask=mask)
+                    for chain, module in chains.items()}
+        walls: dict[tuple[str, int], list[float]] = {chain: [] for chain in chains}
+        cpus: dict[tuple[str, int], list[float]] = {chain: [] for chain in chains}
+        work: dict[tuple[str, int], list[float]] = {chain: [] for chain in chains}
+        stages: dict[int, dict[str, list[float]]] = {count: {} for count in threads}
+        differences: dict[int, list[np.ndarray]] = {count: [] for count in threads}
         for k, (irradiance, _, _) in enumerate(sequence[1:]):
             names = list(chains) if k % 2 == 0 else list(chains)[::-1]
-            for name in names:
+            for chain in names:
                 start, start_cpu = time.perf_counter(), time.process_time()
-                previous[name] = chains[name].solve(irradiance, camera, options[name], mask=mask,
-                                                    warm_start=previous[name])
-                walls[name].append(time.perf_counter() - start)
-                cpus[name].append(time.process_time() - start_cpu)
-            for name in chains:
-                solution = previous[name]
-                work[name].append(solution.info.updates / np.isfinite(solution.node_solution).sum())
-            ours = previous["this tree"]
-            for stage, seconds in ours.timings.items():
-                stages.setdefault(stage, []).append(seconds)
-            if "reference" in previous:
-                theirs = previous["reference"].depth
-                both = np.isfinite(theirs) & np.isfinite(ours.depth)
-                differences.append(np.abs(ours.depth[both] / theirs[both] - 1.0))
-        nodes = int(np.isfinite(ours.node_solution).sum())
+                previous[chain] = chains[chain].solve(irradiance, camera, options[chain],
+                                                      mask=mask, warm_start=previous[chain])
+                walls[chain].append(time.perf_counter() - start)
+                cpus[chain].append(time.process_time() - start_cpu)
+            for chain in chains:
+                solution = previous[chain]
+                work[chain].append(solution.info.updates
+                                   / np.isfinite(solution.node_solution).sum())
+            for count in threads:
+                ours = previous[("this tree", count)]
+                for stage, seconds in ours.timings.items():
+                    stages[count].setdefault(stage, []).append(seconds)
+                if reference:
+                    theirs = previous[("reference", count)].depth
+                    both = np.isfinite(theirs) & np.isfinite(ours.depth)
+                    differences[count].append(np.abs(ours.depth[both] / theirs[both] - 1.0))
+        nodes = int(np.isfinite(previous[("this tree", threads[0])].node_solution).sum())
         print(f"solve_scale {scale:g}: {nodes} nodes")
-        for name in chains:
-            print(f"  {name}: whole solve median {1e3 * np.median(walls[name]):.1f} ms wall (p90 "
-                  f"{1e3 * np.percentile(walls[name], 90):.1f}), "
-                  f"{1e3 * np.median(cpus[name]):.1f} ms CPU, "
-                  f"{np.mean(work[name]):.2f} node solves per node")
-        if "reference" in chains:
-            wall_ratio = np.array(walls["this tree"]) / np.array(walls["reference"])
-            cpu_ratio = np.array(cpus["this tree"]) / np.array(cpus["reference"])
-            print(f"  this tree / reference, median of per-frame ratios: wall "
-                  f"{np.median(wall_ratio):.3f}, CPU {np.median(cpu_ratio):.3f}")
-            pooled = np.concatenate(differences)
-            print(f"  relative depth difference, every pixel of every frame: largest "
-                  f"{pooled.max(initial=0.0):.1e}, 99.9th percentile "
+        for chain in chains:
+            print(f"  {label(chain)}: whole solve median {1e3 * np.median(walls[chain]):.1f} ms "
+                  f"wall (p90 {1e3 * np.percentile(walls[chain], 90):.1f}), "
+                  f"{1e3 * np.median(cpus[chain]):.1f} ms CPU "
+                  f"(p90 {1e3 * np.percentile(cpus[chain], 90):.1f}), "
+                  f"{np.mean(work[chain]):.2f} node solves per node")
+        def ratios(ours: tuple[str, int], theirs: tuple[str, int],
+                   walls: dict = walls, cpus: dict = cpus) -> str:
+            wall = np.array(walls[ours]) / np.array(walls[theirs])
+            cpu = np.array(cpus[ours]) / np.array(cpus[theirs])
+            return f"wall {np.median(wall):.3f}, CPU {np.median(cpu):.3f}"
+
+        for count in threads[1:]:
+            print(f"  {count} / {threads[0]} threads (this tree), median of per-frame ratios: "
+                  + ratios(("this tree", count), ("this tree", threads[0])))
+        for count in threads if reference else []:
+            print(f"  this tree / reference, {count} thread(s), median of per-frame ratios: "
+                  + ratios(("this tree", count), ("reference", count)))
+            pooled = np.concatenate(differences[count])
+            print(f"  relative depth difference to the reference, every pixel of every frame: "
+                  f"largest {pooled.max(initial=0.0):.1e}, 99.9th percentile "
                   f"{np.percentile(pooled, 99.9):.1e}")
-        print("| stage | median ms | p90 ms |")
-        print("|---|---|---|")
-        for stage, values in stages.items():
-            print(f"| {stage} | {1e3 * np.median(values):.2f} | "
-                  f"{1e3 * np.percentile(values, 90):.2f} |")
-        rest = np.array(walls["this tree"]) - np.sum([np.array(v) for v in stages.values()],
-                                                      axis=0)
-        print(f"| (rest: checks, warm-start lookup, Python) | {1e3 * np.median(rest):.2f} | "
-              f"{1e3 * np.percentile(rest, 90):.2f} |")
+        for count in threads:
+            print(f"this tree, {count} thread(s):")
+            print("| stage | median ms | p90 ms |")
+            print("|---|---|---|")
+            for stage, values in stages[count].items():
+                print(f"| {stage} | {1e3 * np.median(values):.2f} | "
+                      f"{1e3 * np.percentile(values, 90):.2f} |")
+            total = np.sum([np.array(v) for v in stages[count].values()], axis=0)
+            rest = np.array(walls[("this tree", count)]) - total
+            print(f"| (rest: checks, warm-start lookup, Python) | {1e3 * np.median(rest):.2f} | "
+                  f"{1e3 * np.percentile(rest, 90):.2f} |")
 
 
 def main() -> None:
@@ -774,9 +805,12 @@ def main() -> None:
     parser.add_argument("--no-first-sweeps", action="store_true",
                         help="--phantom: SfsOptions.first_sweeps off (each node solved in the "
                         "first sweep that reaches it)")
-    parser.add_argument("--threads", type=int, default=1, help="phantom: solver threads")
+    parser.add_argument("--threads", default="1",
+                        help="solver threads (--breakdown: a comma-separated list, one chain "
+                        "each, e.g. 1,2)")
     parser.add_argument("--fov-radius", type=float, default=240.0,
-                        help="phantom: field-of-view radius in pixels")
+                        help="--phantom, --breakdown: field-of-view mask radius in pixels "
+                        "(--breakdown: 0 = no mask, as the node and endo-process)")
     parser.add_argument("--warm-starts", action="store_true",
                         help="only compare warm starts (previous frame, pose-predicted) on the "
                         "posed tube and, with --phantom-bag/--calibration, the phantom")
@@ -793,8 +827,8 @@ def main() -> None:
                         help="only time the stages of a warm phantom frame at solve_scale 1 and "
                         "0.5 (--phantom-bag, --calibration, --threads, --frames)")
     parser.add_argument("--highlight-downsample", type=int, default=0,
-                        help="--breakdown: SfsOptions.highlight_downsample (0: each tree's "
-                        "default)")
+                        help="--breakdown, --phantom: SfsOptions.highlight_downsample (0: each "
+                        "tree's default)")
     parser.add_argument("--reference", metavar="TREE",
                         help="--breakdown: also solve with the endo_sfs of this older checkout, "
                         "frame by frame in one process (ratios)")
@@ -803,8 +837,9 @@ def main() -> None:
     if args.breakdown:
         if not (args.phantom_bag and args.calibration):
             parser.error("--breakdown needs --phantom-bag and --calibration")
-        breakdown(args.phantom_bag, args.calibration, args.frames, args.threads,
-                  args.highlight_downsample, args.reference)
+        breakdown(args.phantom_bag, args.calibration, args.frames,
+                  [int(count) for count in args.threads.split(",")], args.highlight_downsample,
+                  args.reference, args.fov_radius)
         print(f"machine after: {machine()}")
         return
     if args.workers:
@@ -817,14 +852,15 @@ def main() -> None:
         if args.first_pass:
             relative_depth.FIRST_PASS_WORK_LIMIT = float("inf")
             print("value-ordered first pass on every frame")
-        bench_warm_starts(args.frames, args.phantom_bag, args.calibration, args.threads)
+        bench_warm_starts(args.frames, args.phantom_bag, args.calibration, int(args.threads))
         print(f"machine after: {machine()}")
         return
     if args.phantom:
         if not args.calibration:
             parser.error("--phantom needs --calibration")
         phantom(args.phantom, args.calibration, args.roughness, not args.no_highlight_mask,
-                args.solve_scale, args.fov_radius, args.threads, not args.no_first_sweeps)
+                args.solve_scale, args.fov_radius, int(args.threads), not args.no_first_sweeps,
+                args.highlight_downsample)
         return
     if args.accuracy:
         print("\nAbsRel after one least-squares scale, 256² (8-bit: mean of 3 noise seeds;"

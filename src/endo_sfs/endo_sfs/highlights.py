@@ -106,16 +106,29 @@ def filled(inside: np.ndarray) -> np.ndarray:
 
     A hole is a connected region (4-connected, as scipy's default structure)
     of pixels outside ``inside`` that does not touch the image border.
-    inside: (H, W) bool. Returns (H, W) bool. One connected-components pass
-    instead of scipy's iterated dilation (~0.5 against ~5 ms at 640×480).
+    inside: (H, W) bool. Returns (H, W) bool. The outside reached from the
+    border is flood-filled (``cv2.floodFill``, 4-connected, one seed per run
+    of outside pixels along each edge that an earlier fill has not reached):
+    ~0.15 ms at 640×480 against ~0.7 for a connected-components labelling.
     """
-    outside = (~np.asarray(inside, dtype=bool)).astype(np.uint8)
-    _, labels = cv2.connectedComponents(outside, connectivity=4)
-    border = np.zeros(labels.max() + 1, dtype=bool)
-    for edge in (labels[0], labels[-1], labels[:, 0], labels[:, -1]):
-        border[edge] = True
-    border[0] = False  # label 0: the pixels inside
-    return ~border[labels]
+    outside = (~np.asarray(inside, dtype=bool)).view(np.uint8)  # 1 outside, 0 inside
+    if outside.size == 0:
+        return np.ones(outside.shape, dtype=bool)
+    height, width = outside.shape
+    seeds: list[tuple[int, int]] = []
+    for edge, position in (
+        (outside[0], lambda k: (k, 0)),
+        (outside[-1], lambda k: (k, height - 1)),
+        (outside[:, 0], lambda k: (0, k)),
+        (outside[:, -1], lambda k: (width - 1, k)),
+    ):
+        # the first pixel of each run of outside pixels along the edge
+        starts = np.flatnonzero(np.diff(edge, prepend=np.uint8(0)) == 1)
+        seeds.extend(position(int(k)) for k in starts)
+    for x, y in seeds:
+        if outside[y, x] == 1:  # not reached by an earlier seed's fill
+            cv2.floodFill(outside, None, (x, y), 2, flags=4)
+    return np.asarray(outside != 2)
 
 
 def _disc(radius: int) -> np.ndarray:

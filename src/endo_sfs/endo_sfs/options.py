@@ -37,6 +37,11 @@ MAX_HIGHLIGHT_DOWNSAMPLE = 8
 #: solve_scale at and below which highlights are detected on the halved image
 #: when ``highlight_downsample`` is 0 (the default).
 HALVED_DETECTION_SCALE = 0.5
+#: Images of at least this many rows are detected on the halved image at every
+#: solve_scale when ``highlight_downsample`` is 0: at 640×480 and solve_scale 1
+#: that costs about half, and the AbsRel moved by at most 0.0002 (docs/sfs.md,
+#: "Cost per frame", session 8).
+HALVED_DETECTION_ROWS = 480
 
 
 @dataclass(frozen=True)
@@ -74,10 +79,11 @@ class SfsOptions:
         highlight_downsample: the detection runs on the image reduced by
             this factor (``detect_highlights(downsample=...)``), 1 to
             :data:`MAX_HIGHLIGHT_DOWNSAMPLE`, or 0 (the default): as the
-            solve grid needs it, :attr:`detection_downsample` (2 at
-            ``solve_scale`` ≤ 0.5, 1 above). At 640×480 the halved image
-            costs about half (docs/sfs.md, "Cost per frame"), with the
-            phantom's AbsRel unchanged at solve_scale 0.5 (0.0797).
+            solve grid and the image size allow, :meth:`detection_downsample`
+            (2 at ``solve_scale`` ≤ 0.5 or with 480 rows or more, else 1).
+            At 640×480 the halved image costs about half (docs/sfs.md,
+            "Cost per frame"), with the phantom's AbsRel unchanged at
+            solve_scale 0.5 (0.0797) and 0.0787 against 0.0788 at 1.
         threads: CPU threads for the resampling and, with the near-light
             model on large grids, for the first pass of the solver (two
             halves at once), ≥ 1. 1 gives bit-identical results run to
@@ -159,18 +165,23 @@ class SfsOptions:
                 f"(0: as the solve grid needs), got {self.highlight_downsample}"
             )
 
-    @property
-    def detection_downsample(self) -> int:
-        """The factor by which highlight detection reduces the image.
+    def detection_downsample(self, height: int) -> int:
+        """The factor by which highlight detection reduces an image of ``height`` rows.
 
         ``highlight_downsample`` when set, else 2 at ``solve_scale`` ≤
         :data:`HALVED_DETECTION_SCALE` (a node there spans 2 × 2 pixels, so
         finer detection changes no more than the mask's edge: the phantom's
-        and the seed-7 colon's AbsRel stay within 0.0003), else 1.
+        and the seed-7 colon's AbsRel stay within 0.0003) or when the image
+        has at least :data:`HALVED_DETECTION_ROWS` rows (the detection's
+        filters are fractions of the height and its baseline grid has 120
+        rows either way: at 640×480 and solve_scale 1 the phantom's AbsRel
+        0.0788 → 0.0787, the colon seed 2's 0.0919 → 0.0919 with the
+        field-of-view mask and 0.0912 → 0.0914 without), else 1.
         """
         if self.highlight_downsample:
             return self.highlight_downsample
-        return 2 if self.solve_scale <= HALVED_DETECTION_SCALE else 1
+        halved = self.solve_scale <= HALVED_DETECTION_SCALE or height >= HALVED_DETECTION_ROWS
+        return 2 if halved else 1
 
 
 _FLOATS = ("roughness", "solve_scale", "tolerance", "dark_level", "max_irradiance",

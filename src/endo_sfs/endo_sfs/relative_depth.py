@@ -323,7 +323,7 @@ def solve(
         valid = valid_pixels(image, mask, options.dark_level, options.saturation)
         if options.mask_highlights:
             valid &= ~detect_highlights(image, mask, options.saturation,
-                                        downsample=options.detection_downsample)
+                                        downsample=options.detection_downsample(image.shape[0]))
         grid = solve_grid(camera, "gnomonic", options.solve_scale)
         valid &= grid.pixel_has_ray
         if not valid.any():
@@ -388,7 +388,7 @@ def _solve_near_light(
     start = now
     if options.mask_highlights:
         valid &= ~detect_highlights(image, mask, options.saturation,
-                                    downsample=options.detection_downsample)
+                                    downsample=options.detection_downsample(image.shape[0]))
     timings["highlights"] = (now := time.perf_counter()) - start
     start = now
     if not valid.any():

@@ -194,12 +194,14 @@ def test_disc_minimum_equals_opencvs_erosion(radius):
                                       cv2.erode(values, _disc(radius)))
 
 
-def test_detection_follows_the_solve_grid_unless_set():
-    assert SfsOptions().detection_downsample == 1
-    assert SfsOptions(solve_scale=0.5).detection_downsample == 2
-    assert SfsOptions(solve_scale=0.25).detection_downsample == 2
-    assert SfsOptions(solve_scale=0.5, highlight_downsample=1).detection_downsample == 1
-    assert SfsOptions(highlight_downsample=3).detection_downsample == 3
+def test_detection_follows_the_solve_grid_and_image_size_unless_set():
+    assert SfsOptions().detection_downsample(240) == 1
+    assert SfsOptions().detection_downsample(479) == 1
+    assert SfsOptions().detection_downsample(480) == 2
+    assert SfsOptions(solve_scale=0.5).detection_downsample(240) == 2
+    assert SfsOptions(solve_scale=0.25).detection_downsample(480) == 2
+    assert SfsOptions(solve_scale=0.5, highlight_downsample=1).detection_downsample(480) == 1
+    assert SfsOptions(highlight_downsample=3).detection_downsample(240) == 3
     with pytest.raises(InvalidOptionError, match="highlight_downsample"):
         SfsOptions(highlight_downsample=-1)
 
