@@ -15,9 +15,14 @@ Subscriptions:
   :class:`endo_io.stamp_matching.StampMatcher` (exact stamps by default), so a
   frame never mixes two images;
 * ``/endoscope/pose`` (``T_world_camera`` on the camera clock, from the tracker
-  bridge) into a :class:`endo_io.pose_buffer.PoseBuffer`, taken the same way:
-  when a depth arrives, while a frame waits for its pose (every 20 ms), and
-  before each /diagnostics status.
+  bridge) into a :class:`endo_io.pose_buffer.PoseBuffer`, taken the same way
+  (:data:`endo_io.qos.PASSIVE_POSE_QOS`, 2 s of a 250 Hz tracker): when a
+  depth arrives, while a frame waits for its pose (every 20 ms) and at least
+  every :data:`endo_io.qos.PASSIVE_POSE_TAKE_PERIOD_S` (0.1 s), so no pose is
+  overwritten in DDS while no depth comes (start-up, SFS stalled or slow).
+  Before each /diagnostics status the node also takes the waiting images and
+  camera_infos, so the status's ages and counts of those inputs are theirs,
+  not the depth's: with the depth stopped, only the depth is stale.
 
 A complete frame waits (at most ``pose_wait_s``, and behind at most
 ``max_pending`` earlier frames) until a pose after its stamp has arrived, then
@@ -113,7 +118,8 @@ from endo_io.process import describing_only, run_node
 from endo_io.qos import (
     BY_STAMP_QOS,
     NEWEST_FRAME_QOS,
-    POSE_STREAM_QOS,
+    PASSIVE_POSE_QOS,
+    PASSIVE_POSE_TAKE_PERIOD_S,
     create_reliable_publisher,
     reliable_qos,
 )
@@ -266,8 +272,10 @@ class FlowNode(Node):
         self._info_input = self.health.subscribe_passive(
             CameraInfo, topics.CAMERA_INFO, lambda msg, _: self._on_info(msg), BY_STAMP_QOS)
         self._pose_input = self.pose_health.subscribe_passive(
-            PoseStamped, topics.CAMERA_POSE, self._on_pose, POSE_STREAM_QOS, processed=True)
+            PoseStamped, topics.CAMERA_POSE, self._on_pose, PASSIVE_POSE_QOS, processed=True)
         self.pose_health.on_refresh(self._take_poses)
+        # the image and camera_info counted and aged as theirs, even while no depth comes
+        self.health.on_refresh(self._take_frame_inputs)
         # until when a depth that came before its image or camera_info retakes them
         self._inputs_due = 0.0
         self.create_service(Trigger, "~/reset_map", self._reset_map)
@@ -276,6 +284,8 @@ class FlowNode(Node):
         # 50 times a second for nothing (each wake-up builds rclpy's whole wait set)
         self._expiry = self.create_timer(0.02, self._expire_pending)
         self._expiry.cancel()
+        # poses taken even while no depth comes: their DDS history holds 2 s at 250 Hz
+        self.create_timer(PASSIVE_POSE_TAKE_PERIOD_S, self._take_poses)
         self.create_timer(values["map_period_s"], self._publish_map)
         self._map_dirty = False
         self.get_logger().info(

@@ -166,3 +166,48 @@ def test_a_frame_without_poses_waits_then_goes_on_without(graph, moving):
         assert [o for o in gc.get_objects() if isinstance(o, ImageView)] == []
     finally:
         gc.enable()
+
+
+def _pose_at(stamp_ns: int) -> PoseStamped:
+    T = np.eye(4)
+    T[0, 3] = stamp_ns * 1e-12  # a slow slide along x: each pose its own
+    return matrix_to_pose(T, stamp_ns, topics.WORLD_FRAME)
+
+
+def test_poses_that_come_while_no_depth_comes_are_all_kept(graph):
+    # Review of issue 15: poses were taken only when a depth came (and once a second),
+    # from a history of 100 (0.4 s at 250 Hz): a longer depth gap overwrote them in DDS,
+    # uncounted. 300 poses (1.2 s at 250 Hz) arrive while the node runs nothing at all
+    # (the executor is not spun: a slow frame, a stall), and no depth comes after.
+    flow, _peer, pubs, _got, spin_until = graph
+    stamps = [1_000_000_000 + k * 4_000_000 for k in range(300)]
+    for stamp in stamps:
+        pubs["pose"].publish(_pose_at(stamp))
+    assert spin_until(lambda: len(flow.poses) == len(stamps), timeout=5.0), len(flow.poses)
+    assert flow.poses.oldest_ns == stamps[0] and flow.poses.newest_ns == stamps[-1]
+    values = {kv.key: kv.value for kv in flow.pose_health.status().values}
+    assert values[f"received.{topics.CAMERA_POSE}"] == "300"
+    assert values["processed"] == "300" and values["dropped"] == "0"
+
+
+def test_without_depth_the_status_blames_the_depth_not_the_image_and_camera_info(graph, moving):
+    # Review of issue 15: with the image and camera_info taken only when a depth came,
+    # SFS dying made flow's /diagnostics call them "no message yet" as well.
+    flow, _peer, pubs, _got, spin_until = graph
+    frame = moving.frames(moving.poses)[0]
+    info = frame.camera.to_camera_info(frame.stamp_ns)
+    pubs["info"].publish(info)
+    pubs["image"].publish(array_to_image(frame.image, "32FC1", frame.stamp_ns,
+                                         topics.OPTICAL_FRAME))
+    image_key = f"received.{topics.IMAGE_CORRECTED}"
+    info_key = f"received.{topics.CAMERA_INFO}"
+
+    def counts() -> dict[str, str]:
+        return {kv.key: kv.value for kv in flow.health.status().values}
+
+    assert spin_until(lambda: counts()[image_key] == "1" and counts()[info_key] == "1",
+                      timeout=5.0), counts()
+    problems = flow.health.problems()
+    assert f"no message yet on {topics.DEPTH_RELATIVE}" in problems
+    assert not any(topics.IMAGE_CORRECTED in p or topics.CAMERA_INFO in p for p in problems)
+    assert counts()[f"received.{topics.DEPTH_RELATIVE}"] == "0"

@@ -23,7 +23,10 @@
   image and camera_info, taken when the relative depth of their stamp comes:
   :meth:`endo_io.diagnostics.InputHealth.subscribe_passive`) wait in DDS
   until then: :data:`BY_STAMP_QOS`, best effort, keep last
-  :data:`BY_STAMP_DEPTH`.
+  :data:`BY_STAMP_DEPTH`. A pose stream taken that way (flow's poses, taken
+  when a depth arrives and every :data:`PASSIVE_POSE_TAKE_PERIOD_S`) waits in
+  :data:`PASSIVE_POSE_QOS`: keep last :data:`PASSIVE_POSE_DEPTH`, 2 s of a
+  250 Hz tracker.
 """
 
 from __future__ import annotations
@@ -105,3 +108,20 @@ BY_STAMP_DEPTH = 30
 
 #: Subscription profile of an input taken by stamp (see the module docstring).
 BY_STAMP_QOS = best_effort_qos(BY_STAMP_DEPTH)
+
+#: Poses a pose stream taken by its node (not one callback each) holds until
+#: they are taken: 2 s at 250 Hz (a pose is ~100 bytes: 50 kB). The node takes
+#: them at least every :data:`PASSIVE_POSE_TAKE_PERIOD_S` while its executor
+#: runs; the depth covers a stall (a slow frame, a loaded machine) of up to
+#: 2 s less that period. With :data:`POSE_STREAM_DEPTH` (0.4 s at 250 Hz) a
+#: depth gap longer than 0.4 s overwrote poses in DDS, where nobody counted
+#: them (review of issue 15's changes).
+PASSIVE_POSE_DEPTH = 500
+
+#: Subscription profile of a pose stream taken by its node (flow's).
+PASSIVE_POSE_QOS = best_effort_qos(PASSIVE_POSE_DEPTH)
+
+#: Longest interval between two takes of a passive pose stream, seconds, even
+#: when no frame comes (a node idle 10 times a second costs ~10 executor
+#: wake-ups, against 250 for a callback per pose).
+PASSIVE_POSE_TAKE_PERIOD_S = 0.1

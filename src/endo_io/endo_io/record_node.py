@@ -10,11 +10,24 @@ The messages are taken in batches (``--take-period``, 20 ms): the
 subscriptions are never waited on by rclpy's executor
 (:mod:`endo_io.taking`), a timer takes everything waiting in all of them,
 and the batch is written in order of the middleware's receive time (the log
-time), holding back what arrived after the batch began to the next batch, so
-log times never go back in the file. One executor wake-up per batch instead
-of one per message: a live graph's ~11 messages per frame woke the recorder
-~330 times a second, each rebuilding rclpy's whole wait set.
-``--take-period 0`` takes each message in its own callback, as before.
+time), holding back what arrived after the batch began to the next batch
+(:class:`ReceiveOrder`). One executor wake-up per batch instead of one per
+message: a live graph's ~11 messages per frame woke the recorder ~330 times
+a second, each rebuilding rclpy's whole wait set. ``--take-period 0`` takes
+each message in its own callback, as before.
+
+Log times never go back in the file: the hold-back alone does not ensure it
+(a large fragmented image received before a batch began may become takeable
+only after it was written; under ``use_sim_time`` the offset from the
+middleware's system clock to the node clock moves by up to one /clock step
+between batches), so a log time up to :data:`MAX_RAISE_NS` (1 s) before the
+last one written is raised to it and counted (``reordered`` in the summary).
+A larger step back is the node clock jumping (``use_sim_time`` over a looping
+bag) and is written as it is, as a message taken in its own callback is.
+
+At the end (SIGINT, SIGTERM, a limit) the messages still waiting are taken
+once more, each subscription on its own: one that rclpy refuses (its context
+or handle gone) is logged, the others and the held-back batch are written.
 
 A flush timer closes the current chunk about once a second, so a recorder
 killed with SIGKILL leaves a file that reads up to the last flush (and a bag
@@ -39,7 +52,6 @@ graph it records.
 from __future__ import annotations
 
 import argparse
-import contextlib
 import functools
 import sys
 import time
@@ -47,6 +59,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from rclpy.exceptions import InvalidHandle
 from rclpy.node import Node
 
 from endo_io.bag import BagWriter, message_class
@@ -65,7 +78,64 @@ from endo_io.record import (
     seconds_to_ns,
     topics_to_record,
 )
+from endo_io.stamp import NS_PER_S
 from endo_io.taking import NeverExecutedGroup, take_waiting
+
+#: Largest step back of a log time that is raised to the last one written (see
+#: the module docstring); a larger one is a clock jump, written as it is.
+MAX_RAISE_NS = NS_PER_S
+
+#: A message taken for the file: (log time ns, topic, CDR bytes).
+Taken = tuple[int, str, bytes]
+
+
+class ReceiveOrder:
+    """Orders batches of taken messages by receive time so that log times never go back.
+
+    Attributes:
+        raised: log times raised to the last one given out (they were
+            received earlier but became takeable later, or the clock offset
+            moved between batches).
+        last_ns: the last log time given out (None before the first).
+    """
+
+    def __init__(self, max_raise_ns: int = MAX_RAISE_NS) -> None:
+        self._max_raise_ns = max_raise_ns
+        self._held: list[Taken] = []
+        self.raised = 0
+        self.last_ns: int | None = None
+
+    @property
+    def held(self) -> int:
+        """Messages held back for the next batch."""
+        return len(self._held)
+
+    def batch(self, taken: list[Taken], cut_ns: int | None) -> list[Taken]:
+        """The messages to write now, in log-time order, none before the last given out.
+
+        Args:
+            taken: messages taken since the last batch, any order.
+            cut_ns: messages received after this time (when the batch began)
+                are held back for the next batch; None: none (the last batch).
+
+        Returns:
+            The held-back and ``taken`` messages received up to ``cut_ns``,
+            sorted by log time, each raised to the last given out when it is
+            at most ``max_raise_ns`` before it.
+        """
+        batch = sorted(self._held + taken, key=lambda item: item[0])
+        cut = len(batch) if cut_ns is None else next(
+            (i for i, item in enumerate(batch) if item[0] > cut_ns), len(batch))
+        self._held = batch[cut:]
+        out = []
+        for log_ns, topic, data in batch[:cut]:
+            last = self.last_ns
+            if last is not None and 0 < last - log_ns <= self._max_raise_ns:
+                log_ns = last
+                self.raised += 1
+            self.last_ns = log_ns
+            out.append((log_ns, topic, data))
+        return out
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -147,8 +217,7 @@ class RecordNode(Node):
         self.exit_code = 0
         self._taken_group = NeverExecutedGroup() if options.take_period > 0 else None
         self._taken_from: dict[str, Any] = {}
-        # (receive ns, topic, bytes) taken after their batch began: written with the next
-        self._held: list[tuple[int, str, bytes]] = []
+        self.order = ReceiveOrder()
         recording.start(self.get_clock().now().nanoseconds)
         self.create_timer(options.discovery_period, self._discover)
         if options.take_period > 0:
@@ -211,7 +280,8 @@ class RecordNode(Node):
     def _take(self, final: bool = False) -> None:
         """Write what waits in the subscriptions, in receive order (see the module docstring).
 
-        ``final``: the last batch, nothing held back.
+        ``final``: the last batch, nothing held back; a subscription rclpy
+        refuses to take from is logged and the others are written.
         """
         if self._stopping and not final:
             return
@@ -219,16 +289,19 @@ class RecordNode(Node):
         # the middleware's receive times are on the system clock; the log time is on the
         # node's (use_sim_time applies), as for a message taken in its own callback
         offset = self.get_clock().now().nanoseconds - began
-        batch = self._held
+        taken: list[Taken] = []
         for topic, subscription in self._taken_from.items():
-            batch += [(max(received + offset, 0), topic, data)
-                      for data, received in take_waiting(subscription)]
-        batch.sort(key=lambda item: item[0])
-        cut = len(batch) if final else next(
-            (i for i, item in enumerate(batch) if item[0] > began + offset), len(batch))
-        self._held = batch[cut:]
-        for received, topic, data in batch[:cut]:
-            if not self._write(topic, data, received):
+            try:
+                waiting = take_waiting(subscription)
+            except (RuntimeError, InvalidHandle) as error:  # rclpy's: context or handle gone
+                if not final:
+                    raise
+                self.get_logger().warning(
+                    f"the messages still waiting on {topic} are not recorded: {error}")
+                continue
+            taken += [(max(received + offset, 0), topic, data) for data, received in waiting]
+        for log_ns, topic, data in self.order.batch(taken, None if final else began + offset):
+            if not self._write(topic, data, log_ns):
                 return
 
     def _write(self, topic: str, data: bytes, receive_ns: int) -> bool:
@@ -273,9 +346,7 @@ class RecordNode(Node):
         """Write what still waits, finalise the bag and print what was recorded."""
         if self._taken_group is not None and self.exit_code == 0:
             stopped = self._stopping
-            # a context that SIGINT shut down refuses the take: what still waited is lost
-            with contextlib.suppress(Exception):
-                self._take(final=True)
+            self._take(final=True)
             self._stopping = stopped
         try:
             report = self._recording.close()
@@ -287,6 +358,9 @@ class RecordNode(Node):
         print(f"endo-record: wrote {self._options.output}", flush=True)
         for line in report.summary_lines():
             print(line, flush=True)
+        if self.order.raised:
+            print(f"  reordered: {self.order.raised} log times raised to the one written "
+                  "before them (received earlier, takeable later)", flush=True)
 
 
 def default_output(now: float | None = None) -> Path:

@@ -1,0 +1,103 @@
+"""endo-record's node: batches in receive order, log times never back, the last take.
+
+Review of issue 15's batched takes.
+"""
+
+from __future__ import annotations
+
+import time
+
+import pytest
+import rclpy
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.node import Node
+from std_msgs.msg import String
+
+from endo_io.bag import BagReader, BagWriter
+from endo_io.qos import reliable_qos
+from endo_io.record import Recording
+from endo_io.record_node import MAX_RAISE_NS, ReceiveOrder, RecordNode, _check_options, build_parser
+
+MS = 1_000_000
+
+
+def test_a_batch_is_written_in_receive_order_and_later_arrivals_wait_for_the_next():
+    order = ReceiveOrder()
+    first = order.batch([(30 * MS, "/b", b"3"), (10 * MS, "/a", b"1"), (60 * MS, "/a", b"6")],
+                        cut_ns=40 * MS)
+    assert first == [(10 * MS, "/a", b"1"), (30 * MS, "/b", b"3")]
+    assert order.held == 1
+    # the held one goes with the next batch, in order among the newly taken
+    second = order.batch([(50 * MS, "/b", b"5"), (70 * MS, "/b", b"7")], cut_ns=None)
+    assert second == [(50 * MS, "/b", b"5"), (60 * MS, "/a", b"6"), (70 * MS, "/b", b"7")]
+    assert order.held == 0 and order.raised == 0 and order.last_ns == 70 * MS
+
+
+def test_a_message_received_before_the_last_written_is_raised_to_it_and_counted():
+    # A fragmented image received at 25 ms, takeable only after the batch holding 30 ms was
+    # written; then the node clock's offset moving back 2 ms between batches (sim time).
+    order = ReceiveOrder()
+    assert [t for t, _, _ in order.batch([(30 * MS, "/a", b"")], cut_ns=40 * MS)] == [30 * MS]
+    late = order.batch([(25 * MS, "/img", b"big"), (28 * MS, "/a", b""), (45 * MS, "/a", b"")],
+                       cut_ns=50 * MS)
+    assert [t for t, _, _ in late] == [30 * MS, 30 * MS, 45 * MS]
+    assert [topic for _, topic, _ in late] == ["/img", "/a", "/a"]
+    assert order.raised == 2
+    moved = order.batch([(43 * MS, "/a", b"")], cut_ns=60 * MS)
+    assert [t for t, _, _ in moved] == [45 * MS] and order.raised == 3
+
+
+def test_a_clock_jump_back_is_written_as_it_is_not_raised():
+    # use_sim_time over a looping bag: the node clock goes back by the bag's length
+    order = ReceiveOrder()
+    order.batch([(60_000 * MS, "/a", b"")], cut_ns=None)
+    back = 60_000 * MS - MAX_RAISE_NS - 1
+    assert order.batch([(back, "/a", b"")], cut_ns=None) == [(back, "/a", b"")]
+    assert order.raised == 0 and order.last_ns == back
+
+
+@pytest.mark.ros
+def test_the_last_take_writes_every_subscription_rclpy_still_gives(tmp_path):
+    # Review of issue 15: contextlib.suppress(Exception) around the last take lost every
+    # message already taken when one subscription refused it, silently.
+    output = tmp_path / "end.mcap"
+    options = build_parser().parse_args(
+        ["--topics", "/rn_test/a", "/rn_test/b", "-o", str(output), "--take-period", "3600"])
+    _check_options(options)
+    rclpy.init()
+    try:
+        peer = Node("record_node_test_peer")
+        pubs = {t: peer.create_publisher(String, t, reliable_qos(10))
+                for t in ("/rn_test/a", "/rn_test/b")}
+        probe: list[str] = []
+        for topic in pubs:
+            peer.create_subscription(String, topic, lambda m: probe.append(m.data),
+                                     reliable_qos(10))
+        recorder = RecordNode(Recording(BagWriter(output, compression="none")), options)
+        executor = SingleThreadedExecutor()
+        executor.add_node(peer)
+        executor.add_node(recorder)
+        deadline = time.monotonic() + 10.0
+        while not all(p.get_subscription_count() == 2 for p in pubs.values()):
+            assert time.monotonic() < deadline, "recorder did not subscribe"
+            executor.spin_once(timeout_sec=0.05)
+        for k in range(3):
+            for topic, publisher in pubs.items():
+                publisher.publish(String(data=f"{topic}:{k}"))
+        while len(probe) < 6:  # delivered (the recorder's copies wait in its history)
+            assert time.monotonic() < deadline, probe
+            executor.spin_once(timeout_sec=0.05)
+        executor.spin_once(timeout_sec=0.2)
+        executor.shutdown()
+        # the first subscription gone (its handle refuses the take), the context shut down
+        # as SIGINT shuts it down
+        recorder.destroy_subscription(recorder._taken_from["/rn_test/a"])
+        rclpy.try_shutdown()
+        recorder.close()
+        assert recorder.exit_code == 0
+    finally:
+        rclpy.try_shutdown()
+    with BagReader(output) as reader:
+        written = [(m.topic, m.log_time_ns) for m in reader.messages()]
+    assert [topic for topic, _ in written] == ["/rn_test/b"] * 3
+    assert [t for _, t in written] == sorted(t for _, t in written)
