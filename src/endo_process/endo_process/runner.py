@@ -38,8 +38,6 @@ from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import cv2
-import numba
 import numpy as np
 from geometry_msgs.msg import PoseStamped
 from sensor_msgs.msg import CameraInfo, Image
@@ -422,26 +420,6 @@ def _write_map(
         report.ply_vertices = flow.pipeline.voxel_map.export_ply(options.ply)
 
 
-@contextlib.contextmanager
-def single_threaded_kernels() -> Iterator[None]:
-    """OpenCV's and (this thread's) numba's parallel kernels on one thread for the block.
-
-    With shading workers on the other cores, the flow step's kernels
-    (Gaussian blurs, resizing, corner detection, the highlight detection's
-    numba loops) find no idle core to spread onto: their second thread only
-    adds CPU (~0.4-2 ms per frame, docs/benchmarks.md "endo-process"). Their
-    results do not depend on the thread count (row- or point-wise splits).
-    """
-    opencv, own = cv2.getNumThreads(), numba.get_num_threads()
-    cv2.setNumThreads(1)
-    numba.set_num_threads(1)
-    try:
-        yield
-    finally:
-        cv2.setNumThreads(opencv)
-        numba.set_num_threads(own)
-
-
 def process_bag(
     options: ProcessOptions,
     stop: threading.Event | None = None,
@@ -487,10 +465,6 @@ def process_bag(
     # frames while this process sets up and warms up the flow step.
     pool = ShadingPool(config, options.jobs, options.chunk_frames, stage, camera=camera,
                        workers=workers)  # fmt: skip
-    # With workers on the other cores, this process's kernels run on one thread.
-    kernels = contextlib.ExitStack()
-    if pool.worker_count > 0:
-        kernels.enter_context(single_threaded_kernels())
     streams: RecordingStreams | None = None
     try:  # the workers are running: stop them if the set-up fails
         report = ProcessReport(frames_total=inputs.frame_count, output=options.output)
@@ -542,7 +516,6 @@ def process_bag(
         progress = Progress(total, enabled=options.progress, description="endo-process")
     except BaseException:
         pool.close()
-        kernels.close()
         if streams is not None:
             streams.close()
         raise
@@ -624,7 +597,6 @@ def process_bag(
             streams.close()
         finally:
             pool.close()
-            kernels.close()
     report.interrupted = report.interrupted or stop.is_set()
     report.written = Counter(output.counts)
     report.poses_written = report.written[topics.CAMERA_POSE]
