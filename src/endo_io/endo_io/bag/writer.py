@@ -171,8 +171,9 @@ class BagWriter:
         crcs: Store each chunk's CRC-32 of its uncompressed records (and
             the summary's). False: both are written as 0, which the MCAP
             specification defines as "not computed"; it saves zlib's CRC
-            over every byte written (~0.2 ms per MB here), and is what
-            rosbag2's MCAP storage plugin writes by default (``noChunkCRC``).
+            over every byte written (~0.2 ms per MB here). rosbag2's MCAP
+            storage plugin drops the chunk CRC by default too
+            (``noChunkCRC``), but keeps the summary's.
 
     Use as a context manager; leaving the block (also by an exception)
     finalises the file. Not thread-safe: call it from one thread (a node's
