@@ -31,6 +31,15 @@ graph, the bench's own imports stay this tree's), named ``<configuration>
 [baseline]``: a change compares with what it replaces as a ratio inside one
 pass, under the same load.
 
+``--listener`` chooses how the bench watches the graph
+(:data:`endo_bringup.graph_monitor.LISTEN_MODES`): ``recording`` (default,
+what ``endo-demo`` does) times the nodes' outputs from the recorder's
+recording and subscribes only to the camera_info and /diagnostics;
+``topics`` subscribes to every node output, as before, and also times the
+same run from the recording (the two definitions side by side); ``both``
+runs each configuration once per mode in every pass (``[topics listener]``
+after the name of the second).
+
 ``--sweep`` also finds ``endo-demo``'s default playback rate: the phantom at
 the demo's solve_scale and each rate of ``--sweep-rates``; the fastest rate
 at which every stage kept every frame in every run. It goes into its own
@@ -57,13 +66,16 @@ from soak import _setup as true_calibrations
 
 from endo_bringup.dds_profile import with_large_frame_profile
 from endo_bringup.demo import GRAPH_SOLVE_SCALE, graph_settings_for
-from endo_bringup.graph import run_live_graph
+from endo_bringup.graph import GraphProcess, run_live_graph
 from endo_bringup.graph_monitor import (
+    LISTEN_MODES,
     GraphFigures,
     GraphMonitor,
     ProcessSampler,
     graph_figures,
     planned_graph,
+    recorded_arrivals,
+    sent_topic,
     stage_lines,
 )
 
@@ -109,10 +121,19 @@ class Result:
     run: int
     figures: GraphFigures
     load_before: float
-    #: CPU ms the bench process (its listener: every node output's bytes) spent per
-    #: frame played, over the whole run (start-up included): not the graph's, but
-    #: taken from the same 2 cores.
+    #: CPU ms the bench process (its listener and /proc sampler) spent per frame
+    #: played, from the start of the play to its end (the drain included, as the
+    #: processes' CPU): not the graph's, but taken from the same 2 cores.
     listener_ms_per_frame: float = float("nan")
+    #: How the listener timed the run (graph_monitor.LISTEN_MODES).
+    listen: str = "topics"
+    #: CPU ms per frame played of reading the recording after the run ("recording").
+    read_ms_per_frame: float = float("nan")
+    #: A "topics" run timed from its recording too (the two definitions, one run).
+    recording_figures: GraphFigures | None = None
+    #: A "topics" run: per topic, (median, p99, n) of recorder reception minus the
+    #: listener's, ms; for the played camera_info its source time minus the image's.
+    offsets: dict[str, tuple[float, float, int]] = field(default_factory=dict)
 
 
 def ensure_long_bag(path: Path, seconds: float) -> Path:
@@ -128,6 +149,7 @@ def ensure_long_bag(path: Path, seconds: float) -> Path:
 
 
 BASELINE_SUFFIX = " [baseline]"
+TOPICS_SUFFIX = " [topics listener]"
 
 
 def baseline_env(env: dict[str, str], root: Path) -> dict[str, str]:
@@ -136,25 +158,84 @@ def baseline_env(env: dict[str, str], root: Path) -> dict[str, str]:
     return dict(env, PYTHONPATH=os.pathsep.join(packages))
 
 
+def _cpu_ms() -> float:
+    times = os.times()
+    return 1e3 * (times.user + times.system)
+
+
+def _offsets(monitor: GraphMonitor, processes: list[GraphProcess], recording: Path
+             ) -> dict[str, tuple[float, float, int]]:
+    """A "topics" run: per topic, recorder reception minus the listener's (median, p99, n; ms).
+
+    Also the replay's publish of each frame's camera_info minus its image's.
+    """
+    here, _ = monitor.snapshot()
+    recorded = recorded_arrivals(recording, list(here))
+    found = {}
+
+    def summary(deltas: list[float]) -> tuple[float, float, int]:
+        ordered = sorted(deltas)
+        return statistics.median(ordered), ordered[int(0.99 * (len(ordered) - 1))], len(ordered)
+
+    for topic, arrived in here.items():
+        deltas = [(recorded[topic][s][1] - r) / 1e6 for s, (_, r) in arrived.items()
+                  if s in recorded.get(topic, {})]
+        if deltas:
+            found[f"{topic}: received at the recorder − here"] = summary(deltas)
+    images = here.get(sent_topic(processes, "topics"), {})
+    infos = here.get(sent_topic(processes, "recording"), {})
+    deltas = [(infos[s][0] - sent) / 1e6 for s, (sent, _) in images.items() if s in infos]
+    if deltas and infos is not images:
+        found["camera_info published − image published (replay)"] = summary(deltas)
+    return found
+
+
 def run_once(bag: Path, configuration: Configuration, rate: float, work: Path,
-             env: dict[str, str]) -> tuple[GraphFigures, float]:
-    """The graph on ``bag`` in ``configuration`` at ``rate``: figures, listener ms per frame."""
+             env: dict[str, str], listen: str = "recording") -> Result:
+    """The graph on ``bag`` in ``configuration`` at ``rate``, watched as ``listen`` says.
+
+    The result's run number and load are the caller's to set.
+    """
     out = Path(tempfile.mkdtemp(prefix=f"{bag.stem}_", dir=work))
     photometric, handeye, _ = true_calibrations(out, configuration.solve_scale, bag)
     settings = replace(graph_settings_for(bag, rate, configuration.solve_scale),
                        node_parameters=configuration.node_parameters)
     processes = planned_graph(bag, photometric, handeye, out, settings)
-    settings = replace(settings, listeners=GraphMonitor.played_listeners(processes))
-    before = os.times()
-    with GraphMonitor(processes, env) as monitor, ProcessSampler(processes) as sampler:
+    settings = replace(settings, listeners=GraphMonitor.played_listeners(processes, listen))
+    before = _cpu_ms()
+    with GraphMonitor(processes, env, listen) as monitor, \
+            ProcessSampler(processes) as sampler:
         run = run_live_graph(bag, photometric, handeye, out, env, settings)
-    after = os.times()
-    figures = graph_figures(run.processes, monitor, sampler, run.played)
-    listener_ms = 1e3 * (after.user + after.system - before.user - before.system)
+    during = _cpu_ms()
+    figures = graph_figures(run.processes, monitor, sampler, run.played, run.recording)
+    read_ms = _cpu_ms() - during
+    frames = max(figures.frames_played, 1)
+    print(f"   bench process over the whole run (start-up included): "
+          f"{(during - before) / frames:.1f} CPU-ms per frame played", flush=True)
+    result = Result(bag.stem, configuration, rate, 0, figures, float("nan"),
+                    1e3 * figures.listener_cpu_s / frames, listen,
+                    read_ms / frames if listen == "recording" else float("nan"))
+    if listen == "topics":
+        result.recording_figures = graph_figures(run.processes, monitor, sampler, run.played,
+                                                 run.recording, timing="recording")
+        result.offsets = _offsets(monitor, list(run.processes), run.recording)
     bad = {name: code for name, code in run.return_codes.items() if code != 0}
     if bad:
         print(f"  exit codes {bad}; logs in {run.log_dir}", flush=True)
-    return figures, listener_ms / max(figures.frames_played, 1)
+    return result
+
+
+def _print_result(result: Result) -> None:
+    print("\n".join("   " + line for line in stage_lines(result.figures)), flush=True)
+    print(f"   bench listener ({result.listen}): {result.listener_ms_per_frame:.1f} CPU-ms per "
+          f"frame played over the play; reading the recording after it "
+          f"{result.read_ms_per_frame:.1f}", flush=True)
+    if result.recording_figures is not None:
+        print("   the same run timed from the recording:", flush=True)
+        print("\n".join("   " + line for line in stage_lines(result.recording_figures)),
+              flush=True)
+    for topic, (median, p99, n) in result.offsets.items():
+        print(f"   {topic}: median {median:.2f} ms, p99 {p99:.2f} ms over {n}", flush=True)
 
 
 def _stage(figures: GraphFigures, name: str) -> str:
@@ -192,15 +273,23 @@ def report(results: list[Result], args: argparse.Namespace) -> str:
         "replay → correction → sfs → tracker bridge → flow → recorder, separate processes, "
         "loopback DDS with the large-frame shared-memory profile) with the bag's true "
         "calibrations, watched by `endo_bringup.graph_monitor` (what `endo-demo` prints). "
-        "out/in: frames on the stage's output and input as a listener in the bench process "
+        "Timing (`--listener recording`, the default since 2026-12-02): the nodes' outputs "
+        "are taken from the recording the graph's `endo-record` writes anyway (its log time: "
+        "the middleware's receive time at the recorder); the bench process "
+        "subscribes only to the camera_info the replay publishes beside each image and to "
+        "/diagnostics. Runs named `[topics listener]` are watched as before this change (a "
+        "listener in the bench process subscribed to every node output: ~5 MB of images a "
+        "frame), their figures taken at that listener. "
+        "out/in: frames on the stage's output and input as the recorder (or the listener) "
         "received them; rcvd: frames the node received on that input (its /diagnostics; fewer "
         "than in: frames DDS overwrote before the starved node took them, or still waiting "
-        "when the run ended); skipped: the node's own /diagnostics count of stale frames it passed "
-        "over for a newer one; rate: outputs per second of the play window; latency: "
-        "arrival here minus the image's publish at the replay (DDS source timestamp), same "
-        "stamp; end to end: to the world cloud `/endoscope/points` (flow publishes clouds "
-        "once its scale has converged, so the first ~1 s of frames have none). CPU: % of one "
-        "core over the play window from /proc (utime + stime); RSS: peak.",
+        "when the run ended); skipped: the node's own /diagnostics count of stale frames it "
+        "passed over for a newer one; rate: outputs per second of the play window; latency: "
+        "arrival at the recorder (or the listener) minus the frame's publish at the replay "
+        "(the DDS source timestamp of its camera_info, or of its image for the topics "
+        "listener), same stamp; end to end: to the world cloud `/endoscope/points` (flow "
+        "publishes clouds once its scale has converged, so the first ~1 s of frames have "
+        "none). CPU: % of one core over the play window from /proc (utime + stime); RSS: peak.",
         "",
         "| bag | configuration | scale | pass | load | correction out/in | sfs out/in | "
         "flow out/in | depth Hz | clouds | correction p50/p99 ms | sfs p50/p99 ms | "
@@ -226,7 +315,8 @@ def report(results: list[Result], args: argparse.Namespace) -> str:
             f"| {r.bag} | {r.configuration.name} | {r.configuration.solve_scale:g} | {r.run} | "
             + " | ".join(cells.get(p.name, "—") for p in results[0].figures.processes) + " |"
         )
-    lines += ["", *ratio_lines(results), "", *cost_lines(results), "", *target_lines(results)]
+    lines += ["", *ratio_lines(results), "", *cost_lines(results), "", *timing_lines(results),
+              "", *target_lines(results)]
     return "\n".join(lines) + "\n"
 
 
@@ -311,15 +401,48 @@ def cost_lines(results: list[Result]) -> list[str]:
              "ms per frame is an upper bound of the CPU a frame costs, against the 66 CPU-ms "
              "of 2 cores × 33 ms, and Σ × 30 / 1000 of the cores 30 Hz needs:", "",
              "| bag | configuration | scale | pass | " + " | ".join(names) + " | Σ ms per frame | "
-             "cores for 30 Hz (bound) | bench listener ms per frame (not in Σ) |",
-             "|---|---|---|---|" + "---|" * (len(names) + 3)]
+             "cores for 30 Hz (bound) | bench listener ms per frame over the play (not in "
+             "Σ) | reading the recording after it, ms per frame |",
+             "|---|---|---|---|" + "---|" * (len(names) + 4)]
     for r in runs:
         costs = [r.figures.cpu_ms_per_frame(n) for n in names]
         lines.append(f"| {r.bag} | {r.configuration.name} | {r.configuration.solve_scale:g} | "
                      f"{r.run} | "
                      + " | ".join(f"{c:.1f}" for c in costs)
                      + f" | {sum(costs):.0f} | {sum(costs) * 30 / 1000:.2f} | "
-                     f"{getattr(r, 'listener_ms_per_frame', float('nan')):.1f} |")
+                     f"{getattr(r, 'listener_ms_per_frame', float('nan')):.1f} | "
+                     f"{getattr(r, 'read_ms_per_frame', float('nan')):.1f} |")
+    return lines
+
+
+def timing_lines(results: list[Result]) -> list[str]:
+    """The topics listener's runs timed both ways: the two latency definitions side by side."""
+    runs = [r for r in results if getattr(r, "recording_figures", None) is not None]
+    if not runs:
+        return []
+    lines = ["The two timings of one run (`[topics listener]` runs: the listener's arrivals "
+             "and the recording's, the same messages): frames out and latency p50/p99 ms, "
+             "listener → recording:", "",
+             "| bag | configuration | pass | correction out | sfs out | flow out | clouds | "
+             "correction | sfs | end to end |", "|---|---|---|---|---|---|---|---|---|---|"]
+    for r in runs:
+        a, b = r.figures, r.recording_figures
+        assert b is not None
+        lines.append(
+            f"| {r.bag} | {r.configuration.name} | {r.run} | "
+            + " | ".join(f"{a.stage(n).frames_out} → {b.stage(n).frames_out}"
+                         for n in (CORRECTION, SFS, FLOW))
+            + f" | {a.end_to_end_frames} → {b.end_to_end_frames} | "
+            + " | ".join(f"{_ms(a.stage(n).latency_ms)} → {_ms(b.stage(n).latency_ms)}"
+                         for n in (CORRECTION, SFS))
+            + f" | {_ms(a.end_to_end_ms)} → {_ms(b.end_to_end_ms)} |")
+    lines += ["", "Per message of those runs (median / p99 ms, messages): the recorder's "
+              "reception minus the listener's, and the replay's publish of a frame's "
+              "camera_info minus its image's:", "", "| bag | pass | what | median | p99 | n |",
+              "|---|---|---|---|---|---|"]
+    for r in runs:
+        for what, (median, p99, n) in r.offsets.items():
+            lines.append(f"| {r.bag} | {r.run} | {what} | {median:.2f} | {p99:.2f} | {n} |")
     return lines
 
 
@@ -390,6 +513,8 @@ def main() -> int:
     parser.add_argument("--first-pass", type=int, default=1, help="number of the first pass")
     parser.add_argument("--baseline", type=Path, default=None, metavar="SRC_ROOT",
                         help="also run every configuration with this checkout's src/* packages")
+    parser.add_argument("--listener", choices=[*LISTEN_MODES, "both"], default="recording",
+                        help="how the bench watches the graph (see the module docstring)")
     parser.add_argument("--sweep-only", action="store_true", help="only the demo-rate sweep")
     parser.add_argument("--sweep-scale", type=float, default=GRAPH_SOLVE_SCALE,
                         help=f"solve_scale of the sweep (the demo's: {GRAPH_SOLVE_SCALE:g})")
@@ -423,39 +548,36 @@ def main() -> int:
     sweep: list[Result] = []
     if args.sweep_only:
         chosen, args.sweep = [], True
+    listens = ([("", "recording"), (TOPICS_SUFFIX, "topics")] if args.listener == "both"
+               else [("", args.listener)])
     for run in range(args.first_pass, args.first_pass + args.runs):
         for bag in bags:
             for configuration in chosen:
-                load = os.getloadavg()[0]
-                print(f"== pass {run}: {bag.name}, {configuration.name}, solve_scale "
-                      f"{configuration.solve_scale:g}, rate {args.rate:g} (load {load:.1f})",
-                      flush=True)
-                figures, listener = run_once(bag, configuration, args.rate, work, env)
-                print("\n".join("   " + line for line in stage_lines(figures)), flush=True)
-                print(f"   bench listener: {listener:.1f} CPU-ms per frame played", flush=True)
-                results.append(Result(bag.stem, configuration, args.rate, run, figures, load,
-                                      listener))
-                save(work, results, sweep)
-                if args.baseline is None:
-                    continue
-                base = replace(configuration, name=configuration.name + BASELINE_SUFFIX)
-                load = os.getloadavg()[0]
-                print(f"== pass {run}: {bag.name}, {base.name} (load {load:.1f})", flush=True)
-                figures, listener = run_once(bag, base, args.rate, work,
-                                             baseline_env(env, args.baseline))
-                print("\n".join("   " + line for line in stage_lines(figures)), flush=True)
-                print(f"   bench listener: {listener:.1f} CPU-ms per frame played", flush=True)
-                results.append(Result(bag.stem, base, args.rate, run, figures, load, listener))
-                save(work, results, sweep)
+                variants = [(replace(configuration, name=configuration.name + suffix), listen,
+                             env) for suffix, listen in listens]
+                if args.baseline is not None:
+                    variants.append((replace(configuration,
+                                             name=configuration.name + BASELINE_SUFFIX),
+                                     listens[0][1], baseline_env(env, args.baseline)))
+                for variant, listen, environment in variants:
+                    load = os.getloadavg()[0]
+                    print(f"== pass {run}: {bag.name}, {variant.name}, solve_scale "
+                          f"{variant.solve_scale:g}, rate {args.rate:g}, listener {listen} "
+                          f"(load {load:.1f})", flush=True)
+                    result = run_once(bag, variant, args.rate, work, environment, listen)
+                    result.run, result.load_before = run, load
+                    _print_result(result)
+                    results.append(result)
+                    save(work, results, sweep)
         if args.sweep:
             for rate in args.sweep_rates:
                 load = os.getloadavg()[0]
                 print(f"== sweep pass {run}: phantom at {rate:g}x (load {load:.1f})", flush=True)
-                figures, _ = run_once(PHANTOM, Configuration("all on", args.sweep_scale), rate,
-                                      work, env)
-                print("\n".join("   " + line for line in stage_lines(figures)), flush=True)
-                sweep.append(Result(PHANTOM.stem, Configuration("all on", args.sweep_scale),
-                                    rate, run, figures, load))
+                result = run_once(PHANTOM, Configuration("all on", args.sweep_scale), rate,
+                                  work, env, listens[0][1])
+                result.run, result.load_before = run, load
+                _print_result(result)
+                sweep.append(result)
                 save(work, results, sweep)
     return write_report(results, sweep, args)
 

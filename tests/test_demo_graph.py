@@ -97,6 +97,20 @@ def test_graph_on_the_sample_bags(tmp_path: Path) -> None:
     assert 0 < counts[topics.DEPTH] <= counts[topics.SCALE]
     assert counts[topics.POINTS] > 0 and counts[topics.MAP] > 0
 
+    # the printed figures are timed from this recording (the monitor received no image):
+    # the same frames, the latency of each frame's publish at the replay to the recorder
+    figures = report.figures
+    assert figures is not None and figures.timing == "recording"
+    assert figures.frames_played == played_images
+    assert figures.stage("endo-photometric-correction").frames_out == counts[
+        topics.IMAGE_CORRECTED]
+    assert figures.stage("endo-sfs").frames_out == counts[topics.DEPTH_RELATIVE]
+    assert figures.stage("endo-flow").frames_out == counts[topics.SCALE]
+    assert figures.end_to_end_frames == counts[topics.POINTS]
+    correction_p50, end_to_end_p50 = (figures.stage("endo-photometric-correction").latency_ms[0],
+                                      figures.end_to_end_ms[0])
+    assert 0.0 < correction_p50 < end_to_end_p50
+
     # relative depth, scale recovered per frame by the median ratio
     assert report.depth_errors, "no depth frame had a ground truth with its stamp"
     for error in report.depth_errors.values():

@@ -480,14 +480,18 @@ def run_graph_stage(
     settings = dataclasses.replace(graph_settings_for(phantom, rate, solve_scale),
                                    node_parameters=dict(node_parameters or {}))
     processes = planned_graph(phantom, calibrate.result, handeye.result, out_dir, settings)
-    # the replay starts once the monitor's subscription matched too
-    settings = dataclasses.replace(settings, listeners=GraphMonitor.played_listeners(processes))
+    # the replay starts once the monitor's subscription matched too; the monitor times
+    # the outputs from the recording (it receives none of the images itself)
+    settings = dataclasses.replace(
+        settings, listeners=GraphMonitor.played_listeners(processes, "recording"))
     try:
-        with GraphMonitor(processes, graph_env) as monitor, ProcessSampler(processes) as sampler:
+        with GraphMonitor(processes, graph_env, "recording") as monitor, \
+                ProcessSampler(processes) as sampler:
             report.run = run_live_graph(
                 phantom, calibrate.result, handeye.result, out_dir, graph_env, settings
             )
-        report.figures = graph_figures(report.run.processes, monitor, sampler, report.run.played)
+        report.figures = graph_figures(report.run.processes, monitor, sampler,
+                                       report.run.played, report.run.recording)
     except (GraphError, GroundTruthError) as error:
         report.error = str(error)
         return report

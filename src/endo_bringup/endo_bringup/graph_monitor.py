@@ -6,15 +6,36 @@ docs/benchmarks.md. Both run the graph of :func:`endo_bringup.graph.graph_proces
 (the one description of the graph) and watch it with:
 
 * :class:`GraphMonitor`: a listener node in this process, on the graph's DDS
-  domain. It subscribes (serialized, only the header stamp read, so it costs
-  next to nothing) to the played image topic and to every topic the nodes
-  publish, and keeps per topic the stamps that arrived and when. The image's
-  publish time at the replay is its DDS source timestamp; an output's arrival
-  is its DDS reception timestamp here; both on the system clock of this one
-  machine. Latency of an output = its arrival minus the publish of the image
-  with the same stamp (correction: one hop; SFS: two; flow's cloud: the whole
-  graph, end to end). It also keeps the nodes' last ``/diagnostics``
-  (received, processed, skipped, dropped, lost).
+  domain, in one of two modes (:data:`LISTEN_MODES`):
+
+  - ``"recording"`` (``endo-demo`` and ``bench/bench_graph.py``): it
+    subscribes to the small topics only: the camera_info the replay
+    publishes beside each image (same stamp; ~0.4 kB) and ``/diagnostics``.
+    The nodes' outputs are timed from the recording the graph's recorder
+    writes anyway (:func:`recorded_arrivals`): each message's log time is
+    the middleware's receive time at ``endo-record`` (rmw's
+    ``received_timestamp``, the system clock). Nothing here receives the
+    ~5 MB of float images a frame carries (the ``"topics"`` mode spent
+    11–13 CPU-ms per frame on them, beside a graph that needs all of the 2
+    cores; docs/benchmarks.md).
+  - ``"topics"`` (what it was; ``bench_first_frames``, ``bench_flow_node``):
+    it subscribes (serialized, only the header stamp read) to the played
+    image topic, the camera_info and every topic the nodes publish, and
+    times each arrival here.
+
+  The publish time of frame ``s`` at the replay is the DDS source timestamp
+  of the played message with stamp ``s`` that this monitor received: the
+  camera_info in ``"recording"`` mode (the image's when the bag has no
+  camera_info), the image in ``"topics"`` mode. Latency of an output = its
+  arrival (reception at the recorder, or here) minus that publish, same
+  stamp, all on the system clock of this one machine (correction: one hop;
+  SFS: two; flow's cloud: the whole graph, end to end). The two modes
+  differ by the camera_info's publish after or before its image at the
+  replay and by the recorder's reception against this listener's (both are
+  the middleware's receive time of the same message); both measured once
+  side by side (docs/benchmarks.md, bench_graph). The monitor also keeps
+  the nodes' last ``/diagnostics`` (received, processed, skipped, dropped,
+  lost).
 * :class:`ProcessSampler`: CPU time (utime + stime of ``/proc/<pid>/stat``)
   and resident memory (``VmRSS``) of this process's children, sampled every
   ``period_s``; each child is named after the row of the table whose
@@ -30,8 +51,8 @@ window (first to last image published, plus one frame period):
   skipped (the node's own count: stale frames passed over for a newer one,
   by design), dropped and lost (its /diagnostics), output rate (out per
   second of the play window), latency p50 / p99;
-* end to end: the image's publish at the replay to the cloud
-  (``/endoscope/points``) arriving here, p50 / p99;
+* end to end: the frame's publish at the replay to the cloud
+  (``/endoscope/points``) arriving (at the recorder or here), p50 / p99;
 * per process: CPU as a percentage of one core over the window, peak RSS.
 
 :func:`stage_lines` prints them (the demo); the bench formats the same
@@ -65,12 +86,52 @@ from endo_bringup.graph import (
 )
 from endo_io import topics
 from endo_io.bag import BagReader
+from endo_io.errors import Endo3dError
 from endo_io.serialized_stamp import serialized_header_stamp_ns
 
 #: The output that ends the graph: the world cloud, the end-to-end latency's end.
 CLOUD_TOPIC = topics.POINTS
 #: Topics whose stamps are not the images' (latency against the image is meaningless).
 _NOT_IMAGE_STAMPED = frozenset({topics.CAMERA_POSE, topics.MARKER_POSE, topics.MAP})
+#: How the monitor times the graph (see the module docstring).
+LISTEN_MODES = ("recording", "topics")
+
+
+class GraphMonitorError(Endo3dError):
+    """The monitor cannot give the figures asked for (a mode without the recording it needs)."""
+
+
+def sent_topic(processes: Sequence[GraphProcess], listen: str) -> str:
+    """The played topic whose DDS source times are the frames' publish at the replay.
+
+    ``"recording"``: the camera_info when played (small), else the images;
+    ``"topics"``: the images.
+    """
+    player = next(p for p in processes if p.name == PLAYER)
+    if listen == "recording" and topics.CAMERA_INFO in player.publishes:
+        return topics.CAMERA_INFO
+    return player.publishes[0]
+
+
+def recorded_arrivals(recording: Path, wanted: Sequence[str]
+                      ) -> dict[str, dict[int, tuple[int, int]]]:
+    """Per topic of ``wanted``: header stamp -> (publish, log time) ns of the recording.
+
+    endo-record writes the middleware's receive time as both times today;
+    the first message of a stamp counts (as the listener's does).
+
+    Args:
+        recording: the MCAP the graph's recorder wrote (finalised).
+        wanted: topics to read (missing ones give no entry).
+    """
+    found: dict[str, dict[int, tuple[int, int]]] = defaultdict(dict)
+    with BagReader(recording) as reader:
+        for message in reader.messages([t for t in wanted if t in reader.topics]):
+            stamp = serialized_header_stamp_ns(message.data)
+            if stamp is not None:
+                found[message.topic].setdefault(
+                    stamp, (message.publish_time_ns, message.log_time_ns))
+    return dict(found)
 
 
 def node_name_of(process: GraphProcess) -> str:
@@ -103,7 +164,7 @@ class _Arrivals:
 
 
 class GraphMonitor:
-    """A listener node on the graph's outputs and /diagnostics (see the module docstring).
+    """A listener node on the graph (see the module docstring).
 
     Use as a context manager around the run; it spins in a thread of its own.
     Its subscriptions are best effort and 100 deep, so they match every
@@ -115,9 +176,17 @@ class GraphMonitor:
             profile variables (large shared-memory frames) apply here too; the
             profile variables are put into this process's environment, where
             Fast DDS reads them.
+        listen: ``"recording"`` or ``"topics"`` (:data:`LISTEN_MODES`).
+
+    Raises:
+        GraphMonitorError: an unknown ``listen``.
     """
 
-    def __init__(self, processes: Sequence[GraphProcess], env: Mapping[str, str]) -> None:
+    def __init__(self, processes: Sequence[GraphProcess], env: Mapping[str, str],
+                 listen: str = "topics") -> None:
+        if listen not in LISTEN_MODES:
+            raise GraphMonitorError(f"listen must be one of {LISTEN_MODES}, got {listen!r}")
+        self.listen = listen
         self.processes = list(processes)
         self.domain_id = int(env.get("ROS_DOMAIN_ID", "0"))
         # Put back on exit: a later graph (or test) in this process must not
@@ -132,19 +201,31 @@ class GraphMonitor:
         self._thread: threading.Thread | None = None
 
     def watched_topics(self) -> list[str]:
-        """The player's first topic (the images) and every topic a node publishes."""
+        """The topics subscribed besides /diagnostics.
+
+        ``"recording"``: the played topic of :func:`sent_topic` alone;
+        ``"topics"``: the player's first topic (the images), its camera_info
+        and every topic a node publishes.
+        """
         nodes = [p for p in self.processes if p.name not in (PLAYER, RECORDER)]
-        return list(dict.fromkeys([*self.played_listeners(self.processes),
-                                   *(t for n in nodes for t in n.publishes)]))
+        played = list(self.played_listeners(self.processes, self.listen))
+        if self.listen == "recording":
+            return played
+        return list(dict.fromkeys([*played, *(t for n in nodes for t in n.publishes)]))
 
     @staticmethod
-    def played_listeners(processes: Sequence[GraphProcess]) -> dict[str, int]:
+    def played_listeners(processes: Sequence[GraphProcess], listen: str = "topics"
+                         ) -> dict[str, int]:
         """Played topic -> the monitor's subscriptions to it (the replay waits for them too).
 
-        For :attr:`endo_bringup.graph.GraphSettings.listeners`.
+        For :attr:`endo_bringup.graph.GraphSettings.listeners`; ``listen`` as
+        the monitor's.
         """
         player = next(p for p in processes if p.name == PLAYER)
-        return {player.publishes[0]: 1}
+        if listen == "recording":
+            return {sent_topic(processes, listen): 1}
+        return {t: 1 for t in dict.fromkeys(
+            [player.publishes[0], *(t for t in player.publishes if t == topics.CAMERA_INFO)])}
 
     def __enter__(self) -> GraphMonitor:
         import rclpy
@@ -220,6 +301,7 @@ class GraphMonitor:
 #: before the publisher exists, so it cannot come from discovery).
 TOPIC_TYPES: dict[str, str] = {
     topics.IMAGE_RAW: "sensor_msgs/msg/Image",
+    topics.CAMERA_INFO: "sensor_msgs/msg/CameraInfo",
     topics.IMAGE_CORRECTED: "sensor_msgs/msg/Image",
     topics.DEPTH_RELATIVE: "sensor_msgs/msg/Image",
     topics.DEPTH: "sensor_msgs/msg/Image",
@@ -285,6 +367,8 @@ class ProcessSampler:
         self.executables = {Path(p.command()[0]).name: p.name for p in processes}
         self.period_s = period_s
         self.samples: dict[str, list[_Sample]] = defaultdict(list)
+        #: This process (the monitor's and the sampler's threads: the watching's cost).
+        self.own: list[_Sample] = []
         self._names: dict[int, str | None] = {}
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, daemon=True)
@@ -311,6 +395,9 @@ class ProcessSampler:
         parent = os.getpid()
         while not self._stop.is_set():
             now = time.time()
+            usage = _cpu_and_rss(parent)
+            if usage is not None:
+                self.own.append(_Sample(now, *usage))
             for pid in _children(parent):
                 name = self._name(pid)
                 usage = _cpu_and_rss(pid) if name is not None else None
@@ -361,7 +448,10 @@ class GraphFigures:
     window_s: the play window; frames_played: images published by the
     replay; end_to_end_ms: (p50, p99) image publish → cloud arrival, and
     end_to_end_frames how many clouds it is over; load: 1-minute load
-    average at the end.
+    average at the end; timing: where the outputs' arrivals were taken
+    (``"recording"``: at the recorder, ``"topics"``: at the monitor);
+    listener_cpu_s: CPU seconds of this process (the monitor and the sampler,
+    not the graph) over the same span as a process's ``cpu_s``.
     """
 
     window_s: float
@@ -371,6 +461,8 @@ class GraphFigures:
     end_to_end_frames: int
     processes: list[ProcessFigures]
     load: float
+    timing: str = "topics"
+    listener_cpu_s: float = float("nan")
 
     def document(self) -> dict[str, Any]:
         """The figures as plain JSON-able data (pairs as lists; NaN stays NaN)."""
@@ -435,6 +527,8 @@ def graph_figures(
     monitor: GraphMonitor,
     sampler: ProcessSampler | None,
     played: Mapping[str, int] | None = None,
+    recording: Path | None = None,
+    timing: str | None = None,
 ) -> GraphFigures:
     """The figures of a finished run (see the module docstring).
 
@@ -443,12 +537,31 @@ def graph_figures(
     frames (the player starts once the graph's nodes subscribe), so the
     images played, the first stage's input and the play window come from
     it: window = frames played × their median interval, ending one interval
-    after the last image.
+    after the last frame published.
+    recording: the graph's finished recording (``GraphRun.recording``),
+    needed when timing from it.
+    timing: ``"recording"`` (arrivals at the recorder) or ``"topics"``
+    (arrivals at the monitor); default the monitor's mode. A monitor in
+    ``"topics"`` mode can give both from one run (it also receives the
+    camera_info).
+
+    Raises:
+        GraphMonitorError: ``"recording"`` timing without a recording, or
+            an unknown ``timing``.
     """
+    timing = monitor.listen if timing is None else timing
+    if timing not in LISTEN_MODES:
+        raise GraphMonitorError(f"timing must be one of {LISTEN_MODES}, got {timing!r}")
     arrivals, status = monitor.snapshot()
     player = next(p for p in processes if p.name == PLAYER)
     image_topic = player.publishes[0]
-    images = arrivals.get(image_topic, {})
+    images = arrivals.get(sent_topic(processes, timing), {})
+    if timing == "recording":
+        if recording is None:
+            raise GraphMonitorError("timing from the recording needs the run's recording")
+        recorder = next((p for p in processes if p.name == RECORDER), None)
+        kept = [] if recorder is None else [t for t in recorder.subscribes if t != image_topic]
+        arrivals = recorded_arrivals(recording, kept)
     frames_played = len(images) if played is None else int(played.get(image_topic, len(images)))
     sent = sorted(source for source, _ in images.values())
     period = float(np.median(np.diff(sent))) if len(sent) > 1 else 1.0
@@ -480,6 +593,10 @@ def graph_figures(
         ))  # fmt: skip
     clouds = _latencies_ms(images, arrivals.get(CLOUD_TOPIC, {}))
     figures_of_processes = []
+    listener_cpu_s = float("nan")
+    if sampler is not None and sampler.own:
+        before = [s for s in sampler.own if s.t <= start / 1e9]
+        listener_cpu_s = sampler.own[-1].cpu_s - (before[-1] if before else sampler.own[0]).cpu_s
     if sampler is not None:
         for name, samples in sampler.samples.items():
             inside = [s for s in samples if start / 1e9 <= s.t <= end / 1e9 + sampler.period_s]
@@ -495,7 +612,8 @@ def graph_figures(
     return GraphFigures(
         window_s=window_s, frames_played=frames_played, stages=stages,
         end_to_end_ms=_percentiles(clouds), end_to_end_frames=len(clouds),
-        processes=figures_of_processes, load=os.getloadavg()[0],
+        processes=figures_of_processes, load=os.getloadavg()[0], timing=timing,
+        listener_cpu_s=listener_cpu_s,
     )  # fmt: skip
 
 
@@ -517,8 +635,9 @@ def stage_lines(figures: GraphFigures) -> list[str]:
             f"{s.rate_hz:>6.1f}  {s.latency_ms[0]:.0f}/{s.latency_ms[1]:.0f}"
         )
     p50, p99 = figures.end_to_end_ms
+    where = "at the recorder" if figures.timing == "recording" else "here"
     lines.append(
-        f"end to end (image published by the replay -> {CLOUD_TOPIC} here): p50 {p50:.0f} ms, "
+        f"end to end (frame published by the replay -> {CLOUD_TOPIC} {where}): p50 {p50:.0f} ms, "
         f"p99 {p99:.0f} ms over {figures.end_to_end_frames} clouds of {figures.frames_played} "
         f"frames in {figures.window_s:.1f} s"
     )

@@ -21,6 +21,7 @@ from endo_bringup.graph_monitor import (
     CLOUD_TOPIC,
     GraphFigures,
     GraphMonitor,
+    GraphMonitorError,
     ProcessFigures,
     ProcessSampler,
     StageFigures,
@@ -28,6 +29,7 @@ from endo_bringup.graph_monitor import (
     _cpu_and_rss,
     graph_figures,
     node_name_of,
+    recorded_arrivals,
     stage_lines,
 )
 from endo_io import topics
@@ -126,6 +128,75 @@ def test_figures_of_a_known_run(tmp_path: Path) -> None:
     assert any(line.split()[:7] == ["endo-sfs", topics.DEPTH_RELATIVE, "30", "30", "20", "10",
                                     "0"]
                for line in stage_lines(figures))
+
+
+def _fill_known_run(times: dict, frames: int) -> None:
+    """The run of test_figures_of_a_known_run: topic -> stamp -> (source, reception) ns."""
+    for k in range(frames):
+        stamp, sent = STAMP0 + k * PERIOD_NS, T0 + k * PERIOD_NS
+        times[topics.IMAGE_RAW][stamp] = (sent, sent + 1 * MS)
+        times[topics.IMAGE_CORRECTED][stamp] = (sent + 9 * MS, sent + 10 * MS)
+        if k % 3 == 2:
+            continue  # sfs skipped every third frame
+        times[topics.DEPTH_RELATIVE][stamp] = (sent + 39 * MS, sent + 40 * MS)
+        times[topics.SCALE][stamp] = (sent + 59 * MS, sent + 60 * MS)
+        if k >= 6:  # clouds once the scale converged
+            times[CLOUD_TOPIC][stamp] = (sent + 69 * MS, sent + 70 * MS + k * MS)
+
+
+def test_figures_timed_from_the_recording_equal_the_listeners(tmp_path: Path) -> None:
+    from geometry_msgs.msg import Vector3Stamped
+    from sensor_msgs.msg import Image, PointCloud2
+
+    from endo_io.bag import BagWriter
+    from endo_io.stamp import ns_to_stamp
+
+    processes = _table(tmp_path)
+    listener = GraphMonitor(processes, {"ROS_DOMAIN_ID": "67"})
+    frames = 30
+    _fill_known_run(listener.arrivals.times, frames)
+    expected = graph_figures(processes, listener, None)
+    # the same run as the recorder saw it: each output's log time is its reception,
+    # and the monitor received only the camera_info, published 0.2 ms after its image
+    monitor = GraphMonitor(processes, {"ROS_DOMAIN_ID": "67"}, listen="recording")
+    assert monitor.watched_topics() == [topics.CAMERA_INFO]
+    assert GraphMonitor.played_listeners(processes, "recording") == {topics.CAMERA_INFO: 1}
+    assert GraphMonitor.played_listeners(processes) == {topics.IMAGE_RAW: 1,
+                                                       topics.CAMERA_INFO: 1}
+    kinds = {topics.IMAGE_CORRECTED: Image, topics.DEPTH_RELATIVE: Image,
+             topics.SCALE: Vector3Stamped, CLOUD_TOPIC: PointCloud2}
+    written = sorted((reception, topic, stamp)
+                     for topic, kind in kinds.items()
+                     for stamp, (_, reception) in listener.arrivals.times[topic].items())
+    with BagWriter(tmp_path / "graph.mcap") as bag:
+        for reception, topic, stamp in written:
+            message = kinds[topic]()
+            message.header.stamp = ns_to_stamp(stamp)
+            bag.write_message(topic, message, reception)
+            if topic == topics.IMAGE_CORRECTED:  # a second copy of a stamp: the first counts
+                bag.write_message(topic, message, reception + 50 * MS)
+    for stamp, (sent, reception) in listener.arrivals.times[topics.IMAGE_RAW].items():
+        monitor.arrivals.times[topics.CAMERA_INFO][stamp] = (sent + MS // 5, reception)
+    assert recorded_arrivals(tmp_path / "graph.mcap", [topics.SCALE, "/absent"]) == {
+        topics.SCALE: {stamp: (reception, reception) for stamp, (_, reception)
+                       in listener.arrivals.times[topics.SCALE].items()}}
+    with pytest.raises(GraphMonitorError, match="needs the run's recording"):
+        graph_figures(processes, monitor, None)
+    figures = graph_figures(processes, monitor, None, {topics.IMAGE_RAW: frames},
+                            tmp_path / "graph.mcap")
+    assert figures.timing == "recording" and expected.timing == "topics"
+    assert figures.frames_played == frames
+    assert figures.window_s == pytest.approx(expected.window_s)
+    for got, want in zip(figures.stages, expected.stages, strict=True):
+        assert (got.stage, got.frames_in, got.frames_out) == (want.stage, want.frames_in,
+                                                              want.frames_out)
+        for a, b in zip(got.latency_ms, want.latency_ms, strict=True):
+            assert (math.isnan(a) and math.isnan(b)) or a == pytest.approx(b - 0.2)
+    assert figures.end_to_end_frames == expected.end_to_end_frames == 16
+    assert figures.end_to_end_ms[0] == pytest.approx(expected.end_to_end_ms[0] - 0.2)
+    assert "-> /endoscope/points at the recorder" in "\n".join(stage_lines(figures))
+    with pytest.raises(GraphMonitorError, match="listen must be one of"):
+        GraphMonitor(processes, {}, listen="images")
 
 
 def test_cpu_and_memory_of_children_come_from_proc() -> None:
