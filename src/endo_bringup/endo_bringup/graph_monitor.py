@@ -14,7 +14,9 @@ docs/benchmarks.md. Both run the graph of :func:`endo_bringup.graph.graph_proces
     The nodes' outputs are timed from the recording the graph's recorder
     writes anyway (:func:`recorded_arrivals`): each message's log time is
     the middleware's receive time at ``endo-record`` (rmw's
-    ``received_timestamp``, the system clock). Nothing here receives the
+    ``received_timestamp``, the system clock; raised to the last one
+    written when a message became takeable only after a later one, which
+    the recorder counts as ``reordered``). Nothing here receives the
     ~5 MB of float images a frame carries (the ``"topics"`` mode spent
     11–13 CPU-ms per frame on them, beside a graph that needs all of the 2
     cores; docs/benchmarks.md).
