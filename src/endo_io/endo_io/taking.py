@@ -12,11 +12,17 @@ tick of a timer (the recorder).
 
 from __future__ import annotations
 
+import logging
 import time
 from typing import Any
 
 from rclpy.callback_groups import CallbackGroup
 from rclpy.subscription import Subscription
+
+_LOG = logging.getLogger(__name__)
+
+#: Whether the missing receive time was said (once per process).
+_warned_no_receive_time = False
 
 
 class NeverExecutedGroup(CallbackGroup):
@@ -53,7 +59,17 @@ def take_waiting(subscription: Subscription, raw: bool = True) -> list[tuple[Any
             return found
         data, info = taken
         received = info.get("received_timestamp") if isinstance(info, dict) else None
-        found.append((data, int(received) if received else time.time_ns()))
+        found.append((data, int(received) if received else _take_time()))
+
+
+def _take_time() -> int:
+    """Now, for a middleware that gives no receive time (said once: its order is the take's)."""
+    global _warned_no_receive_time
+    if not _warned_no_receive_time:
+        _warned_no_receive_time = True
+        _LOG.warning("the middleware gives no receive time (received_timestamp): messages "
+                     "taken in batches are timed when taken, up to one take period late")
+    return time.time_ns()
 
 
 def system_to_monotonic_ns(system_ns: int) -> int:

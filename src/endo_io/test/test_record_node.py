@@ -13,7 +13,7 @@ from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from std_msgs.msg import String
 
-from endo_io.bag import BagReader, BagWriter
+from endo_io.bag import BagReader, BagWriter, deserialize
 from endo_io.qos import reliable_qos
 from endo_io.record import Recording
 from endo_io.record_node import MAX_RAISE_NS, ReceiveOrder, RecordNode, _check_options, build_parser
@@ -101,3 +101,40 @@ def test_the_last_take_writes_every_subscription_rclpy_still_gives(tmp_path):
         written = [(m.topic, m.log_time_ns) for m in reader.messages()]
     assert [topic for topic, _ in written] == ["/rn_test/b"] * 3
     assert [t for _, t in written] == sorted(t for _, t in written)
+
+
+@pytest.mark.ros
+def test_take_period_0_records_each_message_in_its_own_callback(tmp_path):
+    output = tmp_path / "each.mcap"
+    options = build_parser().parse_args(
+        ["--topics", "/rn_test/c", "-o", str(output), "--take-period", "0"])
+    _check_options(options)
+    rclpy.init()
+    try:
+        peer = Node("record_node_test_peer0")
+        publisher = peer.create_publisher(String, "/rn_test/c", reliable_qos(10))
+        recording = Recording(BagWriter(output, compression="none"))
+        recorder = RecordNode(recording, options)
+        executor = SingleThreadedExecutor()
+        executor.add_node(peer)
+        executor.add_node(recorder)
+        deadline = time.monotonic() + 10.0
+        while publisher.get_subscription_count() == 0:
+            assert time.monotonic() < deadline, "recorder did not subscribe"
+            executor.spin_once(timeout_sec=0.05)
+        for k in range(5):
+            publisher.publish(String(data=f"c{k}"))
+        tally = recording.report.topics["/rn_test/c"]
+        while tally.received < 5:  # written by the executor's callbacks, no take timer
+            assert time.monotonic() < deadline, tally
+            executor.spin_once(timeout_sec=0.05)
+        executor.shutdown()
+        recorder.close()
+        assert recorder.exit_code == 0 and recorder.order.raised == 0
+    finally:
+        rclpy.try_shutdown()
+    with BagReader(output) as reader:
+        written = [(m.log_time_ns, deserialize(m)) for m in reader.messages()]
+    assert [msg.data for _, msg in written] == [f"c{k}" for k in range(5)]
+    times = [t for t, _ in written]
+    assert times == sorted(times)

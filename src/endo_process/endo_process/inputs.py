@@ -33,7 +33,7 @@ from sensor_msgs.msg import CameraInfo, Image
 
 from endo_io import topics
 from endo_io.bag import BagCorruptError, BagMessage, BagReader, deserialize
-from endo_io.camera import CameraModel
+from endo_io.camera import CameraInfoCache, CameraModel
 from endo_io.errors import CameraModelError
 from endo_io.stamp import stamp_to_ns
 from endo_process.errors import MissingCameraInfoError, MissingTopicError, ProcessInputError
@@ -248,22 +248,16 @@ def iter_tracker_poses(streams: RecordingStreams) -> Iterator[PoseStamped]:
     return (deserialize(message) for message in streams.messages("tracker"))
 
 
-def _camera_key(info: CameraInfo) -> tuple[Any, ...]:
-    """What makes two camera_infos the same camera (everything but the header)."""
-    roi = info.roi
-    return (info.width, info.height, info.distortion_model, tuple(info.d), tuple(info.k),
-            tuple(info.r), tuple(info.p), info.binning_x, info.binning_y,
-            roi.x_offset, roi.y_offset, roi.width, roi.height, roi.do_rectify)  # fmt: skip
-
-
 class CameraInfoPairing:
     """The camera of each image: the newest camera_info stamped at or before it.
 
     The camera_info stream is read by a reader of its own, only as far as
     the image being paired (a camera_info logged after its image is found
     too). With ``--camera-info`` the one model serves every frame. Models
-    are built once per distinct camera (header aside), so every frame of
-    one camera shares one model and its ray tables.
+    are built once per distinct camera (its header's stamp aside, its
+    frame_id included: :class:`endo_io.camera.CameraInfoCache`, as the live
+    nodes), so every frame of one camera shares one model and its ray
+    tables.
 
     Args:
         inputs: the recording.
@@ -278,8 +272,7 @@ class CameraInfoPairing:
         )  # fmt: skip
         self._next: CameraInfo | None = None
         self._current: CameraInfo | None = None
-        self._model: CameraModel | None = None
-        self._key: tuple[Any, ...] | None = None
+        self._cameras = CameraInfoCache()
 
     def _peek(self) -> CameraInfo | None:
         if self._next is None:
@@ -304,11 +297,7 @@ class CameraInfoPairing:
         current = self._current
         if current is None or stamp_to_ns(current.header.stamp) > stamp_ns:
             return None
-        key = _camera_key(current)
-        if key != self._key or self._model is None:
-            self._model = CameraModel.from_camera_info(current)  # may raise: nothing changes
-            self._key = key
-        return self._model, current
+        return self._cameras.model_of(current)[0], current  # may raise: nothing changes
 
 
 def first_camera(inputs: RecordingInputs) -> CameraModel | None:
