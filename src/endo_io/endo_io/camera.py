@@ -604,9 +604,13 @@ class CameraModel:
 class CameraInfoCache:
     """The model of a stream's CameraInfo, rebuilt only when the message describes another camera.
 
-    A node gets a CameraInfo with every frame; building the model (and
-    comparing it with the last) costs ~0.4 ms, comparing the message's fields
-    a few microseconds. The cached model keeps its ray table.
+    A node gets a CameraInfo with every frame. Building the model costs
+    ~0.03 ms, but a new model rebuilds its ray table at its first
+    :meth:`CameraModel.unit_rays` (~100 ms for 640x480 plumb_bob); the cache's
+    answer for the same camera (the message's fields compared) ~0.003 ms
+    (bench/bench_bag_checks.py). The cached model keeps its ray table. The
+    header's frame_id is part of the camera (the model carries it); its
+    stamp is not.
 
     Attributes:
         model: the last model (None before the first message).
