@@ -67,16 +67,7 @@ def test_figures_of_a_known_run(tmp_path: Path) -> None:
         "photometric_correction", "sfs", "tracker_bridge", "flow"]
     times = monitor.arrivals.times
     frames = 30
-    for k in range(frames):
-        stamp, sent = STAMP0 + k * PERIOD_NS, T0 + k * PERIOD_NS
-        times[topics.IMAGE_RAW][stamp] = (sent, sent + 1 * MS)
-        times[topics.IMAGE_CORRECTED][stamp] = (sent + 9 * MS, sent + 10 * MS)
-        if k % 3 == 2:
-            continue  # sfs skipped every third frame
-        times[topics.DEPTH_RELATIVE][stamp] = (sent + 39 * MS, sent + 40 * MS)
-        times[topics.SCALE][stamp] = (sent + 59 * MS, sent + 60 * MS)
-        if k >= 6:  # clouds once the scale converged
-            times[CLOUD_TOPIC][stamp] = (sent + 69 * MS, sent + 70 * MS + k * MS)
+    _fill_known_run(times, frames)
     monitor.arrivals.status = {
         "sfs: image input": {"hardware_id": "/sfs", "received": "60", "processed": "20",
                              f"received.{topics.IMAGE_CORRECTED}": "30",
