@@ -138,6 +138,8 @@ def one_run(args: argparse.Namespace) -> None:
         "mb_per_frame": args.out.stat().st_size / frames / 1e6,
         "stages_ms": {k: v / frames * 1e3
                       for k, v in getattr(report, "stage_seconds", {}).items()},
+        "stages_cpu_ms": {k: v / frames * 1e3
+                          for k, v in getattr(report, "stage_cpu_seconds", {}).items()},
         "shading_ms": {k: v / frames * 1e3
                        for k, v in getattr(report, "shading_seconds", {}).items()},
     }))  # fmt: skip
@@ -272,6 +274,7 @@ def main() -> None:
             figures.setdefault("steady_real_time", 0.0)
             figures.setdefault("first_frame_s", 0.0)
             figures.setdefault("shading_ms", {})
+            figures.setdefault("stages_cpu_ms", {})
             results[(tree, config)].append(figures)
             print(f"round {round_index + 1} {tree} solve_scale {scale:g} jobs {jobs} "
                   f"{config.compression}{' crc' if config.crc else ''}: "
@@ -346,6 +349,28 @@ def main() -> None:
         first = f"{tree} | " if label else ""
         print(f"| {first}{config.label} | {loop} | {loop_cpu} | {setup} | "
               + " | ".join(cells) + " |")
+    print()
+    print("The main process's CPU per frame in the frame loop, ms (run 1 / run 2): each step's "
+          "CPU in the loop's thread (ProcessReport.stage_cpu_seconds), 'other threads' the rest "
+          "of the process's loop CPU (OpenCV's threads in the flow step, the queues' feeders "
+          "pickling the frames for the workers), and the workers' loop CPU per frame beside it:")
+    print()
+    print(f"| {label}solve_scale | jobs | main, all threads | " + " | ".join(stage_names)
+          + " | other threads | workers |")
+    print("|---" * (5 + bool(label) + len(stage_names)) + "|")
+    for tree, config in configs:
+        rows = results[(tree, config)]
+        main_cpu = " / ".join(f"{r.get('loop_cpu_ms', 0.0):.1f}" for r in rows)
+        cells = [" / ".join(f"{r.get('stages_cpu_ms', {}).get(n, 0.0):.1f}" for r in rows)
+                 for n in stage_names]
+        other = " / ".join(
+            f"{r.get('loop_cpu_ms', 0.0) - sum(r.get('stages_cpu_ms', {}).values()):.1f}"
+            for r in rows
+        )
+        workers = " / ".join(f"{r.get('worker_loop_cpu_ms', 0.0):.1f}" for r in rows)
+        first = f"{tree} | " if label else ""
+        print(f"| {first}{config.label} | {main_cpu} | " + " | ".join(cells)
+              + f" | {other} | {workers} |")
     if args.no_writing:
         return
     print()

@@ -108,7 +108,11 @@ class ProcessReport:
     Counters are per cause (error class name). ``seconds`` is the wall time
     of the frame loop, ``bag_seconds`` the recording time it covered.
     ``stage_seconds``: wall seconds of the frame loop's steps in this
-    process, summed over the frames (:data:`LOOP_STAGES`); ``shading_seconds``:
+    process, summed over the frames (:data:`LOOP_STAGES`);
+    ``stage_cpu_seconds``: the CPU seconds of the same steps in the loop's
+    thread (``time.thread_time``: the CPU this process's other threads spend
+    meanwhile, OpenCV's and the queues' feeders, is in ``loop_cpu_seconds``
+    only); ``shading_seconds``:
     the correction and SFS steps' own wall seconds, summed, wherever they ran
     (this process or a worker; ``ShadedFrame.timings``). ``loop_cpu_seconds``:
     this process's CPU seconds (all its threads) in the frame loop;
@@ -144,6 +148,7 @@ class ProcessReport:
     bag_seconds: float = 0.0
     solve_ms: list[float] = field(default_factory=list)
     stage_seconds: defaultdict[str, float] = field(default_factory=lambda: defaultdict(float))
+    stage_cpu_seconds: defaultdict[str, float] = field(default_factory=lambda: defaultdict(float))
     shading_seconds: defaultdict[str, float] = field(default_factory=lambda: defaultdict(float))
     damage: str | None = None
     interrupted: bool = False
@@ -182,6 +187,26 @@ class ProcessReport:
 #: flow step ("flow") and its outputs written ("flow_write"); flushing the
 #: output ("flush").
 LOOP_STAGES = ("read", "shading", "poses", "truth", "write", "flow", "flow_write", "flush")
+
+
+class _StageClock:
+    """Wall and thread-CPU seconds of the frame loop's steps, into a report's two tables."""
+
+    def __init__(self, report: ProcessReport) -> None:
+        self.wall = report.stage_seconds
+        self.cpu = report.stage_cpu_seconds
+
+    @staticmethod
+    def now() -> tuple[float, float]:
+        """(wall, this thread's CPU) seconds now."""
+        return time.perf_counter(), time.thread_time()
+
+    def add(self, name: str, since: tuple[float, float]) -> tuple[float, float]:
+        """Count the time from ``since`` to now to step ``name``; now."""
+        now = self.now()
+        self.wall[name] += now[0] - since[0]
+        self.cpu[name] += now[1] - since[1]
+        return now
 
 
 def _load_calibrations(
@@ -314,8 +339,8 @@ def _raw_frames(
     the output; the frame loop takes it back out.
     """
     index = 0
-    clock = report.stage_seconds
-    start = time.perf_counter()
+    clock = _StageClock(report)
+    start = clock.now()
     for msg in images:
         if stop.is_set() or (max_frames is not None and report.frames_in >= max_frames):
             return
@@ -331,11 +356,11 @@ def _raw_frames(
             report.dropped[type(error).__name__] += 1
             continue
         camera, infos[index] = paired
-        clock["read"] += time.perf_counter() - start
+        clock.add("read", start)
         yield RawFrame(index, stamp_ns, msg.header.frame_id, raw, msg.encoding, camera)
-        start = time.perf_counter()
+        start = clock.now()
         index += 1
-    clock["read"] += time.perf_counter() - start
+    clock.add("read", start)
 
 
 def _write_frame(
@@ -383,14 +408,15 @@ def _flow_frame(
     if shaded.irradiance is None or shaded.depth_relative is None or shaded.irradiance.ndim != 2:
         return
     stamp = shaded.stamp_ns
-    start = time.perf_counter()
+    clock = _StageClock(report)
+    start = clock.now()
     try:
         result = flow.process(shaded, T_world_camera)
     except Endo3dError as error:
         report.flow_dropped[type(error).__name__] += 1
         return
     finally:
-        report.stage_seconds["flow"] += (now := time.perf_counter()) - start
+        now = clock.add("flow", start)
     report.frames_flow += 1
     if result.depth is not None:
         output.write_image(topics.DEPTH, result.depth, "32FC1", stamp, shaded.frame_id)
@@ -399,7 +425,7 @@ def _flow_frame(
         output.write_cdr(topics.POINTS, POINTS_TYPE, grey_cloud_cdr(
             result.points, result.intensity, stamp, world_frame), stamp)  # fmt: skip
     output.write(topics.SCALE, scale_message(result.scale, stamp, shaded.frame_id), stamp)
-    report.stage_seconds["flow_write"] += time.perf_counter() - now
+    clock.add("flow_write", now)
 
 
 def _write_map(
@@ -523,13 +549,16 @@ def process_bag(
     loop_start, loop_cpu_start = time.perf_counter(), time.process_time()
     worker_cpu: dict[int, float] = {}
     try:
-        clock = report.stage_seconds
-        clock["read"] = 0.0  # the first frames' reading (pool.map above) is the set-up's
+        clock = _StageClock(report)
+        clock.wall["read"] = clock.cpu["read"] = 0.0  # pool.map's first frames: the set-up's
         while True:
             # "shading" is the wait for the next shaded frame less the reading it includes.
-            read_before, step = clock["read"], time.perf_counter()
+            read_before = clock.wall["read"], clock.cpu["read"]
+            step = clock.now()
             item = next(shaded_frames, None)
-            clock["shading"] += time.perf_counter() - step - (clock["read"] - read_before)
+            clock.add("shading", step)
+            clock.wall["shading"] -= clock.wall["read"] - read_before[0]
+            clock.cpu["shading"] -= clock.cpu["read"] - read_before[1]
             if item is None:
                 break
             count, shaded = item
@@ -542,14 +571,14 @@ def process_bag(
             # garbage collection (the cycle that made the live flow node's memory
             # creep, docs/reliability.md).
             missing_pose: str | None = None
-            step = time.perf_counter()
+            step = clock.now()
             try:
                 T_world_camera = feed.at(shaded.stamp_ns)
             except PoseLookupError as error:
                 missing_pose = type(error).__name__
-            clock["poses"] += (now := time.perf_counter()) - step
+            step = clock.add("poses", step)
             output.copy_until(truth, truth_pending, shaded.stamp_ns)
-            clock["truth"] += (step := time.perf_counter()) - now
+            step = clock.add("truth", step)
             _write_frame(output, infos.pop(shaded.index), shaded, report)
             if missing_pose is not None:
                 report.without_pose[missing_pose] += 1
@@ -560,16 +589,16 @@ def process_bag(
                     shaded.frame_id or topics.OPTICAL_FRAME,
                 )  # fmt: skip
                 output.hold_tf(topics.TF, [edge], shaded.stamp_ns)
-            clock["write"] += time.perf_counter() - step
+            clock.add("write", step)
             _flow_frame(output, flow, shaded, T_world_camera, world_frame, report)
             if first_stamp is None:
                 first_stamp = shaded.stamp_ns
                 report.first_frame_seconds = time.perf_counter() - loop_start
             last_stamp = shaded.stamp_ns
             if count % options.flush_every == 0:
-                step = time.perf_counter()
+                step = clock.now()
                 output.flush()
-                clock["flush"] += time.perf_counter() - step
+                clock.add("flush", step)
             progress.update(report.frames_in)
             if stop.is_set():
                 report.interrupted = True

@@ -97,6 +97,10 @@ def test_every_frame_is_processed_and_the_truth_copied(full_run: tuple[ProcessRe
     assert set(report.stage_seconds) <= set(LOOP_STAGES)
     assert all(report.stage_seconds[name] > 0.0 for name in ("read", "shading", "write", "flow"))
     assert sum(report.stage_seconds.values()) <= report.seconds
+    # Their CPU in the loop's thread: the same steps, within the process's loop CPU.
+    assert set(report.stage_cpu_seconds) == set(report.stage_seconds)
+    assert report.stage_cpu_seconds["flow"] > 0.0
+    assert sum(report.stage_cpu_seconds.values()) <= report.loop_cpu_seconds + 1e-3
     assert 0.0 < report.first_frame_seconds < report.seconds
     assert report.steady_real_time_factor > 0.0
     assert report.shading_seconds["correct"] > 0.0
