@@ -96,10 +96,17 @@ class Configuration:
     name: str
     solve_scale: float
     node_parameters: dict[str, dict[str, str]] = field(default_factory=dict)
+    #: endo-sfs processes sharing the frames (GraphSettings.sfs_workers).
+    sfs_workers: int = 1
 
 
 def configurations(scales: list[float]) -> list[Configuration]:
-    """All optimisations on, then each off alone, at every scale."""
+    """All optimisations on, each off alone, then SFS's threads and workers, at every scale.
+
+    "all on" runs one endo-sfs with its default threads (2); "sfs threads 1"
+    one endo-sfs on one thread; "sfs 2 workers x 1 thread" two endo-sfs
+    processes (worker_count 2) of one thread each.
+    """
     off = {
         "newest_frame off": {n: {"newest_frame": "false"} for n in (CORRECTION, SFS, FLOW)},
         "warm_start off": {SFS: {"warm_start": "false"}},
@@ -108,6 +115,9 @@ def configurations(scales: list[float]) -> list[Configuration]:
     for scale in scales:
         found.append(Configuration("all on", scale))
         found += [Configuration(name, scale, params) for name, params in off.items()]
+        found += [Configuration("sfs threads 1", scale, {SFS: {"threads": "1"}}),
+                  Configuration("sfs 2 workers x 1 thread", scale, {SFS: {"threads": "1"}},
+                                sfs_workers=2)]
     return found
 
 
@@ -199,7 +209,8 @@ def run_once(bag: Path, configuration: Configuration, rate: float, work: Path,
     out = Path(tempfile.mkdtemp(prefix=f"{bag.stem}_", dir=work))
     photometric, handeye, _ = true_calibrations(out, configuration.solve_scale, bag)
     settings = replace(graph_settings_for(bag, rate, configuration.solve_scale),
-                       node_parameters=configuration.node_parameters)
+                       node_parameters=configuration.node_parameters,
+                       sfs_workers=configuration.sfs_workers)
     processes = planned_graph(bag, photometric, handeye, out, settings)
     settings = replace(settings, listeners=GraphMonitor.played_listeners(processes, listen))
     before = _cpu_ms()
@@ -305,15 +316,15 @@ def report(results: list[Result], args: argparse.Namespace) -> str:
             f"{_ms(f.stage(CORRECTION).latency_ms)} | {_ms(f.stage(SFS).latency_ms)} | "
             f"{_ms(f.end_to_end_ms)} |"
         )
+    names = process_names(results)
     lines += ["", "CPU (% of one core over the play window) and peak RSS (MB) per process:", "",
-              "| bag | configuration | scale | pass | " + " | ".join(
-                  p.name for p in results[0].figures.processes) + " |",
-              "|---|---|---|---|" + "---|" * len(results[0].figures.processes)]
+              "| bag | configuration | scale | pass | " + " | ".join(names) + " |",
+              "|---|---|---|---|" + "---|" * len(names)]
     for r in results:
         cells = {p.name: f"{p.cpu_percent:.0f} % / {p.rss_mb:.0f}" for p in r.figures.processes}
         lines.append(
             f"| {r.bag} | {r.configuration.name} | {r.configuration.solve_scale:g} | {r.run} | "
-            + " | ".join(cells.get(p.name, "—") for p in results[0].figures.processes) + " |"
+            + " | ".join(cells.get(name, "—") for name in names) + " |"
         )
     lines += ["", *ratio_lines(results), "", *cost_lines(results), "", *timing_lines(results),
               "", *target_lines(results)]
@@ -356,6 +367,11 @@ def sweep_report(sweep: list[Result]) -> str:
     return "\n".join(lines) + "\n"
 
 
+def process_names(results: list[Result]) -> list[str]:
+    """The processes of every run, in the order first seen (SFS workers add rows)."""
+    return list(dict.fromkeys(p.name for r in results for p in r.figures.processes))
+
+
 def ratio_lines(results: list[Result]) -> list[str]:
     """Each optimisation off against all on, same bag, scale and pass (none: no lines)."""
     if all(r.configuration.name == "all on" for r in results):
@@ -387,12 +403,13 @@ def ratio_lines(results: list[Result]) -> list[str]:
 
 def cost_lines(results: list[Result]) -> list[str]:
     """CPU ms per frame of each process (all on), and the cores 30 Hz would need."""
-    runs = [r for r in results if r.configuration.name.startswith("all on")]
-    if not runs or not runs[0].figures.processes:
+    runs = [r for r in results if " off" not in r.configuration.name]
+    names = process_names(runs)
+    if not names:
         return []
-    names = [p.name for p in runs[0].figures.processes]
-    lines = ["CPU cost per frame, every optimisation on: CPU ms each process spent (from the "
-             "start of the play to its end, the drain included) per frame it let out (the "
+    lines = ["CPU cost per frame, every optimisation on (each SFS configuration): CPU ms "
+             "each process spent (from the start of the play to its end, the drain included) "
+             "per frame it let out (SFS workers: each per frame the stage let out; the "
              "recorder, bridge and replay: per frame played). CPU time is less sensitive to the "
              "load than wall time, but not immune: on a starved machine it grows with cache and "
              "memory contention and with sfs's two threads waiting for each other, and a "
@@ -406,10 +423,11 @@ def cost_lines(results: list[Result]) -> list[str]:
              "|---|---|---|---|" + "---|" * (len(names) + 4)]
     for r in runs:
         costs = [r.figures.cpu_ms_per_frame(n) for n in names]
+        total = sum(c for c in costs if c == c)  # a process this run did not have: NaN, "—"
         lines.append(f"| {r.bag} | {r.configuration.name} | {r.configuration.solve_scale:g} | "
                      f"{r.run} | "
-                     + " | ".join(f"{c:.1f}" for c in costs)
-                     + f" | {sum(costs):.0f} | {sum(costs) * 30 / 1000:.2f} | "
+                     + " | ".join("—" if c != c else f"{c:.1f}" for c in costs)
+                     + f" | {total:.0f} | {total * 30 / 1000:.2f} | "
                      f"{getattr(r, 'listener_ms_per_frame', float('nan')):.1f} | "
                      f"{getattr(r, 'read_ms_per_frame', float('nan')):.1f} |")
     return lines

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import pytest
 
-from endo_bringup.graph import GraphSettings, graph_processes
+from endo_bringup.graph import PLAYER, RECORDER, GraphError, GraphSettings, graph_processes
 from endo_bringup.graph_monitor import (
     CLOUD_TOPIC,
     GraphFigures,
@@ -57,6 +57,38 @@ def test_node_parameters_of_a_configuration_are_added_to_their_rows(tmp_path: Pa
     assert rows["endo-flow"].command()[1:] == ["--ros-args", "-p", camera,
                                                "-p", "newest_frame:=false"]
     assert "newest_frame" not in rows["endo-photometric-correction"].parameters
+
+
+def test_sfs_workers_are_rows_of_their_own(tmp_path: Path) -> None:
+    settings = GraphSettings(node_parameters={"endo-sfs": {"threads": "1"}}, sfs_workers=2)
+    processes = _table(tmp_path, settings)
+    rows = {p.name: p for p in processes}
+    workers = [rows["endo-sfs"], rows["endo-sfs-1"]]
+    assert [p.name for p in processes].index("endo-sfs-1") == 3  # beside worker 0
+    for index, worker in enumerate(workers):
+        assert worker.parameters["worker_count"] == "2"
+        assert worker.parameters["worker_index"] == str(index)
+        assert worker.parameters["threads"] == "1"  # the configuration's, on every worker
+        assert worker.command()[-2:] == ["-r", f"__node:=sfs_{index}"]
+    assert [node_name_of(w) for w in workers] == ["sfs_0", "sfs_1"]
+    # one depth topic: recorded once, every frame expected once
+    recorder = rows[RECORDER]
+    assert recorder.subscribes.count(topics.DEPTH_RELATIVE) == 1
+    # the replay waits for both workers' camera_info subscriptions
+    assert f"{topics.CAMERA_INFO}=4" in rows[PLAYER].command()
+    # the other rows are one worker's table
+    single = {p.name: p for p in _table(tmp_path)}
+    assert set(rows) - set(single) == {"endo-sfs-1"}
+    assert "worker_count" not in single["endo-sfs"].parameters
+    with pytest.raises(GraphError):
+        _table(tmp_path, GraphSettings(sfs_workers=0))
+    # the sampler tells the two processes of one executable apart by their command lines
+    sampler = ProcessSampler(processes)
+    python = sys.executable
+    assert sampler.row_of([python, *workers[1].command()]) == "endo-sfs-1"
+    assert sampler.row_of([python, *workers[0].command()]) == "endo-sfs"
+    assert sampler.row_of([python, *rows["endo-flow"].command()]) == "endo-flow"
+    assert sampler.row_of([python, "/usr/bin/other"]) is None
 
 
 def test_figures_of_a_known_run(tmp_path: Path) -> None:

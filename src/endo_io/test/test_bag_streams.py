@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections import Counter
 from pathlib import Path
 
 import numpy as np
@@ -9,6 +10,7 @@ import pytest
 
 from endo_io.bag import BagError, BagWriter
 from endo_io.bag.streams import (
+    GrowingCounter,
     PoseStreamCollector,
     count_messages,
     read_depth_frames,
@@ -53,6 +55,87 @@ def test_counts_list_every_topic_and_a_cut_bag_counts_what_is_intact(tmp_path: P
     assert count_messages(tmp_path / "not_yet.mcap", partial=True) == {}
     with pytest.raises(BagError):
         count_messages(tmp_path / "not_yet.mcap")
+
+
+def _write_flushed(path: Path, compression: str) -> list[int]:
+    """A recorder's file: 3 topics, flushed every 7 messages; the file's size after each flush."""
+    sizes = []
+    with BagWriter(path, compression=compression, chunk_size=1 << 12) as writer:
+        for k in range(60):
+            stamp = k * 10 * MS
+            writer.write_message("/pose", matrix_to_pose(rigid_transform([0.0, 0.0, 0.001 * k],
+                                                                          [k, 0.0, 0.0]),
+                                                         stamp, "tracker"), stamp)
+            if k % 3 == 0:  # the depth topic appears after the first flushes
+                depth = np.full((8, 10), 0.01 * (k + 1), np.float32)
+                writer.write_message("/depth", array_to_image(depth, "32FC1", stamp, "cam"),
+                                     stamp)
+            if k == 30:
+                writer.add_topic("/late", "std_msgs/msg/Float32")  # a topic without messages
+            if k % 7 == 6:
+                writer.flush()
+                sizes.append(path.stat().st_size)
+    return sizes
+
+
+@pytest.mark.parametrize("compression", ["lz4", "zstd", "none"])
+def test_growing_counter_counts_as_count_messages_does_while_the_file_grows(
+    tmp_path: Path, compression: str
+) -> None:
+    whole = tmp_path / "whole.mcap"
+    flushed = _write_flushed(whole, compression)
+    data = whole.read_bytes()
+    assert count_messages(whole) == {"/pose": 60, "/depth": 20, "/late": 0}
+    assert GrowingCounter(whole).count() == count_messages(whole)
+    # a file being written: every prefix, counted by one counter reading on, and alone
+    growing = tmp_path / "growing.mcap"
+    counter = GrowingCounter(growing)
+    assert counter.count() == {}  # not created yet
+    whole_chunks = 0
+    for cut in sorted({*range(0, len(data), 97), *flushed, len(data)}):
+        growing.write_bytes(data[:cut])  # a rewrite of the same bytes, longer
+        on, alone = counter.count(), GrowingCounter(growing).count()
+        partial = count_messages(growing, partial=True)
+        if cut in flushed or cut == len(data):
+            # every chunk and its indexes whole: the same counts as the full read
+            assert on == alone == partial
+            whole_chunks += 1
+            continue
+        # cut inside a chunk or its indexes: never more than the full read, and at least
+        # the chunks flushed before the cut
+        before = max((s for s in flushed if s <= cut), default=None)
+        done = (Counter() if before is None
+                else count_messages(_prefix(tmp_path, data, before), partial=True))
+        for counts in (on, alone):
+            assert all(done[t] <= counts[t] <= partial[t] for t in partial)
+    assert whole_chunks == len(flushed) + 1
+    assert counter.count() == count_messages(whole) and not counter.damage
+
+
+def _prefix(tmp_path: Path, data: bytes, size: int) -> Path:
+    path = tmp_path / f"prefix_{size}.mcap"
+    if not path.exists():
+        path.write_bytes(data[:size])
+    return path
+
+
+def test_growing_counter_stops_at_a_damaged_chunk_and_refuses_other_files(tmp_path: Path) -> None:
+    whole = tmp_path / "whole.mcap"
+    flushed = _write_flushed(whole, "lz4")
+    data = bytearray(whole.read_bytes())
+    # the first chunk declares the channels: damage its compressed data
+    first_chunk = 8 + 9 + int.from_bytes(data[9:17], "little")  # after magic and header
+    assert data[first_chunk] == 0x06  # a chunk's opcode
+    data[first_chunk + 9 + 40 : first_chunk + 9 + 60] = bytes(20)
+    damaged = tmp_path / "damaged.mcap"
+    damaged.write_bytes(bytes(data[: flushed[1]]))
+    counter = GrowingCounter(damaged)
+    assert sum(counter.count().values()) == 0
+    assert "chunk" in counter.damage or "lz4" in counter.damage
+    other = tmp_path / "other.mcap"
+    other.write_bytes(b"not an mcap file at all")
+    with pytest.raises(BagError, match="not an MCAP file"):
+        GrowingCounter(other).count()
 
 
 def test_pose_stream_is_sorted_by_stamp_and_scaled(tmp_path: Path) -> None:
