@@ -22,8 +22,15 @@ Figures, on the frames with ground-truth depth:
 * the world cloud's RMS distance to the true surface (nearest true point of
   the frame's ground-truth depth, back-projected with the true pose).
 
+Beside them, the figure ``make demo`` judges (``demo_scale_err_max_pct``):
+the published scale against endo_process.accuracy's oracle (the least-squares
+fit of d / d* to 1 over every pixel, ``demo_oracle_ratio`` to the median one)
+from 1 s after its first estimate on (endo_bringup.acceptance). ``--handeye
+FILE`` composes the poses with an ``endo-handeye`` file (its hand–eye and
+clock offset), as the demo does with the calibration it makes.
+
 Usage: ``bench/eval_flow.py BAG --calibration photometric.yaml [--light-error 0.1]
-[--shape none smooth] [--cache DIR]``.
+[--shape none smooth] [--cache DIR] [--handeye handeye.yaml]``.
 """
 
 from __future__ import annotations
@@ -40,6 +47,7 @@ import numpy as np
 import yaml
 from scipy.spatial import cKDTree
 
+from endo_bringup.acceptance import AccuracyBars, converged_scale_error
 from endo_calib.calibration import PhotometricCalibration
 from endo_calib.raw_image import to_raw_frame
 from endo_flow.errors import FlowError
@@ -53,8 +61,11 @@ from endo_io.pose import invert_transform, pose_to_matrix, rigid_transform, tran
 from endo_io.pose_buffer import PoseBuffer
 from endo_io.stamp import stamp_to_ns
 from endo_io.topics import CAMERA_INFO, IMAGE_RAW, TRACKER_POSE, TRUE_CAMERA_POSE, TRUE_DEPTH
+from endo_process.accuracy import Accuracy, ScaleTrack
+from endo_process.accuracy import oracle_scale as demo_oracle_scale
 from endo_sfs import SfsOptions, solve
 from endo_tracker_bridge.composition import compose_camera_pose, corrected_stamp_ns
+from endo_tracker_bridge.handeye_file import HandEyeCalibration
 
 #: the issue's hand–eye error: 1 mm and 0.3°, in fixed directions
 HANDEYE_ERROR = rigid_transform(np.radians(0.3) * np.array([0.6, 0.0, 0.8]),
@@ -120,11 +131,14 @@ def miscalibrated(image: np.ndarray, camera: CameraModel, fov_radius_px: float, 
 
 def read_bag(path: Path, calibration: PhotometricCalibration, light_error: float,
              cache: Path | None, solve_scale: float, handeye_error: bool = True,
-             light_error_kind: str = "radial") -> Sequence:
+             light_error_kind: str = "radial", handeye: Path | None = None) -> Sequence:
     """Correct, solve SFS (cached) and compose the tracker poses of one bag.
 
     ``handeye_error`` False composes with the true hand–eye (a diagnosis of
     the share of the scale error that the calibration error causes);
+    ``handeye``, an ``endo-handeye`` file, replaces both the hand–eye and
+    the clock offset (as ``make demo`` composes the phantom's poses with the
+    calibration it made);
     ``light_error`` and ``light_error_kind`` make the photometric correction
     wrong (:func:`miscalibrated`).
     """
@@ -135,6 +149,9 @@ def read_bag(path: Path, calibration: PhotometricCalibration, light_error: float
     if handeye_error:
         X = X @ HANDEYE_ERROR
     latency_ns = round(tracker["latency_s"] * 1e9)
+    if handeye is not None:
+        calibration_file = HandEyeCalibration.load(handeye)
+        X, latency_ns = calibration_file.T_marker_camera, calibration_file.time_offset_ns
     fov = truth["camera"]["fov_radius_px"]
     wanted = [IMAGE_RAW, CAMERA_INFO, TRUE_DEPTH, TRUE_CAMERA_POSE, TRACKER_POSE]
     raw: dict[int, np.ndarray] = {}
@@ -255,6 +272,11 @@ def evaluate(seq: Sequence, options: FlowOptions, depth_range: tuple[float, floa
     """
     pipe = FlowPipeline(options)
     s_oracle = oracle_scale(seq)
+    # the demo's scoring (endo_process.accuracy, endo_bringup.acceptance): the
+    # least-squares fit of d / d* to 1 over every pixel, the published scale
+    # judged from 1 s after its first estimate
+    s_demo = demo_oracle_scale(seq.relative, seq.true_depth)
+    published: list[tuple[int, float]] = []
     t_start = seq.stamps[0]
     rows = []
     errors: dict[str, int] = {}
@@ -274,6 +296,7 @@ def evaluate(seq: Sequence, options: FlowOptions, depth_range: tuple[float, floa
             errors[type(error).__name__] = errors.get(type(error).__name__, 0) + 1
             continue
         wall.append(time.perf_counter() - start)
+        published.append((stamp, out.scale.value))
         t = (stamp - t_start) / 1e9
         if trace:
             d = out.diagnostics
@@ -344,11 +367,18 @@ def evaluate(seq: Sequence, options: FlowOptions, depth_range: tuple[float, floa
     after = table[table[:, 0] >= settle_s] if len(table) else table
     per_frame = [float(np.nanmedian(seq.true_depth[s] / seq.relative[s]))
                  for s in sorted(seq.true_depth)]
+    track = ScaleTrack(np.array([p[0] for p in published], np.int64),
+                       np.array([p[1] for p in published], np.float64), s_demo)
+    demo_errors = converged_scale_error(Accuracy(truth_frames=len(seq.true_depth), scale=track),
+                                        AccuracyBars().convergence_s)
     result = {
         "label": label,
         "frames": len(seq.stamps),
         "gt_frames": len(rows),
         "oracle_scale": s_oracle,
+        "demo_oracle_ratio": s_demo / s_oracle,
+        "demo_scale_err_max_pct": 100 * float(np.max(np.abs(demo_errors)))
+        if len(demo_errors) else np.nan,
         "sfs_per_frame_scale_cov": float(np.std(per_frame) / np.mean(per_frame)),
         "moved_2mm_at_s": t_2mm,
         "first_usable_s": first,
@@ -401,6 +431,9 @@ def main(argv: list[str] | None = None) -> int:
                         help="diagnosis: the simulator's exact camera poses")
     parser.add_argument("--no-handeye-error", action="store_true",
                         help="diagnosis: compose the tracker poses with the true hand-eye")
+    parser.add_argument("--handeye", type=Path, default=None,
+                        help="an endo-handeye file: its hand-eye and clock offset instead of "
+                        "the truth's (make demo's out/handeye.yaml)")
     args = parser.parse_args(argv)
     try:
         calibration = PhotometricCalibration.load(args.calibration)
@@ -421,7 +454,7 @@ def main(argv: list[str] | None = None) -> int:
     for bag in args.bags:
         seq = read_bag(bag, calibration, args.light_error, args.cache, args.solve_scale,
                        handeye_error=not args.no_handeye_error,
-                       light_error_kind=args.light_error_kind)
+                       light_error_kind=args.light_error_kind, handeye=args.handeye)
         for mode in args.shape:
             options = dataclasses.replace(FlowOptions(shape=ShapeCorrectionOptions(mode=mode)),
                                           **overrides)
