@@ -40,6 +40,7 @@ import dataclasses
 import json
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -64,6 +65,7 @@ from endo_io.topics import CAMERA_INFO, IMAGE_RAW, TRACKER_POSE, TRUE_CAMERA_POS
 from endo_process.accuracy import Accuracy, ScaleTrack
 from endo_process.accuracy import oracle_scale as demo_oracle_scale
 from endo_sfs import SfsOptions, solve
+from endo_sim.sequences import SimulationConfig, build_sequence
 from endo_tracker_bridge.composition import compose_camera_pose, corrected_stamp_ns
 from endo_tracker_bridge.handeye_file import HandEyeCalibration
 
@@ -208,6 +210,46 @@ def read_bag(path: Path, calibration: PhotometricCalibration, light_error: float
     return Sequence(camera, stamps, images, relative, true_depth, true_pose, poses)
 
 
+def scene_depth(path: Path, seq: Sequence) -> Callable[[int, np.ndarray], np.ndarray]:
+    """True depth at any pixel of any frame of an endo_sim bag, traced in its scene.
+
+    The bag's scene is planned again from its ground-truth YAML (scene, seed,
+    recording) by ``endo_sim.sequences.build_sequence`` and its rays traced
+    from the frame's true camera pose, so the truth is known at every frame
+    and at the tracks' sub-pixel positions, not only at the frames that
+    carry ground-truth depth. Checked against the bag's first ground-truth
+    depth frame (every 16th pixel: median relative difference ≤ 1e-5), so a
+    bag rendered with other geometry is refused rather than misread.
+
+    Returns:
+        ``depth_at(stamp, uv)``: (N, 2) float pixels of frame ``stamp`` ->
+        (N,) float64 true depth along z, metres, NaN where no surface.
+    """
+    truth = yaml.safe_load(path.with_suffix(".ground_truth.yaml").read_text())
+    scene_entry, recording = truth["scene"], truth["recording"]
+    planned = build_sequence(SimulationConfig(
+        scene=scene_entry["scene"], seed=scene_entry["seed"],
+        duration_s=recording["duration_s"], fps=recording["fps"],
+        start_ns=recording["start_ns"]))
+    scene = planned.scenes[0]
+
+    def depth_at(stamp: int, uv: np.ndarray) -> np.ndarray:
+        rays = seq.camera.pixels_to_rays(np.asarray(uv, np.float64))
+        hits = scene.trace(seq.true_pose[stamp], rays[:, None, :].astype(np.float64),
+                           np.ones((len(rays), 1), bool))
+        return np.asarray(hits.distance[:, 0] * rays[:, 2], np.float64)
+
+    stamp = min(seq.true_depth)
+    v, u = np.mgrid[8:seq.camera.height:16, 8:seq.camera.width:16]
+    expected = seq.true_depth[stamp][v.ravel(), u.ravel()].astype(np.float64)
+    traced = depth_at(stamp, np.stack([u.ravel(), v.ravel()], axis=1).astype(np.float64))
+    both = np.isfinite(expected) & np.isfinite(traced)
+    if both.sum() < 100 or np.median(np.abs(traced[both] / expected[both] - 1.0)) > 1e-5:
+        raise ValueError(f"{path.name}: its scene, planned again, does not reproduce its "
+                         "ground-truth depth (rendered with other geometry?)")
+    return depth_at
+
+
 def log_ratios(seq: Sequence) -> dict[int, np.ndarray]:
     """ln(true / relative) at every valid pixel of each ground-truth frame, by stamp."""
     logs = {}
@@ -255,7 +297,8 @@ def cloud_rms(points: np.ndarray, truth: np.ndarray, pose: np.ndarray,
 def evaluate(seq: Sequence, options: FlowOptions, depth_range: tuple[float, float],
              label: str, trace: bool = False, settle_s: float = 1.5,
              true_poses: bool = False,
-             series: dict[str, list[float]] | None = None) -> dict[str, object]:
+             series: dict[str, list[float]] | None = None,
+             truth_at: Callable[[int, np.ndarray], np.ndarray] | None = None) -> dict[str, object]:
     """Run the pipeline over the sequence and score it.
 
     Scale figures are taken at every frame from the filter's first
@@ -266,7 +309,12 @@ def evaluate(seq: Sequence, options: FlowOptions, depth_range: tuple[float, floa
     there (median of s*·d_rel / z_true at the same tracks).
 
     ``true_poses`` feeds the simulator's exact camera poses instead of the
-    tracker's (a diagnosis: what the pose errors cost). ``series``, if given,
+    tracker's (a diagnosis: what the pose errors cost). ``truth_at``
+    (:func:`scene_depth`) splits every observation's error, at every frame:
+    ``split_*`` figures, the medians over the accepted tracks of
+    z_triangulated / z_true (the triangulation's share) and of
+    s*·d_rel / z_true (SFS's depth at the tracks against the oracle), over
+    the first 0.5 s of observations and over the rest. ``series``, if given,
     receives the per-frame trace: ``t`` (s since the first frame), ``usable``
     (s/s* once usable, NaN before) and ``estimate`` (s/s* at every frame).
     """
@@ -286,6 +334,7 @@ def evaluate(seq: Sequence, options: FlowOptions, depth_range: tuple[float, floa
     events = {"exposure_steps": 0, "cusum_steps": 0, "gated": 0}
     observations: list[tuple[float, float]] = []
     split: list[tuple[float, float]] = []
+    vision: list[tuple[float, float, float, float]] = []  # t, obs/s*, z_tri/z, s*·d_rel/z
     for stamp in seq.stamps:
         pose = seq.true_pose.get(stamp) if true_poses else seq.poses[stamp]
         frame = FlowFrame(stamp, seq.images[stamp], seq.relative[stamp], seq.camera, pose)
@@ -319,6 +368,15 @@ def evaluate(seq: Sequence, options: FlowOptions, depth_range: tuple[float, floa
         events["gated"] += int(d.gated)
         if np.isfinite(d.observation):
             observations.append((t, d.observation / s_oracle))
+            if truth_at is not None and len(out.triangulated) and pose is not None:
+                local = transform_points(invert_transform(pose), out.triangulated)
+                uv = seq.camera.project(local)
+                true_z = truth_at(stamp, uv)
+                with np.errstate(invalid="ignore", divide="ignore"):
+                    vision.append((t, d.observation / s_oracle,
+                                   float(np.nanmedian(local[:, 2] / true_z)),
+                                   float(np.nanmedian(sample_bilinear(seq.relative[stamp], uv)
+                                                      * s_oracle / true_z))))
         if stamp not in seq.true_depth or out.depth is None:
             continue
         truth = seq.true_depth[stamp]
@@ -404,10 +462,33 @@ def evaluate(seq: Sequence, options: FlowOptions, depth_range: tuple[float, floa
         "cloud_rms_mm": 1e3 * float(np.sqrt(np.nanmean(after[:, 6] ** 2))) if len(after)
         else np.nan,
         "shape_active_frames": int(sum(r[7] for r in rows)),
+        **vision_split(vision),
         "dropped": errors,
         "pipeline_ms_median": 1e3 * float(np.median(wall)),
     }
     return result
+
+
+def vision_split(vision: list[tuple[float, float, float, float]],
+                 early_s: float = 0.5) -> dict[str, object]:
+    """Medians of (observation, triangulation, SFS at the tracks) / truth, early and late.
+
+    ``vision``: per observed frame (t, obs / s*, median z_tri / z_true, median
+    s*·d_rel / z_true); early = the first ``early_s`` seconds of observations.
+    Empty without a split.
+    """
+    if not vision:
+        return {}
+    table = np.array(vision, np.float64)
+    early = table[:, 0] < table[0, 0] + early_s
+    out: dict[str, object] = {}
+    for name, part in (("early", early), ("late", ~early)):
+        if part.any():
+            med = np.nanmedian(table[part, 1:], axis=0)
+            out[f"split_{name}_obs_tri_sfs"] = [round(float(v), 4) for v in med]
+    out["split_tri_max_pct"] = 100 * float(np.nanmax(np.abs(table[:, 2] - 1.0)))
+    out["split_sfs_max_pct"] = 100 * float(np.nanmax(np.abs(table[:, 3] - 1.0)))
+    return out
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -431,6 +512,9 @@ def main(argv: list[str] | None = None) -> int:
                         help="diagnosis: the simulator's exact camera poses")
     parser.add_argument("--no-handeye-error", action="store_true",
                         help="diagnosis: compose the tracker poses with the true hand-eye")
+    parser.add_argument("--split", action="store_true",
+                        help="diagnosis: split each observation's error into triangulation and "
+                        "SFS at the tracks, true depth traced in the bag's scene at every frame")
     parser.add_argument("--handeye", type=Path, default=None,
                         help="an endo-handeye file: its hand-eye and clock offset instead of "
                         "the truth's (make demo's out/handeye.yaml)")
@@ -455,6 +539,7 @@ def main(argv: list[str] | None = None) -> int:
         seq = read_bag(bag, calibration, args.light_error, args.cache, args.solve_scale,
                        handeye_error=not args.no_handeye_error,
                        light_error_kind=args.light_error_kind, handeye=args.handeye)
+        truth_at = scene_depth(bag, seq) if args.split else None
         for mode in args.shape:
             options = dataclasses.replace(FlowOptions(shape=ShapeCorrectionOptions(mode=mode)),
                                           **overrides)
@@ -462,7 +547,7 @@ def main(argv: list[str] | None = None) -> int:
                      f"{'' if args.light_error == 0 else ' ' + args.light_error_kind} shape={mode}"
                      + "".join(f" {item}" for item in args.set))
             result = evaluate(seq, options, (args.range_mm[0] / 1e3, args.range_mm[1] / 1e3),
-                              label, args.trace, true_poses=args.true_poses)
+                              label, args.trace, true_poses=args.true_poses, truth_at=truth_at)
             results.append(result)
             print(json.dumps(result), flush=True)
     if args.json:
