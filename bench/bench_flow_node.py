@@ -2,6 +2,7 @@
 
     .venv/bin/python bench/bench_flow_node.py RECORDING [--runs 2] [--rate 1.0]
         [--node flow|record] [--baseline SRC_ROOT]
+    .venv/bin/python bench/bench_flow_node.py --decoding [RECORDING]
 
 RECORDING is a live graph's recording (``graph.mcap`` of a bench_graph or
 ``endo-demo`` run, with ``camera.yaml`` beside it): ``endo-replay`` plays its
@@ -21,6 +22,13 @@ CPU is reported per image_corrected frame played (a frame of the graph).
 baseline's (its ``src/*`` packages first on PYTHONPATH), so that the two
 compare as a ratio inside one pass, under the same load.
 
+``--decoding`` times, instead, what flow does with each pose and camera_info
+it takes, rclpy's message objects against endo_io's CDR readers, on the
+recording's own messages (or synthetic ones without a recording): per
+message, ``deserialize_message`` + ``pose_to_matrix`` against
+``pose_stamped_from_cdr`` + ``pose_to_matrix``; ``deserialize_message`` +
+``CameraInfoCache.model_of`` against ``camera_info_from_cdr`` + the same.
+
 Reported per run: the depth frames played, the node's CPU time (user +
 system, /proc) from the start of the play to 1 s after its end, per depth
 frame played (per image_corrected frame for the recorder), and per message
@@ -38,6 +46,7 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+from typing import Any
 
 from endo_bringup.dds_profile import with_large_frame_profile
 from endo_bringup.graph import (
@@ -104,6 +113,56 @@ def run_once(recording: Path, rate: float, env: dict[str, str], logs: Path,
             **{f"thread {name} s": seconds for name, seconds in threads.items()}}
 
 
+def decoding_costs(recording: Path | None, repeats: int = 5) -> dict[str, float]:
+    """Microseconds per message of flow's pose and camera_info handling, rclpy's and endo_io's.
+
+    Each figure is the best of ``repeats`` passes over the messages (at most
+    500 of each topic), so that it is the code's cost, not the machine's load.
+    """
+    from geometry_msgs.msg import PoseStamped
+    from rclpy.serialization import deserialize_message, serialize_message
+    from sensor_msgs.msg import CameraInfo
+
+    from endo_io.camera import CameraInfoCache, CameraModel, camera_info_from_cdr
+    from endo_io.pose import matrix_to_pose, pose_stamped_from_cdr, pose_to_matrix, rigid_transform
+
+    poses: list[bytes] = []
+    infos: list[bytes] = []
+    if recording is not None:
+        with BagReader(recording) as reader:
+            for message in reader.messages([CAMERA_POSE, CAMERA_INFO]):
+                kept = poses if message.topic == CAMERA_POSE else infos
+                if len(kept) < 500:
+                    kept.append(bytes(message.data))
+    else:
+        camera = CameraModel.pinhole(640, 480, 500.0, 500.0, 319.5, 239.5)
+        for k in range(500):
+            T = rigid_transform([0.01 * k, 0.2, 0.3], [0.01, 0.02, 0.001 * k])
+            poses.append(serialize_message(matrix_to_pose(T, 10**9 + k * 16_666_667, "world")))
+            infos.append(serialize_message(camera.to_camera_info(10**9 + k * 33_333_333)))
+
+    def best_us(step: Any, items: list[bytes]) -> float:
+        times = []
+        for _ in range(repeats):
+            start = time.perf_counter()
+            for data in items:
+                step(data)
+            times.append(time.perf_counter() - start)
+        return 1e6 * min(times) / len(items)
+
+    rclpy_cache, cdr_cache = CameraInfoCache(), CameraInfoCache()
+    return {
+        "poses": len(poses), "camera_infos": len(infos),
+        "pose rclpy us": best_us(lambda d: pose_to_matrix(deserialize_message(d, PoseStamped)),
+                                 poses),
+        "pose cdr us": best_us(lambda d: pose_to_matrix(pose_stamped_from_cdr(d)), poses),
+        "camera_info rclpy us": best_us(
+            lambda d: rclpy_cache.model_of(deserialize_message(d, CameraInfo)), infos),
+        "camera_info cdr us": best_us(lambda d: cdr_cache.model_of(camera_info_from_cdr(d)),
+                                      infos),
+    }
+
+
 def thread_cpu_s(pid: int) -> dict[str, float]:
     """CPU seconds (user + system) of each thread name of process ``pid``, since it started."""
     found: dict[str, float] = {}
@@ -122,13 +181,22 @@ def thread_cpu_s(pid: int) -> dict[str, float]:
 def main() -> int:
     """Play the recording ``--runs`` times into the flow node; print each run's figures."""
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("recording", type=Path)
+    parser.add_argument("recording", type=Path, nargs="?", default=None)
     parser.add_argument("--runs", type=int, default=2)
     parser.add_argument("--rate", type=float, default=1.0)
     parser.add_argument("--node", choices=("flow", "record"), default="flow")
     parser.add_argument("--baseline", type=Path, default=None,
                         help="a checkout's root whose src/* packages run in alternate runs")
+    parser.add_argument("--decoding", action="store_true",
+                        help="time flow's pose and camera_info decoding instead (no node)")
     args = parser.parse_args()
+    if args.decoding:
+        print(f"bench_flow_node --decoding on {args.recording or 'synthetic messages'} "
+              f"(load {os.getloadavg()[0]:.1f}): "
+              + ", ".join(f"{k} {v:.3g}" for k, v in decoding_costs(args.recording).items()))
+        return 0
+    if args.recording is None:
+        parser.error("a recording is needed (all but --decoding)")
     env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
     env.setdefault("ROS_DOMAIN_ID", "43")
     work = Path(tempfile.mkdtemp(prefix="endo3d_bench_flow_node_"))

@@ -24,6 +24,12 @@ Subscriptions:
   camera_infos, so the status's ages and counts of those inputs are theirs,
   not the depth's: with the depth stopped, only the depth is stale.
 
+The poses and camera_infos are read from their CDR bytes without rclpy's
+message objects (:func:`endo_io.pose.pose_stamped_from_cdr`,
+:func:`endo_io.camera.camera_info_from_cdr`: the camera model is rebuilt
+only when the bytes after the stamp change), the images as views of the
+received bytes (:func:`endo_io.image.image_from_cdr`).
+
 A complete frame waits (at most ``pose_wait_s``, and behind at most
 ``max_pending`` earlier frames) until a pose after its stamp has arrived, then
 takes the interpolated pose at its stamp. A frame whose pose cannot come
@@ -99,7 +105,7 @@ from endo_flow.shape_correction import SHAPE_CORRECTION_MODES, ShapeCorrectionOp
 from endo_flow.tracking import TrackingOptions
 from endo_flow.warm_up import warm_up_pipeline
 from endo_io import topics
-from endo_io.camera import CameraInfoCache, CameraModel
+from endo_io.camera import CameraInfoCache, CameraInfoView, CameraModel, camera_info_from_cdr
 from endo_io.clock_jump import ClockJumpDetector
 from endo_io.diagnostics import HEALTH_PARAMETERS, InputHealth
 from endo_io.errors import (
@@ -112,7 +118,7 @@ from endo_io.errors import (
 )
 from endo_io.image import ImageMessage, array_to_image_cdr, image_from_cdr, image_to_array
 from endo_io.parameters import NodeParameters, ParameterSpec
-from endo_io.pose import pose_to_matrix
+from endo_io.pose import PoseView, pose_stamped_from_cdr, pose_to_matrix
 from endo_io.pose_buffer import PoseBuffer
 from endo_io.process import describing_only, run_node
 from endo_io.qos import (
@@ -226,7 +232,7 @@ class _Pending:
     stamp_ns: int
     image: ImageMessage
     depth: ImageMessage
-    info: CameraInfo
+    info: CameraInfo | CameraInfoView
     deadline: float
 
 
@@ -243,10 +249,10 @@ class FlowNode(Node):
             self._warm_up(options, values["warm_up_camera_file"])
         self.pipeline = FlowPipeline(options)
         tolerance_ns = round(values["stamp_tolerance"] * NS_PER_S)
-        self._images: StampMatcher[ImageMessage, CameraInfo] = StampMatcher(
+        self._images: StampMatcher[ImageMessage, CameraInfo | CameraInfoView] = StampMatcher(
             values["queue_size"], tolerance_ns)
-        self._frames: StampMatcher[tuple[ImageMessage, CameraInfo], ImageMessage] = StampMatcher(
-            values["queue_size"], tolerance_ns)
+        self._frames: StampMatcher[tuple[ImageMessage, CameraInfo | CameraInfoView],
+                                   ImageMessage] = StampMatcher(values["queue_size"], tolerance_ns)
         self.poses = PoseBuffer(capacity=6000,
                                 max_gap_ns=round(values["pose_max_gap_s"] * NS_PER_S))
         self._pending: deque[_Pending] = deque()
@@ -270,9 +276,11 @@ class FlowNode(Node):
             Image, topics.IMAGE_CORRECTED, lambda msg, _: self._on_image(msg), BY_STAMP_QOS,
             decode=image_from_cdr)
         self._info_input = self.health.subscribe_passive(
-            CameraInfo, topics.CAMERA_INFO, lambda msg, _: self._on_info(msg), BY_STAMP_QOS)
+            CameraInfo, topics.CAMERA_INFO, lambda msg, _: self._on_info(msg), BY_STAMP_QOS,
+            decode=camera_info_from_cdr)
         self._pose_input = self.pose_health.subscribe_passive(
-            PoseStamped, topics.CAMERA_POSE, self._on_pose, PASSIVE_POSE_QOS, processed=True)
+            PoseStamped, topics.CAMERA_POSE, self._on_pose, PASSIVE_POSE_QOS, processed=True,
+            decode=pose_stamped_from_cdr)
         self.pose_health.on_refresh(self._take_poses)
         # the image and camera_info counted and aged as theirs, even while no depth comes
         self.health.on_refresh(self._take_frame_inputs)
@@ -360,12 +368,12 @@ class FlowNode(Node):
         if triple is not None:
             self._enqueue(triple.stamp_ns, pair.first, triple.second, pair.second)
 
-    def _on_pose(self, msg: PoseStamped, arrival_ns: int) -> None:
+    def _on_pose(self, msg: PoseStamped | PoseView, arrival_ns: int) -> None:
         T, stamp = pose_to_matrix(msg)
         self.poses.insert(stamp, T, arrival_ns=arrival_ns)
 
     def _enqueue(self, stamp_ns: int, image: ImageMessage, depth: ImageMessage,
-                 info: CameraInfo) -> None:
+                 info: CameraInfo | CameraInfoView) -> None:
         wait = self.parameters["pose_wait_s"]
         self._pending.append(_Pending(stamp_ns, image, depth, info, time.monotonic() + wait))
         self._drain()
@@ -409,7 +417,7 @@ class FlowNode(Node):
 
     # ------------------------------------------------------------------ processing
 
-    def _camera_model(self, info: CameraInfo) -> CameraModel:
+    def _camera_model(self, info: CameraInfo | CameraInfoView) -> CameraModel:
         return self._cameras.model_of(info)[0]  # rebuilt only for another camera
 
     def _process(self, pending: _Pending, pose: np.ndarray | None) -> None:

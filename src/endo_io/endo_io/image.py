@@ -43,11 +43,11 @@ from dataclasses import dataclass
 from typing import TypeAlias
 
 import numpy as np
-from rclpy.serialization import deserialize_message
 from sensor_msgs.msg import Image
 from std_msgs.msg import Header
 
-from endo_io.errors import ImageEncodingError, ImageLayoutError, UndecodableMessageError
+from endo_io.cdr import CdrReader, decode_plain_cdr
+from endo_io.errors import ImageEncodingError, ImageLayoutError
 from endo_io.stamp import NS_PER_S, ns_to_stamp
 
 
@@ -122,52 +122,6 @@ class ImageView:
 ImageMessage: TypeAlias = Image | ImageView
 
 
-class _CdrReader:
-    """Reads plain CDR (XCDR1) fields in order, bounds-checked, as Fast CDR aligns them."""
-
-    def __init__(self, data: bytes, *, little_endian: bool) -> None:
-        self._data = data
-        self._offset = 4  # after the encapsulation header, where alignment starts
-        self._uint32 = struct.Struct("<I" if little_endian else ">I")
-        self._int32 = struct.Struct("<i" if little_endian else ">i")
-
-    def _take(self, size: int, what: str, *, align: int = 1) -> int:
-        start = self._offset + (-(self._offset - 4) % align)
-        if size > len(self._data) - start:
-            raise UndecodableMessageError(
-                f"truncated at {what}: {size} byte(s) needed at byte {start}, "
-                f"{max(len(self._data) - start, 0)} left"
-            )
-        self._offset = start + size
-        return start
-
-    def uint32(self, what: str) -> int:
-        return int(self._uint32.unpack_from(self._data, self._take(4, what, align=4))[0])
-
-    def int32(self, what: str) -> int:
-        return int(self._int32.unpack_from(self._data, self._take(4, what, align=4))[0])
-
-    def uint8(self, what: str) -> int:
-        return self._data[self._take(1, what)]
-
-    def string(self, what: str) -> str:
-        """A CDR string as rclpy gives it: up to the first NUL, invalid UTF-8 replaced."""
-        length = self.uint32(f"{what} length")
-        start = self._take(length, what)
-        text = self._data[start:start + length]
-        return text.split(b"\x00", 1)[0].decode("utf-8", "replace")
-
-    def octets(self, what: str) -> memoryview:
-        """A ``uint8[]`` sequence: its length, then the bytes (a view, not a copy)."""
-        length = self.uint32(f"{what} length")
-        start = self._take(length, what)
-        return memoryview(self._data)[start:start + length]
-
-
-#: Encapsulation identifiers (first two bytes) of plain CDR, big and little endian.
-_CDR_BE, _CDR_LE = b"\x00\x00", b"\x00\x01"
-
-
 def image_from_cdr(data: bytes) -> ImageMessage:
     """Decode a serialized ``sensor_msgs/Image`` without copying its pixels.
 
@@ -193,22 +147,11 @@ def image_from_cdr(data: bytes) -> ImageMessage:
             included: refused before anything is allocated), or they do not
             decode as an Image (other encapsulations, through rclpy).
     """
-    head = bytes(data[:2])
-    if len(data) < 4 or head not in (_CDR_BE, _CDR_LE):
-        if len(data) >= 4 and head[0] == 0:
-            try:
-                return deserialize_message(data, Image)
-            except Exception as error:  # rclpy raises RMWError, or TypeError on junk
-                first = str(error).splitlines()[0] if str(error) else type(error).__name__
-                raise UndecodableMessageError(first) from None
-        raise UndecodableMessageError(
-            f"not CDR: encapsulation header {bytes(data[:4]).hex() or 'missing'}"
-        )
-    cdr = _CdrReader(data, little_endian=head == _CDR_LE)
-    sec = cdr.int32("header.stamp.sec")
-    nanosec = cdr.uint32("header.stamp.nanosec")
-    header = Header(frame_id=cdr.string("header.frame_id"))
-    header.stamp.sec, header.stamp.nanosec = sec, nanosec
+    return decode_plain_cdr(data, Image, _read_image)
+
+
+def _read_image(cdr: CdrReader) -> ImageView:
+    header = cdr.header()
     height = cdr.uint32("height")
     width = cdr.uint32("width")
     encoding = cdr.string("encoding")
