@@ -43,9 +43,6 @@ def test_chunk_crcs_only_when_asked_and_the_file_reads_back_the_same(
     tmp_path: Path, crcs: bool
 ) -> None:
     """endo-process stores no chunk CRCs by default (as rosbag2's MCAP writer); --chunk-crc does."""
-    from mcap.records import Chunk
-    from mcap.stream_reader import StreamReader
-
     from endo_process.cli import build_parser
     from endo_process.runner import ProcessOptions
 
@@ -53,9 +50,20 @@ def test_chunk_crcs_only_when_asked_and_the_file_reads_back_the_same(
     argv = ["in.mcap", "-o", "out.mcap", "--calibration", "p.yaml", "--handeye", "h.yaml"]
     assert build_parser().parse_args(argv).chunk_crc is False
     assert build_parser().parse_args([*argv, "--chunk-crc"]).chunk_crc is True
+    # Nor compressed chunks (rosbag2's default too): lz4 and zstd on request.
+    assert build_parser().parse_args(argv).compression == "none"
+    assert build_parser().parse_args([*argv, "--compression", "lz4"]).compression == "lz4"
 
-    path = tmp_path / f"crc_{crcs}.mcap"
-    output = OutputBag(path, "lz4", crcs=crcs)
+    for compression in ("lz4", "none"):
+        _check_crcs(tmp_path / f"crc_{crcs}_{compression}.mcap", compression, crcs)
+
+
+def _check_crcs(path: Path, compression: str, crcs: bool) -> None:
+    """Write three images, check the chunks' CRCs are there exactly when asked, read them back."""
+    from mcap.records import Chunk
+    from mcap.stream_reader import StreamReader
+
+    output = OutputBag(path, compression, crcs=crcs)
     frames = [np.linspace(0.0, 1.0, 640 * 480, dtype=np.float32).reshape(480, 640) * k
               for k in range(1, 4)]  # fmt: skip
     for k, frame in enumerate(frames):  # 1.2 MB each: a chunk per image
@@ -64,6 +72,8 @@ def test_chunk_crcs_only_when_asked_and_the_file_reads_back_the_same(
     with path.open("rb") as stream:
         chunks = [r for r in StreamReader(stream, emit_chunks=True).records if isinstance(r, Chunk)]
     assert len(chunks) >= len(frames)
+    assert all(chunk.compression == ("" if compression == "none" else compression)
+               for chunk in chunks)  # fmt: skip
     assert all((chunk.uncompressed_crc != 0) == crcs for chunk in chunks)
     with BagReader(path) as reader:
         read = [image_to_array(deserialize(m)) for m in reader.messages(["/depth"])]
