@@ -687,7 +687,8 @@ def load_reference(tree: str) -> Any:
 
 
 def breakdown(bag: str, calibration: str, frames: int, threads: list[int], downsample: int,
-              reference: str | None, fov_radius: float = 240.0) -> None:
+              reference: str | None, fov_radius: float = 240.0,
+              scales: tuple[float, ...] = (1.0, 0.5)) -> None:
     """Where the wall and CPU time of a warm phantom frame go, by stage, at solve_scale 1 and 0.5.
 
     Every frame of the bag in order, warm-started as the node does, highlights
@@ -702,7 +703,8 @@ def breakdown(bag: str, calibration: str, frames: int, threads: list[int], downs
     thread count) and of each thread count's to the first's, and the largest
     relative depth difference to the reference. fov_radius: the field-of-view
     mask's radius in pixels (0: no mask, as the sfs node and endo-process
-    solve by default; highlight detection then fills the NaN holes).
+    solve by default; highlight detection then fills the NaN holes). scales:
+    the solve_scale values, in turn.
     """
     sequence, camera, _ = phantom_sequence(bag, calibration, np.random.default_rng(0))
     sequence = sequence[:frames]
@@ -718,7 +720,7 @@ def breakdown(bag: str, calibration: str, frames: int, threads: list[int], downs
     print(f"\nbreakdown, {bag} ({len(sequence)} frames), threads {threads}, "
           f"highlight_downsample {downsample}, mask radius {fov_radius:g} px, chains: "
           f"{', '.join(label(chain) for chain in chains)}")
-    for scale in (1.0, 0.5):
+    for scale in scales:
         options = {}
         for chain, module in chains.items():
             extra: dict[str, int] = {}
@@ -826,6 +828,8 @@ def main() -> None:
     parser.add_argument("--breakdown", action="store_true",
                         help="only time the stages of a warm phantom frame at solve_scale 1 and "
                         "0.5 (--phantom-bag, --calibration, --threads, --frames)")
+    parser.add_argument("--scales", default="1,0.5",
+                        help="--breakdown: comma-separated solve_scale values (default 1,0.5)")
     parser.add_argument("--highlight-downsample", type=int, default=0,
                         help="--breakdown, --phantom: SfsOptions.highlight_downsample (0: each "
                         "tree's default)")
@@ -839,7 +843,8 @@ def main() -> None:
             parser.error("--breakdown needs --phantom-bag and --calibration")
         breakdown(args.phantom_bag, args.calibration, args.frames,
                   [int(count) for count in args.threads.split(",")], args.highlight_downsample,
-                  args.reference, args.fov_radius)
+                  args.reference, args.fov_radius,
+                  tuple(float(scale) for scale in args.scales.split(",")))
         print(f"machine after: {machine()}")
         return
     if args.workers:

@@ -133,12 +133,27 @@ def _log_radiance_direct(f: float, reflectance: np.ndarray) -> tuple[float, floa
 
 @njit(cache=True, nogil=True, error_model="numpy")
 def log_radiance_table(reflectance: np.ndarray) -> np.ndarray:
-    """(TABLE_INTERVALS + 1, 2) float64: g(F_k) and g'(F_k)·step at F_k = k·step."""
-    table = np.empty((TABLE_INTERVALS + 1, 2))
+    """(TABLE_INTERVALS + 1, 4) float64: per interval k the cubic of g in t = F/step − k.
+
+    Row k holds (c0, c1, c2, c3) with g(F) = c0 + t·(c1 + t·(c2 + t·c3)) on
+    [F_k, F_k+1], F_k = k·step: the cubic Hermite interpolant of g and
+    g'·step at both ends (the last row, for F = TABLE_MAX_SLOPE, is the
+    constant g there). In power form a lookup is two Horner chains (value and
+    slope) instead of the Hermite basis.
+    """
+    ends = np.empty((TABLE_INTERVALS + 1, 2))
     for k in range(TABLE_INTERVALS + 1):
         g, dg = _log_radiance_direct(k * _TABLE_STEP, reflectance)
-        table[k, 0] = g
-        table[k, 1] = dg * _TABLE_STEP
+        ends[k, 0] = g
+        ends[k, 1] = dg * _TABLE_STEP
+    table = np.zeros((TABLE_INTERVALS + 1, 4))
+    for k in range(TABLE_INTERVALS):
+        g0, d0, g1, d1 = ends[k, 0], ends[k, 1], ends[k + 1, 0], ends[k + 1, 1]
+        table[k, 0] = g0
+        table[k, 1] = d0
+        table[k, 2] = 3.0 * (g1 - g0) - 2.0 * d0 - d1
+        table[k, 3] = 2.0 * (g0 - g1) + d0 + d1
+    table[TABLE_INTERVALS, 0] = ends[TABLE_INTERVALS, 0]
     return table
 
 
@@ -150,16 +165,11 @@ def _log_radiance(f: float, table: np.ndarray, reflectance: np.ndarray) -> tuple
         return _log_radiance_direct(f, reflectance)
     k = int(x)
     t = x - k
-    g0 = table[k, 0]
-    d0 = table[k, 1]
-    g1 = table[k + 1, 0]
-    d1 = table[k + 1, 1]
-    t2 = t * t
-    u = 1.0 - t
-    value = (1.0 + 2.0 * t) * u * u * g0 + t * u * u * d0 + t2 * (3.0 - 2.0 * t) * g1 \
-        + t2 * (t - 1.0) * d1
-    slope = (6.0 * t2 - 6.0 * t) * (g0 - g1) + (3.0 * t2 - 4.0 * t + 1.0) * d0 \
-        + (3.0 * t2 - 2.0 * t) * d1
+    c1 = table[k, 1]
+    c2 = table[k, 2]
+    c3 = table[k, 3]
+    value = table[k, 0] + t * (c1 + t * (c2 + t * c3))
+    slope = c1 + t * (2.0 * c2 + 3.0 * t * c3)
     return value, slope * _TABLE_INV_STEP
 
 
@@ -633,8 +643,8 @@ def _prefetch_stencil(
     prefetch(node, flat * node.shape[2])
 
 
-@njit(cache=True, nogil=True, error_model="numpy", fastmath=_FAST, **_NO_REFCOUNTS)
-def _ordered_pass(
+@njit(cache=True, nogil=True, error_model="numpy", fastmath=_FAST, inline="always")
+def _ordered_pass_body(
     v: np.ndarray,
     node: np.ndarray,
     state: np.ndarray,
@@ -674,6 +684,61 @@ def _ordered_pass(
             else:
                 _unlock_stencil(state, v, i, j, reach, min(v[i, j], old), causal)
     return updates
+
+
+@njit(cache=True, nogil=True, error_model="numpy", fastmath=_FAST, **_NO_REFCOUNTS)
+def _ordered_pass_order1(
+    v: np.ndarray, node: np.ndarray, state: np.ndarray, ordered: np.ndarray, hx: float,
+    hy: float, reflectance: np.ndarray, tolerance: float, eps: float, table: np.ndarray,
+) -> int:
+    """:func:`_ordered_pass_body` for order 1."""
+    return _ordered_pass_body(v, node, state, ordered, hx, hy, reflectance, 1, tolerance, eps,
+                              table)
+
+
+@njit(cache=True, nogil=True, error_model="numpy", fastmath=_FAST, **_NO_REFCOUNTS)
+def _ordered_pass_order2(
+    v: np.ndarray, node: np.ndarray, state: np.ndarray, ordered: np.ndarray, hx: float,
+    hy: float, reflectance: np.ndarray, tolerance: float, eps: float, table: np.ndarray,
+) -> int:
+    """:func:`_ordered_pass_body` for order 2."""
+    return _ordered_pass_body(v, node, state, ordered, hx, hy, reflectance, 2, tolerance, eps,
+                              table)
+
+
+@njit(cache=True, nogil=True, error_model="numpy", fastmath=_FAST, **_NO_REFCOUNTS)
+def _ordered_pass_order3(
+    v: np.ndarray, node: np.ndarray, state: np.ndarray, ordered: np.ndarray, hx: float,
+    hy: float, reflectance: np.ndarray, tolerance: float, eps: float, table: np.ndarray,
+) -> int:
+    """:func:`_ordered_pass_body` for order 3."""
+    return _ordered_pass_body(v, node, state, ordered, hx, hy, reflectance, 3, tolerance, eps,
+                              table)
+
+
+@njit(cache=True, nogil=True, error_model="numpy", fastmath=_FAST, **_NO_REFCOUNTS)
+def _ordered_pass(
+    v: np.ndarray,
+    node: np.ndarray,
+    state: np.ndarray,
+    ordered: np.ndarray,
+    hx: float,
+    hy: float,
+    reflectance: np.ndarray,
+    order: int,
+    tolerance: float,
+    eps: float,
+    table: np.ndarray,
+) -> int:
+    """:func:`_ordered_pass_body`, compiled once per order (see there for the arguments)."""
+    if order == 1:
+        return _ordered_pass_order1(v, node, state, ordered, hx, hy, reflectance, tolerance,
+                                    eps, table)
+    if order == 2:
+        return _ordered_pass_order2(v, node, state, ordered, hx, hy, reflectance, tolerance,
+                                    eps, table)
+    return _ordered_pass_order3(v, node, state, ordered, hx, hy, reflectance, tolerance, eps,
+                                table)
 
 
 @njit(cache=True, nogil=True, error_model="numpy", fastmath=_FAST)
@@ -725,8 +790,8 @@ def _repair(
         items = np.concatenate((items, np.empty(items.size, dtype=np.int64)))
 
 
-@njit(cache=True, nogil=True, error_model="numpy", fastmath=_FAST, **_NO_REFCOUNTS)
-def _repair_steps(
+@njit(cache=True, nogil=True, error_model="numpy", fastmath=_FAST, inline="always")
+def _repair_steps_body(
     v: np.ndarray,
     node: np.ndarray,
     state: np.ndarray,
@@ -773,6 +838,68 @@ def _repair_steps(
                     state[ni, nj] = UNLOCKED
                     size = heap_push(keys, items, size, v[ni, nj], ni * nx + nj)
     return size, solves, False
+
+
+@njit(cache=True, nogil=True, error_model="numpy", fastmath=_FAST, **_NO_REFCOUNTS)
+def _repair_steps_order1(
+    v: np.ndarray, node: np.ndarray, state: np.ndarray, keys: np.ndarray, items: np.ndarray,
+    size: int, solves: int, budget: int, hx: float, hy: float, reflectance: np.ndarray,
+    tolerance: float, eps: float, table: np.ndarray,
+) -> tuple[int, int, bool]:
+    """:func:`_repair_steps_body` for order 1."""
+    return _repair_steps_body(v, node, state, keys, items, size, solves, budget, hx, hy,
+                              reflectance, 1, tolerance, eps, table)
+
+
+@njit(cache=True, nogil=True, error_model="numpy", fastmath=_FAST, **_NO_REFCOUNTS)
+def _repair_steps_order2(
+    v: np.ndarray, node: np.ndarray, state: np.ndarray, keys: np.ndarray, items: np.ndarray,
+    size: int, solves: int, budget: int, hx: float, hy: float, reflectance: np.ndarray,
+    tolerance: float, eps: float, table: np.ndarray,
+) -> tuple[int, int, bool]:
+    """:func:`_repair_steps_body` for order 2."""
+    return _repair_steps_body(v, node, state, keys, items, size, solves, budget, hx, hy,
+                              reflectance, 2, tolerance, eps, table)
+
+
+@njit(cache=True, nogil=True, error_model="numpy", fastmath=_FAST, **_NO_REFCOUNTS)
+def _repair_steps_order3(
+    v: np.ndarray, node: np.ndarray, state: np.ndarray, keys: np.ndarray, items: np.ndarray,
+    size: int, solves: int, budget: int, hx: float, hy: float, reflectance: np.ndarray,
+    tolerance: float, eps: float, table: np.ndarray,
+) -> tuple[int, int, bool]:
+    """:func:`_repair_steps_body` for order 3."""
+    return _repair_steps_body(v, node, state, keys, items, size, solves, budget, hx, hy,
+                              reflectance, 3, tolerance, eps, table)
+
+
+@njit(cache=True, nogil=True, error_model="numpy", fastmath=_FAST, **_NO_REFCOUNTS)
+def _repair_steps(
+    v: np.ndarray,
+    node: np.ndarray,
+    state: np.ndarray,
+    keys: np.ndarray,
+    items: np.ndarray,
+    size: int,
+    solves: int,
+    budget: int,
+    hx: float,
+    hy: float,
+    reflectance: np.ndarray,
+    order: int,
+    tolerance: float,
+    eps: float,
+    table: np.ndarray,
+) -> tuple[int, int, bool]:
+    """:func:`_repair_steps_body`, compiled once per order (see there for the arguments)."""
+    if order == 1:
+        return _repair_steps_order1(v, node, state, keys, items, size, solves, budget, hx, hy,
+                                    reflectance, tolerance, eps, table)
+    if order == 2:
+        return _repair_steps_order2(v, node, state, keys, items, size, solves, budget, hx, hy,
+                                    reflectance, tolerance, eps, table)
+    return _repair_steps_order3(v, node, state, keys, items, size, solves, budget, hx, hy,
+                                reflectance, tolerance, eps, table)
 
 
 @njit(cache=True, nogil=True, error_model="numpy", fastmath=_FAST, parallel=True)
@@ -958,8 +1085,8 @@ def row_spans(valid: np.ndarray) -> np.ndarray:
     return spans
 
 
-@njit(cache=True, nogil=True, error_model="numpy", fastmath=_FAST, **_NO_REFCOUNTS)
-def _sweeps(
+@njit(cache=True, nogil=True, error_model="numpy", fastmath=_FAST, inline="always")
+def _sweeps_body(
     v: np.ndarray,
     node: np.ndarray,
     state: np.ndarray,
@@ -977,6 +1104,10 @@ def _sweeps(
     table: np.ndarray,
 ) -> tuple[int, float, int]:
     """Locked fast sweeping of the unlocked nodes of rows [row_begin, row_end), in place.
+
+    Inlined into one kernel per scheme order (:func:`_sweeps`), so that the
+    order is a constant there: the per-node solve of the other orders is
+    compiled out of the loop instead of sitting beside it in registers.
 
     Four Gauss–Seidel sweeps per iteration with alternating orderings, until
     no node changed by more than ``tolerance`` (or ``max_iterations``).
@@ -1047,6 +1178,69 @@ def _sweeps(
         if change <= tolerance:
             break
     return iterations, change, updates
+
+
+
+@njit(cache=True, nogil=True, error_model="numpy", fastmath=_FAST, **_NO_REFCOUNTS)
+def _sweeps_order1(
+    v: np.ndarray, node: np.ndarray, state: np.ndarray, spans: np.ndarray, dirty: np.ndarray,
+    row_begin: int, row_end: int, hx: float, hy: float, reflectance: np.ndarray,
+    tolerance: float, max_iterations: int, eps: float, table: np.ndarray,
+) -> tuple[int, float, int]:
+    """:func:`_sweeps_body` for order 1."""
+    return _sweeps_body(v, node, state, spans, dirty, row_begin, row_end, hx, hy, reflectance,
+                        1, tolerance, max_iterations, eps, table)
+
+
+@njit(cache=True, nogil=True, error_model="numpy", fastmath=_FAST, **_NO_REFCOUNTS)
+def _sweeps_order2(
+    v: np.ndarray, node: np.ndarray, state: np.ndarray, spans: np.ndarray, dirty: np.ndarray,
+    row_begin: int, row_end: int, hx: float, hy: float, reflectance: np.ndarray,
+    tolerance: float, max_iterations: int, eps: float, table: np.ndarray,
+) -> tuple[int, float, int]:
+    """:func:`_sweeps_body` for order 2."""
+    return _sweeps_body(v, node, state, spans, dirty, row_begin, row_end, hx, hy, reflectance,
+                        2, tolerance, max_iterations, eps, table)
+
+
+@njit(cache=True, nogil=True, error_model="numpy", fastmath=_FAST, **_NO_REFCOUNTS)
+def _sweeps_order3(
+    v: np.ndarray, node: np.ndarray, state: np.ndarray, spans: np.ndarray, dirty: np.ndarray,
+    row_begin: int, row_end: int, hx: float, hy: float, reflectance: np.ndarray,
+    tolerance: float, max_iterations: int, eps: float, table: np.ndarray,
+) -> tuple[int, float, int]:
+    """:func:`_sweeps_body` for order 3."""
+    return _sweeps_body(v, node, state, spans, dirty, row_begin, row_end, hx, hy, reflectance,
+                        3, tolerance, max_iterations, eps, table)
+
+
+@njit(cache=True, nogil=True, error_model="numpy", fastmath=_FAST, **_NO_REFCOUNTS)
+def _sweeps(
+    v: np.ndarray,
+    node: np.ndarray,
+    state: np.ndarray,
+    spans: np.ndarray,
+    dirty: np.ndarray,
+    row_begin: int,
+    row_end: int,
+    hx: float,
+    hy: float,
+    reflectance: np.ndarray,
+    order: int,
+    tolerance: float,
+    max_iterations: int,
+    eps: float,
+    table: np.ndarray,
+) -> tuple[int, float, int]:
+    """:func:`_sweeps_body`, compiled once per order (see there for the arguments)."""
+    if order == 1:
+        return _sweeps_order1(v, node, state, spans, dirty, row_begin, row_end, hx, hy,
+                              reflectance, tolerance, max_iterations, eps, table)
+    if order == 2:
+        return _sweeps_order2(v, node, state, spans, dirty, row_begin, row_end, hx, hy,
+                              reflectance, tolerance, max_iterations, eps, table)
+    return _sweeps_order3(v, node, state, spans, dirty, row_begin, row_end, hx, hy,
+                          reflectance, tolerance, max_iterations, eps, table)
 
 
 @njit(cache=True, nogil=True, error_model="numpy", fastmath=_FAST, parallel=True)
