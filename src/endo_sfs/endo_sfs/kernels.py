@@ -250,28 +250,36 @@ def near_light_update(
         da = v - a
         db = v - b
         # √(left side) and its derivative in v; one-sided without a root.
+        # The Newton step q / (λ − √L'·v') is taken as numerator over
+        # denominator, both multiplied by √L in the two-sided case
+        # (√L' = P/√L, P = wa·da + wb·db): one division after the square
+        # root instead of two in a row, on the step's critical path.
         if da > 0.0 and db > 0.0:
             root = np.sqrt(wa * da * da + wb * db * db)
-            droot = (wa * da + wb * db) / root
+            q = lam * f - root
+            numerator = q * root
+            denominator = lam * root - (wa * da + wb * db) * dv_df
         elif da > 0.0:
             root = sa * da
-            droot = sa
+            q = lam * f - root
+            numerator = q
+            denominator = lam - sa * dv_df
         elif db > 0.0:
             root = sb * db
-            droot = sb
+            q = lam * f - root
+            numerator = q
+            denominator = lam - sb * dv_df
         else:
-            root = 0.0
-            droot = 0.0
-        q = lam * f - root
+            q = lam * f
+            numerator = q
+            denominator = lam
         if q > 0.0:
             f_hi = f
         elif q < 0.0:
             f_lo = f
         else:
             return v, f, dv_df if looked_up else 0.0
-        slope = lam - droot * dv_df
-        step = q / slope
-        f_new = f - step
+        f_new = f - numerator / denominator
         # q rises with slope ≥ λ, so |F − F*| ≤ |q|/λ: a guaranteed bound (a
         # step-size test can stop on the wrong side of the kink of √L).
         if abs(q) < lam * _NEWTON_RESIDUAL_TOL * (1.0 + f):
