@@ -29,9 +29,13 @@ message, ``deserialize_message`` + ``pose_to_matrix`` against
 ``pose_stamped_from_cdr`` + ``pose_to_matrix``; ``deserialize_message`` +
 ``CameraInfoCache.model_of`` against ``camera_info_from_cdr`` + the same.
 
-Reported per run: the depth frames played, the node's CPU time (user +
+Reported per run: the depth frames played, the clouds and the flow hop's
+latency (the cloud's publish at flow minus its depth_relative's publish at
+the replay, p50 / p99: a listener subscribes to both), the node's CPU time (user +
 system, /proc) from the start of the play to 1 s after its end, per depth
-frame played (per image_corrected frame for the recorder), and per message
+frame played (per image_corrected frame for the recorder), per frame
+processed (a scale out: a node that skips fewer stale depths spends more per
+frame played), and per message
 of any topic played (the node's subscriptions wake it for each), and the CPU
 seconds of each of its threads since it started (warm-up included).
 """
@@ -48,6 +52,8 @@ import time
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from endo_bringup.dds_profile import with_large_frame_profile
 from endo_bringup.graph import (
     NODE_UP,
@@ -60,7 +66,14 @@ from endo_bringup.graph import (
 from endo_bringup.graph_monitor import GraphMonitor, _cpu_and_rss
 from endo_bringup.process_group import ProcessGroup, console_script
 from endo_io.bag import BagReader
-from endo_io.topics import CAMERA_INFO, CAMERA_POSE, DEPTH_RELATIVE, IMAGE_CORRECTED, SCALE
+from endo_io.topics import (
+    CAMERA_INFO,
+    CAMERA_POSE,
+    DEPTH_RELATIVE,
+    IMAGE_CORRECTED,
+    POINTS,
+    SCALE,
+)
 
 PLAYED = (IMAGE_CORRECTED, DEPTH_RELATIVE, CAMERA_INFO, CAMERA_POSE)
 
@@ -85,8 +98,13 @@ def run_once(recording: Path, rate: float, env: dict[str, str], logs: Path,
     waits = {t: 1 for t in counts}
     waits[next(iter(counts))] += 1
     player = replay_process(recording, list(counts), rate, waits)
-    # a listener counts the flow node's outputs: one scale per frame it processed
-    watched = [GraphProcess("endo-flow", "endo-flow", publishes=(SCALE,)), player]
+    # a listener counts the flow node's outputs (one scale per frame it processed) and
+    # times its clouds from the depth_relative of their stamp (both publish times)
+    watched = [GraphProcess("endo-flow", "endo-flow", publishes=(SCALE, POINTS)), player]
+    if node_name == "flow":
+        waits[DEPTH_RELATIVE] += 1
+        watched.append(GraphProcess("depth listener", "depth listener",
+                                    publishes=(DEPTH_RELATIVE,)))
     logs.mkdir(parents=True, exist_ok=True)
     with GraphMonitor(watched, env) as monitor, \
             ProcessGroup(dict(env, PYTHONUNBUFFERED="1"), logs) as group:
@@ -106,10 +124,15 @@ def run_once(recording: Path, rate: float, env: dict[str, str], logs: Path,
     assert before is not None and after is not None
     cpu_ms = 1e3 * (after[0] - before[0])
     outputs = len(monitor.arrivals.times.get(SCALE, {}))
+    hops = hop_ms(monitor.arrivals.times.get(DEPTH_RELATIVE, {}),
+                  monitor.arrivals.times.get(POINTS, {}))
     frames = counts.get(DEPTH_RELATIVE if node_name == "flow" else IMAGE_CORRECTED, 0)
     return {"frames": frames, "processed": outputs, "messages": sum(counts.values()),
             "cpu ms": cpu_ms, "ms per frame": cpu_ms / max(frames, 1),
+            "ms per processed": cpu_ms / max(outputs, 1),
             "ms per message": cpu_ms / max(sum(counts.values()), 1), "rss MB": after[1],
+            "clouds": len(hops), "hop p50 ms": percentile(hops, 50),
+            "hop p99 ms": percentile(hops, 99),
             **{f"thread {name} s": seconds for name, seconds in threads.items()}}
 
 
@@ -163,6 +186,21 @@ def decoding_costs(recording: Path | None, repeats: int = 5) -> dict[str, float]
     }
 
 
+def hop_ms(depths: dict[int, tuple[int, int]], clouds: dict[int, tuple[int, int]]
+           ) -> list[float]:
+    """Per cloud: its publish at flow minus its depth_relative's publish at the replay, ms.
+
+    Both are DDS source timestamps (the publishers' system clocks, one machine).
+    """
+    return [1e-6 * (cloud[0] - depths[stamp][0]) for stamp, cloud in clouds.items()
+            if stamp in depths]
+
+
+def percentile(values: list[float], q: float) -> float:
+    """The ``q``-th percentile of ``values`` (NaN when empty)."""
+    return float(np.percentile(values, q)) if values else float("nan")
+
+
 def thread_cpu_s(pid: int) -> dict[str, float]:
     """CPU seconds (user + system) of each thread name of process ``pid``, since it started."""
     found: dict[str, float] = {}
@@ -208,6 +246,7 @@ def main() -> int:
         packages = sorted(str(p) for p in (args.baseline / "src").iterdir() if p.is_dir())
         variants = {"baseline": dict(env, PYTHONPATH=os.pathsep.join(packages)), **variants}
     figures: dict[str, list[float]] = {name: [] for name in variants}
+    hops: dict[str, list[tuple[float, float]]] = {name: [] for name in variants}
     for run in range(1, args.runs + 1):
         for name, variant_env in variants.items():
             load = os.getloadavg()[0]
@@ -215,11 +254,16 @@ def main() -> int:
                               work / f"logs{run}_{len(figures[name])}_{name.replace(' ', '_')}",
                               args.node)
             figures[name].append(result["ms per frame"])
+            hops[name].append((result["hop p50 ms"], result["hop p99 ms"]))
             print(f"run {run}, {name} (load {load:.1f} -> {os.getloadavg()[0]:.1f}): "
                   + ", ".join(f"{k} {v:.3g}" for k, v in result.items()), flush=True)
     for name, per_frame in figures.items():
         print(f"{args.node} CPU per frame, {name}: {', '.join(f'{x:.2f}' for x in per_frame)} ms "
               f"(median {statistics.median(per_frame):.2f})")
+    if args.node == "flow":
+        for name, pairs in hops.items():
+            print(f"flow hop (depth_relative published -> cloud published), {name}: "
+                  + ", ".join(f"p50 {p50:.1f} / p99 {p99:.1f}" for p50, p99 in pairs) + " ms")
     if args.baseline is not None:
         ratios = [a / b for a, b in zip(figures["this tree"], figures["baseline"], strict=True)]
         print(f"this tree / baseline, per pass: {', '.join(f'{r:.3f}' for r in ratios)}")

@@ -17,12 +17,16 @@ Subscriptions:
 * ``/endoscope/pose`` (``T_world_camera`` on the camera clock, from the tracker
   bridge) into a :class:`endo_io.pose_buffer.PoseBuffer`, taken the same way
   (:data:`endo_io.qos.PASSIVE_POSE_QOS`, 2 s of a 250 Hz tracker): when a
-  depth arrives, while a frame waits for its pose (every 20 ms) and at least
-  every :data:`endo_io.qos.PASSIVE_POSE_TAKE_PERIOD_S` (0.1 s), so no pose is
-  overwritten in DDS while no depth comes (start-up, SFS stalled or slow).
-  Before each /diagnostics status the node also takes the waiting images and
-  camera_infos, so the status's ages and counts of those inputs are theirs,
-  not the depth's: with the depth stopped, only the depth is stale.
+  depth arrives, at each pose that arrives while a frame waits for its pose
+  (:meth:`endo_io.diagnostics.PassiveInput.wake_on_arrival`: the frame goes
+  as soon as the pose after its stamp is in, with no polling timer) and at
+  least every :data:`endo_io.qos.PASSIVE_POSE_TAKE_PERIOD_S` (0.1 s), so no
+  pose is overwritten in DDS while no depth comes (start-up, SFS stalled or
+  slow). Likewise the image and camera_info wake the node at their arrival
+  while a depth waits for them (it came first). Before each /diagnostics
+  status the node also takes the waiting images and camera_infos, so the
+  status's ages and counts of those inputs are theirs, not the depth's: with
+  the depth stopped, only the depth is stale.
 
 The poses and camera_infos are read from their CDR bytes without rclpy's
 message objects (:func:`endo_io.pose.pose_stamped_from_cdr`,
@@ -30,8 +34,9 @@ message objects (:func:`endo_io.pose.pose_stamped_from_cdr`,
 only when the bytes after the stamp change), the images as views of the
 received bytes (:func:`endo_io.image.image_from_cdr`).
 
-A complete frame waits (at most ``pose_wait_s``, and behind at most
-``max_pending`` earlier frames) until a pose after its stamp has arrived, then
+A complete frame waits (at most ``pose_wait_s``, checked at each pose that
+arrives and at least every 0.1 s, and behind at most ``max_pending`` earlier
+frames) until a pose after its stamp has arrived, then
 takes the interpolated pose at its stamp. A frame whose pose cannot come
 (a tracker dropout longer than ``pose_max_gap_s``, a wait that ran out) is
 counted under the lookup error's name and processed without a pose: tracking
@@ -41,12 +46,12 @@ stale pose.
 
 Publications (reliable, QoS overridable):
 
+* ``/endoscope/points``: the frame's world cloud, PointCloud2 (x, y, z, rgb
+  grey from the image) in ``world_frame``, every ``cloud_decimation``-th
+  pixel; published first (the graph's latency is timed to it);
 * ``/endoscope/depth``: metric depth, 32FC1 metres, NaN invalid (REP 118), the
   image's header, so ``/endoscope/camera_info`` describes it; nothing before
   the scale has converged once;
-* ``/endoscope/points``: the frame's world cloud, PointCloud2 (x, y, z, rgb
-  grey from the image) in ``world_frame``, every ``cloud_decimation``-th
-  pixel;
 * ``/endoscope/map``: the fused voxel map, PointCloud2 in ``world_frame``,
   transient-local, every ``map_period_s``;
 * ``/endoscope/scale``: ``geometry_msgs/Vector3Stamped`` with x = s (metres
@@ -268,7 +273,8 @@ class FlowNode(Node):
         # "processed" counts frames (_process), not the inputs' messages. The depth
         # drives a frame: only the newest is processed, stale ones are skipped. The
         # image, camera_info and poses wait in DDS and are taken when a depth comes
-        # (no executor wake-up for each: rclpy rebuilds its whole wait set at each).
+        # (no executor wake-up for each: rclpy rebuilds its whole wait set at each),
+        # except while a frame waits for them (wake_on_arrival).
         # image_from_cdr: the pixels stay a view of the received bytes (no copy)
         self.health.subscribe(Image, topics.DEPTH_RELATIVE, self._on_depth, NEWEST_FRAME_QOS,
                               processed=False, gaps=True, newest=True, decode=image_from_cdr)
@@ -280,7 +286,7 @@ class FlowNode(Node):
             decode=camera_info_from_cdr)
         self._pose_input = self.pose_health.subscribe_passive(
             PoseStamped, topics.CAMERA_POSE, self._on_pose, PASSIVE_POSE_QOS, processed=True,
-            decode=pose_stamped_from_cdr)
+            decode=pose_stamped_from_cdr, on_arrival=self._take_poses)
         self.pose_health.on_refresh(self._take_poses)
         # the image and camera_info counted and aged as theirs, even while no depth comes
         self.health.on_refresh(self._take_frame_inputs)
@@ -288,12 +294,9 @@ class FlowNode(Node):
         self._inputs_due = 0.0
         self.create_service(Trigger, "~/reset_map", self._reset_map)
         self.create_service(Trigger, "~/export_map", self._export_map)
-        # runs only while a frame waits for its pose: idle, it would wake the executor
-        # 50 times a second for nothing (each wake-up builds rclpy's whole wait set)
-        self._expiry = self.create_timer(0.02, self._expire_pending)
-        self._expiry.cancel()
-        # poses taken even while no depth comes: their DDS history holds 2 s at 250 Hz
-        self.create_timer(PASSIVE_POSE_TAKE_PERIOD_S, self._take_poses)
+        # poses taken even while no depth comes (their DDS history holds 2 s at 250 Hz),
+        # and the deadlines of waiting frames checked while no pose comes
+        self.create_timer(PASSIVE_POSE_TAKE_PERIOD_S, self._tick)
         self.create_timer(values["map_period_s"], self._publish_map)
         self._map_dirty = False
         self.get_logger().info(
@@ -344,6 +347,18 @@ class FlowNode(Node):
         self._pose_input.take()
         self._drain()
 
+    def _tick(self) -> None:
+        """The periodic take: poses (and what can go), and the end of a wait for inputs."""
+        if self._inputs_due and time.monotonic() >= self._inputs_due:
+            self._wait_for_inputs(False)
+        self._take_poses()
+
+    def _wait_for_inputs(self, wait: bool) -> None:
+        """Whether the image and camera_info wake the node at their arrival (a depth waits)."""
+        self._inputs_due = time.monotonic() + self.parameters["pose_wait_s"] if wait else 0.0
+        self._image_input.wake_on_arrival(wait)
+        self._info_input.wake_on_arrival(wait)
+
     def _on_image(self, msg: ImageMessage) -> None:
         self._offer_pair(self._images.add_first(stamp_to_ns(msg.header.stamp), msg))
 
@@ -356,16 +371,16 @@ class FlowNode(Node):
         pair = self._frames.add_second(stamp_to_ns(msg.header.stamp), msg)
         if pair is not None:
             self._enqueue(pair.stamp_ns, pair.first[0], msg, pair.first[1])
-        else:  # its image or camera_info is not here yet: look again while a pose would wait
-            self._inputs_due = time.monotonic() + self.parameters["pose_wait_s"]
-            if self._expiry.is_canceled():
-                self._expiry.reset()
+        else:  # its image or camera_info is not here yet: woken by them, as long as a pose
+            self._wait_for_inputs(True)  # would be waited for
 
     def _offer_pair(self, pair: Any) -> None:
         if pair is None:
             return
         triple = self._frames.add_first(pair.stamp_ns, (pair.first, pair.second))
         if triple is not None:
+            if self._inputs_due and not self._frames.pending()[1]:
+                self._wait_for_inputs(False)  # no depth waits for its inputs any more
             self._enqueue(triple.stamp_ns, pair.first, triple.second, pair.second)
 
     def _on_pose(self, msg: PoseStamped | PoseView, arrival_ns: int) -> None:
@@ -377,19 +392,16 @@ class FlowNode(Node):
         wait = self.parameters["pose_wait_s"]
         self._pending.append(_Pending(stamp_ns, image, depth, info, time.monotonic() + wait))
         self._drain()
-        if self._pending and self._expiry.is_canceled():
-            self._expiry.reset()
-
-    def _expire_pending(self) -> None:
-        inputs_due = time.monotonic() < self._inputs_due
-        if inputs_due:
-            self._take_frame_inputs()
-        self._take_poses()
-        if not self._pending and not inputs_due:
-            self._expiry.cancel()
 
     def _drain(self) -> None:
-        """Process waiting frames in order while their pose is known or cannot come."""
+        """Process waiting frames in order while their pose is known or cannot come.
+
+        While a frame is left waiting, each pose that arrives wakes the node.
+        """
+        self._drain_ready()
+        self._pose_input.wake_on_arrival(bool(self._pending))
+
+    def _drain_ready(self) -> None:
         now = time.monotonic()
         while self._pending:
             head = self._pending[0]
@@ -457,6 +469,17 @@ class FlowNode(Node):
 
     def _publish(self, pending: _Pending, out: FlowOutput) -> None:
         header = pending.image.header
+        if out.depth is not None:
+            # the cloud first: the graph's end-to-end latency is timed to its arrival
+            if len(out.points):
+                self.points_pub.publish(grey_cloud_cdr(out.points, out.intensity,
+                                                       pending.stamp_ns,
+                                                       self.parameters["world_frame"]))
+                self._map_dirty = True
+            # CDR bytes built directly: one copy of the pixels, not the message's and rclpy's
+            self.depth_pub.publish(array_to_image_cdr(out.depth, "32FC1",
+                                                      stamp_to_ns(header.stamp),
+                                                      header.frame_id))
         self.scale_pub.publish(scale_message(out.scale, pending.stamp_ns, header.frame_id))
         d = out.diagnostics
         for key, value in (("scale", f"{out.scale.value:.6g}"),
@@ -473,15 +496,6 @@ class FlowNode(Node):
             self.get_logger().warning(
                 f"scale observation {d.observation:.4g} gated (filter at {out.scale.value:.4g})",
                 throttle_duration_sec=1.0)
-        if out.depth is None:
-            return
-        # CDR bytes built directly: one copy of the pixels, not the message's and rclpy's
-        self.depth_pub.publish(array_to_image_cdr(out.depth, "32FC1", stamp_to_ns(header.stamp),
-                                                  header.frame_id))
-        if len(out.points):
-            self.points_pub.publish(grey_cloud_cdr(out.points, out.intensity, pending.stamp_ns,
-                                                   self.parameters["world_frame"]))
-            self._map_dirty = True
 
     # ------------------------------------------------------------------ map
 

@@ -168,6 +168,23 @@ def test_a_frame_without_poses_waits_then_goes_on_without(graph, moving):
         gc.enable()
 
 
+def test_a_frame_waiting_for_its_pose_goes_when_the_pose_arrives(graph, moving):
+    flow, _peer, pubs, got, spin_until = graph
+    frame = moving.frames(moving.poses)[0]
+    pubs["pose"].publish(matrix_to_pose(frame.T_world_camera, frame.stamp_ns - 10_000_000,
+                                        topics.WORLD_FRAME))
+    _publish_frame(pubs, frame)
+    assert spin_until(lambda: len(flow._pending) == 1, timeout=3.0)
+    # while it waits, the next pose wakes the node (no polling timer)
+    assert flow._pose_input.group.waited
+    pubs["pose"].publish(matrix_to_pose(frame.T_world_camera, frame.stamp_ns + 10_000_000,
+                                        topics.WORLD_FRAME))
+    assert spin_until(lambda: len(got["scale"]) == 1, timeout=3.0)
+    assert not flow._pending and not flow._pose_input.group.waited
+    assert flow.health.dropped["PoseNotYetError"] == 0  # processed with its pose
+    assert not flow._image_input.group.waited and not flow._info_input.group.waited
+
+
 def _pose_at(stamp_ns: int) -> PoseStamped:
     T = np.eye(4)
     T[0, 3] = stamp_ns * 1e-12  # a slow slide along x: each pose its own

@@ -49,7 +49,10 @@ messages wait in the subscription's DDS history until the node takes them
 (:meth:`PassiveInput.take`), e.g. the image and camera_info of a frame when
 its depth arrives. They are counted as received when taken; messages the
 history overwrote before anyone asked for them are not counted (they were
-not needed: no frame came for them).
+not needed: no frame came for them). While the node asks for it
+(:meth:`PassiveInput.wake_on_arrival`), the executor wakes it at the input's
+next message instead, which is delivered the same way, then the input's
+``on_arrival`` runs: e.g. the poses, while a frame waits for its pose.
 
 While the process shuts down (SIGINT in the middle of a callback), an
 exception from a publisher whose context is gone is not a dropped message:
@@ -77,7 +80,7 @@ from endo_io.qos import reliable_qos
 from endo_io.sequence_gaps import SequenceGapCounter
 from endo_io.serialized_stamp import serialized_header_stamp_ns
 from endo_io.stamp import stamp_to_ns
-from endo_io.taking import NeverExecutedGroup, system_to_monotonic_ns, take_waiting
+from endo_io.taking import OnDemandGroup, system_to_monotonic_ns, take_waiting
 
 F = TypeVar("F", bound=Callable[..., Any])
 
@@ -149,22 +152,40 @@ class PassiveInput:
     Made by :meth:`InputHealth.subscribe_passive`.
 
     Attributes:
-        subscription: the rclpy subscription (raw; never run by the executor: its
-            callback, :meth:`deliver`, is for messages given directly, as tests
-            and offline drivers give them).
+        subscription: the rclpy subscription (raw; run by the executor only while
+            :meth:`wake_on_arrival` is on; its callback, :meth:`arrived`, is also
+            for messages given directly, as tests and offline drivers give them).
         name: the resolved topic name it is counted under.
     """
 
     def __init__(self, health: InputHealth, msg_type: Any, name: str,
                  callback: Callable[[Any, int], None], processed: bool,
-                 decode: Callable[[bytes], Any] | None) -> None:
+                 decode: Callable[[bytes], Any] | None,
+                 on_arrival: Callable[[], None] | None = None) -> None:
         self._health = health
         self._msg_type = msg_type
         self.name = name
         self._callback = callback
         self._processed = processed
         self._decode = decode
+        self._on_arrival = on_arrival
+        self.group = OnDemandGroup()
         self.subscription: Subscription | None = None
+
+    def wake_on_arrival(self, wake: bool) -> None:
+        """Whether the executor wakes the node at the input's next message (off at first).
+
+        While on, each message that arrives is delivered as :meth:`take`
+        delivers it (timed when the executor gives it), then ``on_arrival``
+        runs. Applies from the executor's next wait.
+        """
+        self.group.waited = wake
+
+    def arrived(self, data: Any) -> None:
+        """A message the executor gave (or a test): :meth:`deliver`, then ``on_arrival``."""
+        self.deliver(data)
+        if self._on_arrival is not None:
+            self._on_arrival()
 
     def take(self) -> int:
         """Deliver every message waiting in the subscription, oldest first; how many there were.
@@ -487,6 +508,7 @@ class InputHealth:
         processed: bool = False,
         gaps: bool = False,
         decode: Callable[[bytes], Any] | None = None,
+        on_arrival: Callable[[], None] | None = None,
     ) -> PassiveInput:
         """Subscribe to ``topic`` without a wake-up per message: the node takes them when it asks.
 
@@ -504,15 +526,17 @@ class InputHealth:
             processed: as in :meth:`guard`.
             gaps: count frames missing from the stamps of the messages taken.
             decode: as in :meth:`subscribe`.
+            on_arrival: runs after each message the executor delivered while
+                :meth:`PassiveInput.wake_on_arrival` was on (e.g. take the rest).
 
         Returns:
             The input, to take messages from.
         """
         name = self._node.resolve_topic_name(topic)
         self.watch(name, gaps=gaps)
-        passive = PassiveInput(self, msg_type, name, callback, processed, decode)
+        passive = PassiveInput(self, msg_type, name, callback, processed, decode, on_arrival)
         passive.subscription = self._node.create_subscription(
-            msg_type, topic, passive.deliver, qos, raw=True, callback_group=NeverExecutedGroup())
+            msg_type, topic, passive.arrived, qos, raw=True, callback_group=passive.group)
         return passive
 
     def _take_newest(

@@ -8,6 +8,11 @@ put in the wait set: its messages wait in its DDS history (its QoS depth)
 until the node takes them with :func:`take_waiting`, e.g. the image of a
 frame when its depth arrives (flow) or everything received since the last
 tick of a timer (the recorder).
+
+A subscription in an :class:`OnDemandGroup` is such a subscription, except
+while the node asks to be woken by its next message (``waited``): e.g. the
+poses, while a frame waits for the pose after its stamp (flow), so that the
+frame goes as soon as that pose arrives, without a polling timer.
 """
 
 from __future__ import annotations
@@ -35,6 +40,31 @@ class NeverExecutedGroup(CallbackGroup):
     def beginning_execution(self, entity: Any) -> bool:
         """Never (see :meth:`can_execute`)."""
         return False
+
+
+class OnDemandGroup(CallbackGroup):
+    """A callback group whose entities the executor waits on and runs only while ``waited``.
+
+    Attributes:
+        waited: whether the executor waits on the group's entities. Read at
+            each rebuild of the executor's wait set (after every callback),
+            so a change made in a callback applies from the next wait on.
+    """
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.waited = False
+
+    def can_execute(self, entity: Any) -> bool:
+        """While :attr:`waited`."""
+        return self.waited
+
+    def beginning_execution(self, entity: Any) -> bool:
+        """While :attr:`waited` (a message that came as it stopped stays for a take)."""
+        return self.waited
+
+    def ending_execution(self, entity: Any) -> None:
+        """Nothing to release (callbacks of the group may run side by side)."""
 
 
 def take_waiting(subscription: Subscription, raw: bool = True) -> list[tuple[Any, int]]:

@@ -239,6 +239,45 @@ def test_a_passive_input_waits_in_dds_until_taken_and_counts_what_it_takes(node)
     executor.shutdown()
 
 
+def test_a_passive_input_wakes_the_node_at_each_arrival_only_while_asked(node):
+    health = InputHealth(node, "image input")
+    taken: list = []
+    woken: list = []
+    passive = health.subscribe_passive(Image, "/diag_test/woken",
+                                       lambda msg, arrival: taken.append(msg), reliable_qos(10),
+                                       decode=image_from_cdr, on_arrival=lambda: woken.append(1))
+    publisher, executor = _matched_publisher(node, "/diag_test/woken")
+    frames = [array_to_image(np.full((2, 3), k, np.float32), "32FC1", k * MS, "cam")
+              for k in range(3)]
+    publisher.publish(frames[0])
+    for _ in range(20):  # not asked: the message waits in DDS
+        executor.spin_once(timeout_sec=0.01)
+    assert not taken and not woken
+    passive.wake_on_arrival(True)
+    deadline = time.monotonic() + 10.0
+    while len(taken) < 1:  # asked: the executor delivers the waiting one, then on_arrival
+        assert time.monotonic() < deadline
+        executor.spin_once(timeout_sec=0.01)
+    publisher.publish(frames[1])
+    while len(taken) < 2:  # and each new one
+        assert time.monotonic() < deadline
+        executor.spin_once(timeout_sec=0.01)
+    assert [float(image_to_array(msg)[0, 0]) for msg in taken] == [0.0, 1.0] and woken == [1, 1]
+    passive.wake_on_arrival(False)
+    executor.spin_once(timeout_sec=0.01)  # the wait set rebuilt without it
+    publisher.publish(frames[2])
+    for _ in range(20):
+        executor.spin_once(timeout_sec=0.01)
+    assert len(taken) == 2
+    while passive.take() == 0:  # still there to be taken
+        assert time.monotonic() < deadline
+        time.sleep(0.01)
+    assert float(image_to_array(taken[-1])[0, 0]) == 2.0 and woken == [1, 1]
+    values = _values(health)
+    assert values["received./diag_test/woken"] == "3" and values["dropped"] == "0"
+    executor.shutdown()
+
+
 def test_an_error_while_shutting_down_is_not_a_dropped_message():
     context = rclpy.Context()
     rclpy.init(context=context)
