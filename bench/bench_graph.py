@@ -380,7 +380,8 @@ def ratio_lines(results: list[Result]) -> list[str]:
              "(same bag, scale and pass; >1: the other is "
              "worse for latency, <1: off gives fewer depth frames):", ""]
     lines += ["| bag | configuration | scale | pass | depth frames off/on | "
-              "end-to-end p50 off/on | sfs CPU off/on |", "|---|---|---|---|---|---|---|"]
+              "end-to-end p50 off/on | sfs CPU off/on (all workers) |",
+              "|---|---|---|---|---|---|---|"]
     for r in results:
         if r.configuration.name == "all on":
             continue
@@ -390,9 +391,10 @@ def ratio_lines(results: list[Result]) -> list[str]:
         if base is None:
             continue
 
-        def cpu(res: Result) -> float:
-            return next((p.cpu_percent for p in res.figures.processes if p.name == SFS),
-                        float("nan"))
+        def cpu(res: Result) -> float:  # every SFS worker's
+            found = [p.cpu_percent for p in res.figures.processes
+                     if p.name == SFS or p.name.startswith(SFS + "-")]
+            return sum(found) if found else float("nan")
 
         depth = r.figures.stage(SFS).frames_out / max(base.figures.stage(SFS).frames_out, 1)
         p50 = r.figures.end_to_end_ms[0] / base.figures.end_to_end_ms[0]

@@ -333,7 +333,9 @@ class GraphSettings:
     listeners: played topic -> subscriptions outside the table the replay
     waits for too (a :class:`~endo_bringup.graph_monitor.GraphMonitor`).
     sfs_workers: ``endo-sfs`` processes sharing the frames (its
-    ``worker_count``; :func:`sfs_worker_rows`).
+    ``worker_count``; :func:`sfs_worker_rows`). 1 by default: on 2 cores
+    two one-thread workers let more depths out but doubled the latency
+    (docs/benchmarks.md, session graphrate); more workers are for more cores.
     """
 
     rate: float = 0.25
