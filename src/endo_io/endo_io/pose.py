@@ -226,7 +226,7 @@ def pose_stamped_from_cdr(data: bytes) -> PoseStamped | PoseView:
 
     The same values as rclpy's ``deserialize_message(data, PoseStamped)``
     (tested against it), read with :class:`endo_io.cdr.CdrReader`: about a
-    fifth of its cost (bench/bench_flow_node.py's decoding figures). Layout:
+    quarter of its cost (0.009 against 0.034 ms here). Layout:
     the header, padding to 8, seven float64 (position x, y, z, orientation
     x, y, z, w). :func:`pose_to_matrix` takes the result as it takes a
     message, with the same checks.

@@ -275,8 +275,11 @@ class Recording:
         if check is not None:
             self._checks[name] = check
 
-    def write(self, topic: str, data: bytes, receive_ns: int) -> bool:
-        """Write one message received at ``receive_ns`` (log and publish time).
+    def write(self, topic: str, data: bytes, receive_ns: int,
+              publish_ns: int | None = None) -> bool:
+        """Write one message received at ``receive_ns`` (log time), published at ``publish_ns``.
+
+        ``publish_ns`` None: the receive time is the publish time too.
 
         Returns True when a limit has been reached and recording should stop;
         messages arriving after that are not written. A message that does not
@@ -299,7 +302,8 @@ class Recording:
                 tally.undecodable_reason = tally.undecodable_reason or str(error)
         tally.received += 1
         try:
-            self._writer.write(topic, data, receive_ns, receive_ns)
+            self._writer.write(topic, data, receive_ns,
+                               receive_ns if publish_ns is None else max(publish_ns, 0))
         except BagError as error:
             self.report.write_error = str(error)
             self._take_written()

@@ -4,7 +4,12 @@ The node is a thin adapter around :mod:`endo_io.record`: a discovery timer
 looks for the requested topics (or all of them) in the graph, subscribes to
 each new one with a QoS that matches all its publishers, and stores their
 offers as the topic's ``offered_qos_profiles``. Raw CDR bytes go straight
-into :class:`~endo_io.bag.BagWriter` with the receive time as log time.
+into :class:`~endo_io.bag.BagWriter` with the receive time as log time and,
+as rosbag2 records it, the DDS source timestamp (when the publisher wrote
+the message, its system clock) as publish time: a graph's latency can be
+read from the recording alone, from each message's own publish. A message
+taken in its own callback (``--take-period 0``), whose source time rclpy
+does not give, has its receive time as publish time.
 
 The messages are taken in batches (``--take-period``, 20 ms): the
 subscriptions are never waited on by rclpy's executor
@@ -79,14 +84,14 @@ from endo_io.record import (
     topics_to_record,
 )
 from endo_io.stamp import NS_PER_S
-from endo_io.taking import NeverExecutedGroup, take_waiting
+from endo_io.taking import NeverExecutedGroup, take_waiting_timed
 
 #: Largest step back of a log time that is raised to the last one written (see
 #: the module docstring); a larger one is a clock jump, written as it is.
 MAX_RAISE_NS = NS_PER_S
 
-#: A message taken for the file: (log time ns, topic, CDR bytes).
-Taken = tuple[int, str, bytes]
+#: A message taken for the file: (log time ns, topic, CDR bytes, publish time ns or None).
+Taken = tuple[int, str, bytes, int | None]
 
 
 class ReceiveOrder:
@@ -128,13 +133,14 @@ class ReceiveOrder:
             (i for i, item in enumerate(batch) if item[0] > cut_ns), len(batch))
         self._held = batch[cut:]
         out = []
-        for log_ns, topic, data in batch[:cut]:
+        for item in batch[:cut]:
+            log_ns = item[0]
             last = self.last_ns
             if last is not None and 0 < last - log_ns <= self._max_raise_ns:
                 log_ns = last
                 self.raised += 1
             self.last_ns = log_ns
-            out.append((log_ns, topic, data))
+            out.append((log_ns, *item[1:]))
         return out
 
 
@@ -292,24 +298,27 @@ class RecordNode(Node):
         taken: list[Taken] = []
         for topic, subscription in self._taken_from.items():
             try:
-                waiting = take_waiting(subscription)
+                waiting = take_waiting_timed(subscription)
             except (RuntimeError, InvalidHandle) as error:  # rclpy's: context or handle gone
                 if not final:
                     raise
                 self.get_logger().warning(
                     f"the messages still waiting on {topic} are not recorded: {error}")
                 continue
-            taken += [(max(received + offset, 0), topic, data) for data, received in waiting]
-        for log_ns, topic, data in self.order.batch(taken, None if final else began + offset):
-            if not self._write(topic, data, log_ns):
+            taken += [(max(received + offset, 0), topic, data, source)
+                      for data, received, source in waiting]
+        for log_ns, topic, data, source in self.order.batch(taken,
+                                                            None if final else began + offset):
+            if not self._write(topic, data, log_ns, source):
                 return
 
-    def _write(self, topic: str, data: bytes, receive_ns: int) -> bool:
+    def _write(self, topic: str, data: bytes, receive_ns: int,
+               publish_ns: int | None = None) -> bool:
         """Record one message; False when the recording stops (a limit, a failed write)."""
         tally = self._recording.report.topics[topic]
         undecodable = tally.undecodable
         try:
-            limit_reached = self._recording.write(topic, data, receive_ns)
+            limit_reached = self._recording.write(topic, data, receive_ns, publish_ns)
         except (BagError, OSError) as error:
             self._write_failed(error)
             return False

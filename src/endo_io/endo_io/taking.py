@@ -80,7 +80,20 @@ def take_waiting(subscription: Subscription, raw: bool = True) -> list[tuple[Any
         and when the middleware received it, integer ns on the system clock
         (``time.time_ns``; the take time when the middleware does not say).
     """
-    found: list[tuple[Any, int]] = []
+    return [(data, received) for data, received, _ in take_waiting_timed(subscription, raw)]
+
+
+def take_waiting_timed(subscription: Subscription,
+                       raw: bool = True) -> list[tuple[Any, int, int | None]]:
+    """:func:`take_waiting`, each message also with its DDS source timestamp.
+
+    Returns:
+        (message, received_ns, source_ns) triples: ``source_ns`` is when the
+        publisher wrote it (DDS's source timestamp, integer ns on the
+        publisher's system clock: rosbag2 records it as the publish time), or
+        None when the middleware does not say.
+    """
+    found: list[tuple[Any, int, int | None]] = []
     handle = subscription.handle
     while True:
         with handle:
@@ -88,8 +101,11 @@ def take_waiting(subscription: Subscription, raw: bool = True) -> list[tuple[Any
         if taken is None:
             return found
         data, info = taken
-        received = info.get("received_timestamp") if isinstance(info, dict) else None
-        found.append((data, int(received) if received else _take_time()))
+        received = source = None
+        if isinstance(info, dict):
+            received, source = info.get("received_timestamp"), info.get("source_timestamp")
+        found.append((data, int(received) if received else _take_time(),
+                      int(source) if source else None))
 
 
 def _take_time() -> int:

@@ -104,6 +104,48 @@ def test_the_last_take_writes_every_subscription_rclpy_still_gives(tmp_path):
 
 
 @pytest.mark.ros
+def test_taken_messages_keep_their_dds_source_time_as_publish_time(tmp_path):
+    # rosbag2 records the send time as publish time: a graph's latency can then be read
+    # from the recording alone, from each message's own publish
+    output = tmp_path / "published.mcap"
+    options = build_parser().parse_args(
+        ["--topics", "/rn_test/p", "-o", str(output), "--take-period", "3600"])
+    _check_options(options)
+    rclpy.init()
+    try:
+        peer = Node("record_node_test_peer_p")
+        publisher = peer.create_publisher(String, "/rn_test/p", reliable_qos(10))
+        recording = Recording(BagWriter(output, compression="none"))
+        recorder = RecordNode(recording, options)
+        executor = SingleThreadedExecutor()
+        executor.add_node(peer)
+        executor.add_node(recorder)
+        deadline = time.monotonic() + 10.0
+        while publisher.get_subscription_count() == 0:
+            assert time.monotonic() < deadline, "recorder did not subscribe"
+            executor.spin_once(timeout_sec=0.05)
+        sent = []
+        for k in range(3):
+            before = time.time_ns()
+            publisher.publish(String(data=f"p{k}"))
+            sent.append((before, time.time_ns()))
+            time.sleep(0.05)  # the publishes 50 ms apart, the take (below) after them all
+        time.sleep(0.2)
+        recorder._take(final=True)
+        executor.shutdown()
+        recorder.close()
+        assert recorder.exit_code == 0
+    finally:
+        rclpy.try_shutdown()
+    with BagReader(output) as reader:
+        written = [(m.publish_time_ns, m.log_time_ns, deserialize(m).data)
+                   for m in reader.messages()]
+    assert [data for _, _, data in written] == ["p0", "p1", "p2"]
+    for (published, logged, _), (before, after) in zip(written, sent, strict=True):
+        assert before <= published <= after and published <= logged
+
+
+@pytest.mark.ros
 def test_take_period_0_records_each_message_in_its_own_callback(tmp_path):
     output = tmp_path / "each.mcap"
     options = build_parser().parse_args(
