@@ -23,9 +23,9 @@ Figures, on the frames with ground-truth depth:
   the frame's ground-truth depth, back-projected with the true pose).
 
 Beside them, the figure ``make demo`` judges (``demo_scale_err_max_pct``):
-the published scale against endo_process.accuracy's oracle (the least-squares
-fit of d / d* to 1 over every pixel, ``demo_oracle_ratio`` to the median one)
-from 1 s after its first estimate on (endo_bringup.acceptance). ``--handeye
+the published scale against the same oracle from 1 s after the true camera
+first moved 2 mm on (endo_bringup.acceptance's window; samples without an
+estimate then count as infinite). ``--handeye
 FILE`` composes the poses with an ``endo-handeye`` file (its hand–eye and
 clock offset), as the demo does with the calibration it makes.
 
@@ -58,13 +58,19 @@ from endo_io.bag import BagReader, deserialize
 from endo_io.camera import CameraModel
 from endo_io.errors import Endo3dError
 from endo_io.image import image_to_array
-from endo_io.pose import invert_transform, pose_to_matrix, rigid_transform, transform_points
+from endo_io.pose import (
+    invert_transform,
+    motion_onset,
+    pose_to_matrix,
+    rigid_transform,
+    transform_points,
+)
 from endo_io.pose_buffer import PoseBuffer
 from endo_io.stamp import stamp_to_ns
 from endo_io.topics import CAMERA_INFO, IMAGE_RAW, TRACKER_POSE, TRUE_CAMERA_POSE, TRUE_DEPTH
 from endo_process.accuracy import Accuracy, ScaleTrack
-from endo_process.accuracy import oracle_scale as demo_oracle_scale
 from endo_sfs import SfsOptions, solve
+from endo_sfs.evaluation import sequence_scale
 from endo_sim.sequences import SimulationConfig, build_sequence
 from endo_tracker_bridge.composition import compose_camera_pose, corrected_stamp_ns
 from endo_tracker_bridge.handeye_file import HandEyeCalibration
@@ -262,7 +268,8 @@ def log_ratios(seq: Sequence) -> dict[int, np.ndarray]:
 
 def oracle_scale(seq: Sequence) -> float:
     """exp(median of ln(true / relative)) over every pixel of every ground-truth frame."""
-    return float(np.exp(np.median(np.concatenate(list(log_ratios(seq).values())))))
+    stamps = sorted(seq.true_depth)
+    return sequence_scale((seq.relative[s] for s in stamps), (seq.true_depth[s] for s in stamps))
 
 
 def per_frame_scales(seq: Sequence) -> dict[int, float]:
@@ -320,10 +327,6 @@ def evaluate(seq: Sequence, options: FlowOptions, depth_range: tuple[float, floa
     """
     pipe = FlowPipeline(options)
     s_oracle = oracle_scale(seq)
-    # the demo's scoring (endo_process.accuracy, endo_bringup.acceptance): the
-    # least-squares fit of d / d* to 1 over every pixel, the published scale
-    # judged from 1 s after its first estimate
-    s_demo = demo_oracle_scale(seq.relative, seq.true_depth)
     published: list[tuple[int, float]] = []
     t_start = seq.stamps[0]
     rows = []
@@ -414,9 +417,10 @@ def evaluate(seq: Sequence, options: FlowOptions, depth_range: tuple[float, floa
     outside = np.flatnonzero(~(np.abs(raw[:, 1] - 1.0) < 0.02)) if len(raw) else np.array([])
     raw_within = (np.nan if len(raw) == 0 or (len(outside) and outside[-1] == len(raw) - 1)
                   else float(raw[outside[-1] + 1, 0]) if len(outside) else float(raw[0, 0]))
-    centres = np.array([seq.true_pose[s][:3, 3] for s in seq.stamps if s in seq.true_pose])
-    moved = np.linalg.norm(centres - centres[0], axis=1) >= 2e-3
-    t_2mm = (seq.stamps[int(np.argmax(moved))] - t_start) / 1e9 if moved.any() else np.nan
+    posed = [s for s in seq.stamps if s in seq.true_pose]
+    centres = np.array([seq.true_pose[s][:3, 3] for s in posed])
+    onset = motion_onset(centres, AccuracyBars().motion_m)
+    t_2mm = np.nan if onset is None else (posed[onset] - t_start) / 1e9
     usable = np.array([(t, s) for t, s, _ in scales if np.isfinite(s)])
     after_conv = np.abs(usable[:, 1] - 1.0) if len(usable) else np.array([np.nan])
     obs = np.array(observations) if observations else np.empty((0, 2))
@@ -426,15 +430,15 @@ def evaluate(seq: Sequence, options: FlowOptions, depth_range: tuple[float, floa
     per_frame = [float(np.nanmedian(seq.true_depth[s] / seq.relative[s]))
                  for s in sorted(seq.true_depth)]
     track = ScaleTrack(np.array([p[0] for p in published], np.int64),
-                       np.array([p[1] for p in published], np.float64), s_demo)
-    demo_errors = converged_scale_error(Accuracy(truth_frames=len(seq.true_depth), scale=track),
-                                        AccuracyBars().convergence_s)
+                       np.array([p[1] for p in published], np.float64), s_oracle)
+    demo_errors = converged_scale_error(
+        Accuracy(truth_frames=len(seq.true_depth), scale=track,
+                 true_positions=(np.array(posed, np.int64), centres)), AccuracyBars())
     result = {
         "label": label,
         "frames": len(seq.stamps),
         "gt_frames": len(rows),
         "oracle_scale": s_oracle,
-        "demo_oracle_ratio": s_demo / s_oracle,
         "demo_scale_err_max_pct": 100 * float(np.max(np.abs(demo_errors)))
         if len(demo_errors) else np.nan,
         "sfs_per_frame_scale_cov": float(np.std(per_frame) / np.mean(per_frame)),

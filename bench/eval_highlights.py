@@ -44,7 +44,7 @@ from endo_io.camera import CameraModel
 from endo_io.image import image_to_array
 from endo_sfs import SfsOptions, solve
 from endo_sfs.errors import SfsError
-from endo_sfs.evaluation import depth_error
+from endo_sfs.evaluation import depth_error, sequence_scale
 from endo_sfs.highlights import DEFAULT_SHOULDER_GROWTH, detect_highlights
 from endo_sim.photometry import Photometry
 from endo_sim.render import Renderer
@@ -98,11 +98,7 @@ def render_frames(scene: str, seed: int, times: list[float], specular: float | N
 
 def score(frames: list[Frame], depths: list[np.ndarray], common: list[np.ndarray]) -> dict:
     """Oracle-scaled AbsRel / MAE over 20–80 mm (all pixels with an estimate, and ``common``)."""
-    logs = []
-    for frame, depth in zip(frames, depths, strict=True):
-        ok = np.isfinite(depth) & np.isfinite(frame.depth) & (depth > 0)
-        logs.append(np.log(frame.depth[ok] / depth[ok]))
-    scale = float(np.exp(np.median(np.concatenate(logs))))
+    scale = sequence_scale(depths, [frame.depth for frame in frames])
     out: dict[str, list[float]] = {"absrel": [], "mae_mm": [], "coverage": [], "common": []}
     for frame, depth, shared in zip(frames, depths, common, strict=True):
         est = depth * scale

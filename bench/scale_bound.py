@@ -61,7 +61,7 @@ from endo_flow.scale_information import (
 from endo_flow.tracking import FeatureTracker
 from endo_io.bag import BagReader, deserialize
 from endo_io.errors import PoseLookupError
-from endo_io.pose import invert_transform, pose_to_matrix
+from endo_io.pose import invert_transform, motion_onset, pose_to_matrix
 from endo_io.pose_buffer import PoseBuffer
 from endo_io.stamp import stamp_to_ns
 from endo_io.topics import IMAGE_RAW, TRACKER_POSE, TRUE_CAMERA_POSE
@@ -233,8 +233,8 @@ def analyse(bag: Path, calibration: PhotometricCalibration, cache: Path | None,
     cov_b = camera_centre_covariances(lever, sigma_p, 0.0)
     bound_a = scale_information_bound(centres, cov_a)
     bound_b = scale_information_bound(centres, cov_b)
-    moved = np.linalg.norm(centres - centres[0], axis=1)
-    t_2mm = float(t[np.argmax(moved >= 2e-3)]) if (moved >= 2e-3).any() else math.nan
+    onset = motion_onset(centres, 2e-3)
+    t_2mm = math.nan if onset is None else float(t[onset])
     gaps = np.diff(t)
     # the efficient fit on the bag's own noisy samples (the true path as vision's)
     T_world_tracker = invert_transform(track["T_tracker_world"])

@@ -43,8 +43,9 @@ def _accuracy(scale_error: float, metric_factor: float) -> Accuracy:
 
 def test_bars_pass_within_and_fail_outside() -> None:
     good = _accuracy(scale_error=0.015, metric_factor=1.0)
-    converged = converged_scale_error(good, 1.0)
-    # samples 10.. are usable; converged from 1 s (30 frames) later: 90 − 40 samples
+    converged = converged_scale_error(good, AccuracyBars())
+    # no true trajectory: samples 10.. are usable; converged from 1 s (30
+    # frames) later: 90 − 40 samples
     assert len(converged) == 50
     np.testing.assert_allclose(converged, 0.015)
     metric, oracle, frames = metric_oracle_gap(good)
@@ -54,7 +55,9 @@ def test_bars_pass_within_and_fail_outside() -> None:
     bad = _accuracy(scale_error=0.04, metric_factor=1.1)
     problems = accuracy_shortfalls(bad)
     assert len(problems) == 2
-    assert problems[0].startswith("scale after convergence up to 4.0% from the oracle (bar 2%")
+    assert problems[0].startswith(
+        "scale up to 4.0% from the oracle from 1 s after its first estimate on (bar 2%"
+    )
     metric, oracle, _ = metric_oracle_gap(bad)
     assert metric - oracle > 0.05  # 10 % too deep everywhere
     assert problems[1].startswith(f"metric AbsRel {metric:.4f} is ")
@@ -70,9 +73,50 @@ def test_missing_outputs_are_named() -> None:
     empty.metric.clear()
     empty.scale = None
     assert accuracy_shortfalls(empty) == [
-        "the scale never converged (1 s after its first estimate)",
+        "the scale cannot be judged: no usable scale sample",
         "no metric depth at any ground-truth frame",
     ]
+
+
+def _moving(accuracy: Accuracy, onset_frame: int) -> Accuracy:
+    """``accuracy`` with a true trajectory still until ``onset_frame``, then 0.5 mm a frame."""
+    stamps = T0 + FRAME_NS * np.arange(90, dtype=np.int64)
+    x = 5e-4 * np.clip(np.arange(90) - (onset_frame - 4), 0, None)  # 2 mm at onset_frame
+    accuracy.true_positions = (stamps, np.stack([x, np.zeros(90), np.full(90, 0.1)], axis=1))
+    return accuracy
+
+
+def test_convergence_is_judged_from_the_true_motion() -> None:
+    # the camera reaches 2 mm at frame 5: judged from frame 5 + 30 = 35 on
+    early = _moving(_accuracy(scale_error=0.015, metric_factor=1.0), onset_frame=5)
+    assert len(converged_scale_error(early, AccuracyBars())) == 90 - 35
+    assert accuracy_shortfalls(early) == []
+    # still far off at frame 35 (the 0.03 samples run to frame 19): caught
+    early.scale.scale[30:40] = 0.03  # type: ignore[union-attr]
+    assert accuracy_shortfalls(early)[0].startswith(
+        "scale up to 50.0% from the oracle from 1 s after 2 mm of motion on (bar 2%; 55 samples"
+    )
+    # no estimate yet 1 s after the motion: an infinite error, said plainly
+    late = _moving(_accuracy(scale_error=0.015, metric_factor=1.0), onset_frame=5)
+    late.scale.scale[:40] = np.nan  # type: ignore[union-attr]
+    assert np.isinf(converged_scale_error(late, AccuracyBars())).sum() == 5
+    assert accuracy_shortfalls(late) == [
+        "the scale had no estimate at 5 of 55 samples from 1 s after 2 mm of motion on "
+        "(the first 0.00 s later)"
+    ]
+    # a reset late in the run: named with its time, and the worst finite error still judged
+    late.scale.scale[:40] = 0.02 * 1.015  # type: ignore[union-attr]
+    late.scale.scale[60] = np.nan  # type: ignore[union-attr]
+    late.scale.scale[70] = 0.02 * 1.03  # type: ignore[union-attr]
+    assert accuracy_shortfalls(late)[:2] == [
+        "the scale had no estimate at 1 of 55 samples from 1 s after 2 mm of motion on "
+        "(the first 0.83 s later)",
+        "scale up to 3.0% from the oracle from 1 s after 2 mm of motion on (bar 2%; 54 samples)",
+    ]
+    # a camera that never moves 2 mm cannot show a converged scale
+    still = _moving(_accuracy(scale_error=0.015, metric_factor=1.0), onset_frame=200)
+    never = "the scale cannot be judged: the camera never moved 2 mm"
+    assert accuracy_shortfalls(still)[0] == never
 
 
 def test_frame_shortfalls_judge_per_frame_outputs_only() -> None:

@@ -20,8 +20,9 @@ import pytest
 from scipy.spatial import cKDTree
 
 from endo_flow.pipeline import FlowFrame, FlowPipeline
-from endo_io.pose import transform_points
+from endo_io.pose import motion_onset, transform_points
 from endo_sfs import SfsOptions, solve
+from endo_sfs.evaluation import sequence_scale
 from endo_sim.photometry import Photometry
 from endo_sim.sequences import SimulationConfig, build_sequence
 from endo_sim.texture import TextureOptions
@@ -68,10 +69,7 @@ def _run(scene: str, seed: int, seconds: float, kit, **config: object) -> Scored
         relative.append(previous.depth)
         depths.append(frame.depth)
     # the oracle: one scale for the whole sequence
-    logs = np.concatenate([np.log(d[np.isfinite(d) & np.isfinite(r) & (r > 0)]
-                                  / r[np.isfinite(d) & np.isfinite(r) & (r > 0)])
-                           for d, r in zip(depths, relative, strict=True)])
-    s_oracle = float(np.exp(np.median(logs)))
+    s_oracle = sequence_scale(relative, depths)
     poses = kit.tracked_poses(true_poses, seed=seed)
     stamps = cfg.start_ns + times
     pipe = FlowPipeline(kit.options())
@@ -94,8 +92,8 @@ def _run(scene: str, seed: int, seconds: float, kit, **config: object) -> Scored
         true_points = true_points[np.isfinite(true_points).all(axis=-1)]
         distance, _ = cKDTree(true_points).query(out.points.astype(np.float64), k=1)
         cloud.append(float(np.sqrt(np.mean(distance**2))))
-    centre = true_poses[:, :3, 3]
-    moved = int(np.argmax(np.linalg.norm(centre - centre[0], axis=1) >= 2e-3))
+    moved = motion_onset(true_poses[:, :3, 3], 2e-3)
+    assert moved is not None, "the test trajectory must move 2 mm"
     usable = int(np.argmax(np.isfinite(ratios))) if np.isfinite(ratios).any() else count
     return Scored(moved / FPS, usable / FPS, ratios, mae, absrel, oracle, cloud)
 

@@ -14,7 +14,7 @@ import pytest
 from endo_flow.errors import NoFeaturesError
 from endo_flow.pipeline import FlowFrame, FlowPipeline
 from endo_flow.scale import ScaleState
-from endo_io.pose import rigid_transform
+from endo_io.pose import motion_onset, rigid_transform
 
 FPS = 30
 
@@ -26,8 +26,8 @@ def _run(pipe, frames):
 def test_scale_converges_within_one_second_of_2mm_motion(moving, kit):
     poses = kit.tracked_poses(moving.poses, seed=1)
     outputs = _run(FlowPipeline(kit.options()), moving.frames(poses))
-    centre = moving.poses[:, :3, 3]
-    moved = int(np.argmax(np.linalg.norm(centre - centre[0], axis=1) >= 2e-3))
+    moved = motion_onset(moving.poses[:, :3, 3], 2e-3)
+    assert moved is not None
     ratios = np.array([o.scale.value / kit.S_TRUE if o.scale.usable else np.nan
                        for o in outputs])
     after = ratios[moved + FPS:]

@@ -649,3 +649,28 @@ def rotation_angle(R: np.ndarray) -> np.ndarray:
     sin_angle = 0.5 * np.linalg.norm(skew, axis=-1)
     cos_angle = 0.5 * (np.trace(rot, axis1=-2, axis2=-1) - 1.0)
     return np.arctan2(sin_angle, cos_angle)
+
+
+def motion_onset(positions: np.ndarray, distance_m: float) -> int | None:
+    """Index of the first position at least ``distance_m`` from the first one.
+
+    Args:
+        positions: (K, 3) positions along a trajectory, metres, in time order
+            (e.g. ``T_world_camera[:, :3, 3]``).
+        distance_m: the straight-line distance from ``positions[0]``, metres.
+
+    Returns:
+        The index, or None when the trajectory never gets that far (or is empty).
+
+    Raises:
+        PoseError: ``positions`` not (K, 3), or ``distance_m`` negative or not finite.
+    """
+    xyz = np.asarray(positions, dtype=np.float64)
+    if xyz.ndim != 2 or xyz.shape[1] != 3:
+        raise PoseError(f"positions must have shape (K, 3), got {xyz.shape}")
+    if not np.isfinite(distance_m) or distance_m < 0.0:
+        raise PoseError(f"distance must be finite and >= 0, got {distance_m}")
+    if len(xyz) == 0:
+        return None
+    far = np.linalg.norm(xyz - xyz[0], axis=1) >= distance_m
+    return int(np.argmax(far)) if far.any() else None

@@ -16,6 +16,7 @@ from endo_io.pose import (
     interpolate_transforms,
     matrix_to_pose,
     matrix_to_quaternion,
+    motion_onset,
     pose_to_matrix,
     quaternion_to_matrix,
     slerp,
@@ -327,3 +328,22 @@ def test_invert_transform_is_the_rigid_inverse():
     stack = np.stack([T, np.eye(4)])
     np.testing.assert_allclose(invert_transform(stack)[0], np.linalg.inv(T), atol=1e-14)
     np.testing.assert_array_equal(invert_transform(stack)[1], np.eye(4))
+
+
+def test_motion_onset_is_the_first_position_that_far_from_the_start() -> None:
+    # a wobble back and forth under 2 mm, then a straight move along a diagonal
+    wobble = np.array([0.0, 1.5e-3, -1.5e-3, 1.0e-3])
+    steps = np.concatenate([wobble, np.linspace(1.3e-3, 4.1e-3, 8)])
+    start = np.array([0.01, 0.02, 0.03])
+    positions = start + np.outer(steps, np.ones(3) / math.sqrt(3.0))
+    onset = motion_onset(positions, 2e-3)
+    assert onset is not None
+    assert np.linalg.norm(positions[onset] - positions[0]) >= 2e-3
+    assert np.all(np.linalg.norm(positions[:onset] - positions[0], axis=1) < 2e-3)
+    assert onset == 6  # 1.3, 1.7, then 2.1 mm along the diagonal
+    assert motion_onset(positions, 1.0) is None
+    assert motion_onset(np.empty((0, 3)), 2e-3) is None
+    with pytest.raises(PoseError, match="shape"):
+        motion_onset(np.zeros((4, 2)), 2e-3)
+    with pytest.raises(PoseError, match="finite"):
+        motion_onset(positions, float("nan"))

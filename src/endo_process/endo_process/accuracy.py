@@ -10,9 +10,9 @@ an error a second way.
 * **relative depth**: AbsRel of ``/endoscope/depth_relative`` after one
   median scale per frame;
 * **oracle scale**: the one scale that best fits the relative depth to the
-  truth over the whole sequence (least squares of the relative error over
-  every pixel of every frame with truth), the reference for the estimated
-  scale, and the oracle-scaled AbsRel it gives;
+  truth over the whole sequence (:func:`endo_sfs.evaluation.sequence_scale`:
+  the median of ln(d*/d) over every pixel of every frame with truth), the
+  reference for the estimated scale, and the oracle-scaled AbsRel it gives;
 * **metric depth**: MAE and AbsRel of ``/endoscope/depth`` with no scaling;
 * **scale over time**: the estimated scale against the oracle;
 * **cloud**: RMS distance of each world point of ``/endoscope/points`` to the
@@ -36,7 +36,8 @@ from endo_io.pointcloud import pointcloud2_to_xyz
 from endo_io.pose import transform_points
 from endo_io.stamp import stamp_to_ns
 from endo_process.evaluation import PoseComparison, compare_poses, depth_errors_at_truth
-from endo_sfs.evaluation import DepthError, depth_error
+from endo_sfs.errors import NoCommonPixelsError
+from endo_sfs.evaluation import DepthError, depth_error, sequence_scale
 
 
 @dataclass(frozen=True)
@@ -79,6 +80,10 @@ class Accuracy:
     cloud_rms_m: dict[int, float] = field(default_factory=dict)
     poses: PoseComparison | None = None
     scale: ScaleTrack | None = None
+    #: The true camera trajectory: ((K,) int64 stamps, (K, 3) positions in
+    #: metres), None without ``/ground_truth/camera_pose``; the scale's
+    #: convergence is judged from the true motion (endo_bringup.acceptance).
+    true_positions: tuple[np.ndarray, np.ndarray] | None = None
 
     @property
     def has_truth(self) -> bool:
@@ -89,23 +94,16 @@ class Accuracy:
 def oracle_scale(estimates: dict[int, np.ndarray], truths: dict[int, np.ndarray]) -> float:
     """The single scale that best fits relative depth to truth over all paired frames.
 
-    Best in the relative sense every depth figure here uses: s minimises
-    Σ ((s·d − d*)/d*)² over every pixel of every frame with both values,
-    i.e. the least-squares fit of d/d* to 1 (a fit of d to d* in absolute
-    terms would let the far, dark lumen, where SFS errs most, decide it).
-    estimates, truths: stamp -> (H, W) depth (NaN invalid). NaN when no
-    frame pairs.
+    :func:`endo_sfs.evaluation.sequence_scale` (the median of ln(d*/d) over
+    every pixel of every frame with both values: the project's one oracle,
+    as endo_flow's evaluation uses it) over the frames whose stamps both
+    hold. estimates, truths: stamp -> (H, W) depth (NaN invalid). NaN when
+    no pixel pairs; a frame whose shapes differ raises SfsInputError.
     """
     stamps = sorted(set(estimates) & set(truths))
-    if not stamps:
-        return float("nan")
-    estimate = np.concatenate([estimates[s].ravel() for s in stamps]).astype(np.float64)
-    truth = np.concatenate([truths[s].ravel() for s in stamps]).astype(np.float64)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        ratio = np.where(truth > 0.0, estimate / truth, np.nan)
     try:
-        return depth_error(ratio, np.ones_like(ratio), scaling="least_squares").scale
-    except ValueError:
+        return sequence_scale((estimates[s] for s in stamps), (truths[s] for s in stamps))
+    except NoCommonPixelsError:
         return float("nan")
 
 
@@ -214,6 +212,7 @@ def score_recording(path: Path) -> Accuracy:
         accuracy.cloud_rms_m = cloud_rms_at_truth(path, truths)
     true_stamps, true_poses = read_pose_stream(path, topics.TRUE_CAMERA_POSE)
     if len(true_stamps):
+        accuracy.true_positions = (true_stamps, np.asarray(true_poses)[:, :3, 3])
         estimated_stamps, estimated = read_pose_stream(path, topics.CAMERA_POSE)
         accuracy.poses = compare_poses(estimated_stamps, estimated, true_stamps, true_poses)
     if np.isfinite(accuracy.oracle_scale):

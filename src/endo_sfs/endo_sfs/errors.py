@@ -25,6 +25,10 @@ class NoValidPixelsError(SfsInputError):
     """No pixel is usable: the frame is all dark, all saturated, NaN or masked."""
 
 
+class NoCommonPixelsError(SfsInputError):
+    """Scoring: no pixel has both an estimate and a ground-truth depth."""
+
+
 class IrradianceRangeError(SfsInputError):
     """A frame holds irradiance above ``max_irradiance``: it cannot be linear irradiance."""
 
