@@ -57,15 +57,23 @@ graph it records.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import functools
+import signal
 import sys
+import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
 from rclpy.exceptions import InvalidHandle
 from rclpy.node import Node
+from rclpy.signals import (
+    SignalHandlerOptions,
+    get_current_signal_handlers_options,
+    uninstall_signal_handlers,
+)
 
 from endo_io.bag import BagWriter, message_class
 from endo_io.bag.qos_yaml import qos_profiles_to_yaml
@@ -372,6 +380,44 @@ class RecordNode(Node):
                   "before them (received earlier, takeable later)", flush=True)
 
 
+def _ignore_sigint(signum: int, frame: Any) -> None:
+    """Python's part of SIGINT: nothing (rclpy's handler shuts the context down)."""
+
+
+def _uninstall_rclpy_signal_handlers() -> None:
+    # rclpy.try_shutdown leaves them installed, and rclpy.init does not install
+    # them again over a handler set since: SIGINT would then not shut it down.
+    if get_current_signal_handlers_options() != SignalHandlerOptions.NO:
+        uninstall_signal_handlers()
+
+
+@contextlib.contextmanager
+def sigint_shuts_down_only() -> Iterator[None]:
+    """While inside, SIGINT shuts rclpy's context down and raises no KeyboardInterrupt.
+
+    Python's default SIGINT handler raises KeyboardInterrupt at whatever bytecode
+    runs; in the recorder that is often the MCAP writer. Landing after a chunk's
+    ``os.write`` and before the writer counted it, it left the chunk on disk but
+    not in the byte count, and ``close()`` then wrote an empty copy of the chunk
+    and a summary whose offsets were short by the chunk's size: a file no reader
+    opens (seen once at load 9: a 2.03 MB chunk). ``rclpy.init``, called inside,
+    installs rclpy's handler over this one and chains to it, so SIGINT still ends
+    ``spin()`` and the node's ``close()`` runs; a second SIGINT during ``close()``
+    is ignored too (SIGTERM and SIGKILL still end the process). Outside the main
+    thread, where no handler can be set, nothing changes.
+    """
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    _uninstall_rclpy_signal_handlers()  # an earlier rclpy.init's, in this process
+    previous = signal.signal(signal.SIGINT, _ignore_sigint)
+    try:
+        yield
+    finally:
+        _uninstall_rclpy_signal_handlers()  # so that a later rclpy.init installs them again
+        signal.signal(signal.SIGINT, previous)
+
+
 def default_output(now: float | None = None) -> Path:
     """``endo_record_<YYYYmmdd>_<HHMMSS>.mcap`` in the working directory."""
     stamp = time.strftime("%Y%m%d_%H%M%S", time.localtime(now))
@@ -416,7 +462,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         return nodes[0]
 
     try:
-        code = run_node(factory, ros_args)
+        with sigint_shuts_down_only():
+            code = run_node(factory, ros_args)
     finally:
         if not nodes:
             recording.close()

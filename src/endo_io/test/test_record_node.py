@@ -5,6 +5,7 @@ Review of issue 15's batched takes.
 
 from __future__ import annotations
 
+import signal
 import time
 
 import pytest
@@ -16,7 +17,14 @@ from std_msgs.msg import String
 from endo_io.bag import BagReader, BagWriter, deserialize
 from endo_io.qos import reliable_qos
 from endo_io.record import Recording
-from endo_io.record_node import MAX_RAISE_NS, ReceiveOrder, RecordNode, _check_options, build_parser
+from endo_io.record_node import (
+    MAX_RAISE_NS,
+    ReceiveOrder,
+    RecordNode,
+    _check_options,
+    build_parser,
+    sigint_shuts_down_only,
+)
 
 MS = 1_000_000
 
@@ -180,3 +188,27 @@ def test_take_period_0_records_each_message_in_its_own_callback(tmp_path):
     assert [msg.data for _, msg in written] == [f"c{k}" for k in range(5)]
     times = [t for t, _ in written]
     assert times == sorted(times)
+
+
+@pytest.mark.ros
+def test_sigint_shuts_the_recorder_down_without_a_keyboard_interrupt():
+    # A KeyboardInterrupt landing in the MCAP writer between a chunk's os.write and its
+    # byte count left a file whose summary offsets were short by that chunk (session
+    # recdiag): endo-record's SIGINT only shuts the context down, through rclpy's handler.
+    previous = signal.getsignal(signal.SIGINT)
+    with sigint_shuts_down_only():
+        rclpy.init()
+        try:
+            node = Node("record_node_test_sigint")
+            executor = SingleThreadedExecutor()
+            executor.add_node(node)
+            signal.raise_signal(signal.SIGINT)  # raised KeyboardInterrupt here before
+            deadline = time.monotonic() + 10.0
+            while rclpy.ok():  # rclpy's handler shuts the context down from its own thread
+                assert time.monotonic() < deadline, "SIGINT did not shut the context down"
+                executor.spin_once(timeout_sec=0.05)
+            executor.shutdown()
+            node.destroy_node()
+        finally:
+            rclpy.try_shutdown()
+    assert signal.getsignal(signal.SIGINT) is previous
