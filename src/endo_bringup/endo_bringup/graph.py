@@ -326,7 +326,8 @@ class GraphSettings:
     frame → world frame (metres), the bridge's registration parameter.
     startup_timeout_s: how long the nodes may take to come up (when the
     kernel cache is empty the SFS node first compiles its numba kernels:
-    about 20 s of CPU, more while the other processes start);
+    about 2.5 min of CPU, more while the other processes start; ``make venv``
+    compiles them first);
     drain_timeout_s: how long to wait for the outputs after the replay ends.
     node_parameters: extra ROS parameters per process name, added to that
     row's (a benchmark's configuration, e.g. ``{"endo-sfs": {"warm_start": "false"}}``).

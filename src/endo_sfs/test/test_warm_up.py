@@ -46,7 +46,7 @@ def test_help_lists_parameters_without_compiling(tmp_path):
 
 def test_a_warm_up_that_must_compile_says_so_first(monkeypatch, tmp_path):
     # An empty cache folder for the stamp; the kernels of this process were
-    # decorated already and load from where they are (no 20 s compile here).
+    # decorated already and load from where they are (no compile of minutes here).
     monkeypatch.setenv("NUMBA_CACHE_DIR", str(tmp_path))
     assert not kernels_cached()
     said: list[str] = []
