@@ -200,14 +200,13 @@ def test_sigint_shuts_the_recorder_down_without_a_keyboard_interrupt():
         rclpy.init()
         try:
             node = Node("record_node_test_sigint")
-            executor = SingleThreadedExecutor()
-            executor.add_node(node)
             signal.raise_signal(signal.SIGINT)  # raised KeyboardInterrupt here before
             deadline = time.monotonic() + 10.0
-            while rclpy.ok():  # rclpy's handler shuts the context down from its own thread
+            # rclpy's handler shuts the context down from its own thread; no spinning
+            # (a spin_once racing the shutdown fails to create its timeout timer)
+            while rclpy.ok():
                 assert time.monotonic() < deadline, "SIGINT did not shut the context down"
-                executor.spin_once(timeout_sec=0.05)
-            executor.shutdown()
+                time.sleep(0.01)
             node.destroy_node()
         finally:
             rclpy.try_shutdown()
