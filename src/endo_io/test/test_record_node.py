@@ -111,27 +111,38 @@ def test_the_last_take_writes_every_subscription_rclpy_still_gives(tmp_path):
     assert [t for _, t in written] == sorted(t for _, t in written)
 
 
+def _recorder_with_peer(output, topic, take_period, peer_name):
+    """A RecordNode on ``topic`` into ``output`` beside a peer publishing there.
+
+    Returns (publisher, recording, recorder, executor), both nodes in the one
+    executor, once the recorder has subscribed.
+    """
+    options = build_parser().parse_args(
+        ["--topics", topic, "-o", str(output), "--take-period", take_period])
+    _check_options(options)
+    peer = Node(peer_name)
+    publisher = peer.create_publisher(String, topic, reliable_qos(10))
+    recording = Recording(BagWriter(output, compression="none"))
+    recorder = RecordNode(recording, options)
+    executor = SingleThreadedExecutor()
+    executor.add_node(peer)
+    executor.add_node(recorder)
+    deadline = time.monotonic() + 10.0
+    while publisher.get_subscription_count() == 0:
+        assert time.monotonic() < deadline, "recorder did not subscribe"
+        executor.spin_once(timeout_sec=0.05)
+    return publisher, recording, recorder, executor
+
+
 @pytest.mark.ros
 def test_taken_messages_keep_their_dds_source_time_as_publish_time(tmp_path):
     # rosbag2 records the send time as publish time: a graph's latency can then be read
     # from the recording alone, from each message's own publish
     output = tmp_path / "published.mcap"
-    options = build_parser().parse_args(
-        ["--topics", "/rn_test/p", "-o", str(output), "--take-period", "3600"])
-    _check_options(options)
     rclpy.init()
     try:
-        peer = Node("record_node_test_peer_p")
-        publisher = peer.create_publisher(String, "/rn_test/p", reliable_qos(10))
-        recording = Recording(BagWriter(output, compression="none"))
-        recorder = RecordNode(recording, options)
-        executor = SingleThreadedExecutor()
-        executor.add_node(peer)
-        executor.add_node(recorder)
-        deadline = time.monotonic() + 10.0
-        while publisher.get_subscription_count() == 0:
-            assert time.monotonic() < deadline, "recorder did not subscribe"
-            executor.spin_once(timeout_sec=0.05)
+        publisher, _, recorder, executor = _recorder_with_peer(
+            output, "/rn_test/p", "3600", "record_node_test_peer_p")
         sent = []
         for k in range(3):
             before = time.time_ns()
@@ -156,22 +167,11 @@ def test_taken_messages_keep_their_dds_source_time_as_publish_time(tmp_path):
 @pytest.mark.ros
 def test_take_period_0_records_each_message_in_its_own_callback(tmp_path):
     output = tmp_path / "each.mcap"
-    options = build_parser().parse_args(
-        ["--topics", "/rn_test/c", "-o", str(output), "--take-period", "0"])
-    _check_options(options)
     rclpy.init()
     try:
-        peer = Node("record_node_test_peer0")
-        publisher = peer.create_publisher(String, "/rn_test/c", reliable_qos(10))
-        recording = Recording(BagWriter(output, compression="none"))
-        recorder = RecordNode(recording, options)
-        executor = SingleThreadedExecutor()
-        executor.add_node(peer)
-        executor.add_node(recorder)
+        publisher, recording, recorder, executor = _recorder_with_peer(
+            output, "/rn_test/c", "0", "record_node_test_peer0")
         deadline = time.monotonic() + 10.0
-        while publisher.get_subscription_count() == 0:
-            assert time.monotonic() < deadline, "recorder did not subscribe"
-            executor.spin_once(timeout_sec=0.05)
         for k in range(5):
             publisher.publish(String(data=f"c{k}"))
         tally = recording.report.topics["/rn_test/c"]
