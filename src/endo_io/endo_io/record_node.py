@@ -67,6 +67,7 @@ from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
+import rclpy
 from rclpy.exceptions import InvalidHandle
 from rclpy.node import Node
 from rclpy.signals import (
@@ -380,8 +381,25 @@ class RecordNode(Node):
                   "before them (received earlier, takeable later)", flush=True)
 
 
-def _ignore_sigint(signum: int, frame: Any) -> None:
-    """Python's part of SIGINT: nothing (rclpy's handler shuts the context down)."""
+def _shutdown_on_sigint(signum: int, frame: Any) -> None:
+    """Python's part of SIGINT: shut the default context down from another thread.
+
+    rclpy's own handler, chained before this one, wakes the executor and shuts
+    the context down from its signal thread; it did not in a CI worker whose
+    earlier tests had left rclpy's handlers in some other state (the context
+    stayed valid for 10 s, twice). So this part does it too, from a thread of
+    its own: here, inside the main thread, it could wait for a lock the
+    interrupted code holds. Raising nothing is the point (see
+    :func:`sigint_shuts_down_only`); a second shutdown is a no-op.
+    """
+    threading.Thread(target=_try_shutdown_quietly, name="sigint-shutdown", daemon=True).start()
+
+
+def _try_shutdown_quietly() -> None:
+    # rclpy's signal thread may shut the context down between try_shutdown's
+    # check and its call: that error is the shutdown already done.
+    with contextlib.suppress(RuntimeError):
+        rclpy.try_shutdown()
 
 
 def _uninstall_rclpy_signal_handlers() -> None:
@@ -393,7 +411,7 @@ def _uninstall_rclpy_signal_handlers() -> None:
 
 @contextlib.contextmanager
 def sigint_shuts_down_only() -> Iterator[None]:
-    """While inside, SIGINT shuts rclpy's context down and raises no KeyboardInterrupt.
+    """While inside, SIGINT shuts rclpy's default context down and raises no KeyboardInterrupt.
 
     Python's default SIGINT handler raises KeyboardInterrupt at whatever bytecode
     runs; in the recorder that is often the MCAP writer. Landing after a chunk's
@@ -401,16 +419,19 @@ def sigint_shuts_down_only() -> Iterator[None]:
     not in the byte count, and ``close()`` then wrote an empty copy of the chunk
     and a summary whose offsets were short by the chunk's size: a file no reader
     opens (seen once at load 9: a 2.03 MB chunk). ``rclpy.init``, called inside,
-    installs rclpy's handler over this one and chains to it, so SIGINT still ends
-    ``spin()`` and the node's ``close()`` runs; a second SIGINT during ``close()``
-    is ignored too (SIGTERM and SIGKILL still end the process). Outside the main
+    installs rclpy's handler over this one and chains to it: rclpy's wakes
+    ``spin()`` and shuts the context down, and this one shuts it down as well
+    (:func:`_shutdown_on_sigint`), so SIGINT ends ``spin()`` and the node's
+    ``close()`` runs even where rclpy's is not the handler the kernel calls; a
+    second SIGINT during ``close()`` changes nothing (SIGTERM and SIGKILL still
+    end the process). Outside the main
     thread, where no handler can be set, nothing changes.
     """
     if threading.current_thread() is not threading.main_thread():
         yield
         return
     _uninstall_rclpy_signal_handlers()  # an earlier rclpy.init's, in this process
-    previous = signal.signal(signal.SIGINT, _ignore_sigint)
+    previous = signal.signal(signal.SIGINT, _shutdown_on_sigint)
     try:
         yield
     finally:
