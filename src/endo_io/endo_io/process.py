@@ -7,20 +7,40 @@ every interface), gives the process Fast DDS's large-frame transport before
 ``rclpy.init`` unless the user chose one (:mod:`endo_io.dds_transport`), and
 turns SIGINT and SIGTERM into an orderly shutdown so that nodes holding
 files (the recorder) can finalise them.
+
+SIGINT raises no KeyboardInterrupt in a node (:func:`sigint_shuts_down_only`):
+Python's default handler raises it at whatever bytecode runs, inside a
+callback, a publish or the MCAP writer (one landing after a chunk's
+``os.write`` and before its byte count left a recording no reader opened).
+Under :func:`run_node` SIGINT only shuts the context down: the callback that
+runs finishes, ``spin()`` returns, and the node's ``close()`` runs; a second
+SIGINT while closing changes nothing. Only while the node is still being
+created (the SFS node compiling its kernels for minutes on a fresh install)
+does a second SIGINT abandon the start-up with a KeyboardInterrupt, which
+:func:`run_node` turns into exit 0.
 """
 
 from __future__ import annotations
 
+import contextlib
 import contextvars
 import os
+import signal
 import sys
-from collections.abc import Callable, Sequence
+import threading
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from types import FrameType
 
 import rclpy
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
+from rclpy.signals import (
+    SignalHandlerOptions,
+    get_current_signal_handlers_options,
+    uninstall_signal_handlers,
+)
 from rclpy.utilities import get_rmw_implementation_identifier
 
 from endo_io.cli import report_error
@@ -156,6 +176,79 @@ def print_node_help(factory: Callable[[], Node], argv: Sequence[str]) -> int:
     return 0
 
 
+class _SigintShutdown:
+    """Python's SIGINT handler under :func:`sigint_shuts_down_only`.
+
+    Attributes:
+        starting: True while the node is being created; a second SIGINT then
+            raises KeyboardInterrupt (the start-up is abandoned).
+        received: SIGINTs seen since :func:`sigint_shuts_down_only` installed it.
+    """
+
+    def __init__(self) -> None:
+        self.starting = False
+        self.received = 0
+
+    def __call__(self, signum: int, frame: FrameType | None) -> None:
+        """Shut the default context down from a thread of its own; raise nothing.
+
+        rclpy's own handler, which ``rclpy.init`` chains before this one, wakes
+        the executor and shuts the context down from its signal thread; it did
+        not in a CI worker whose earlier tests had left rclpy's handlers in
+        some other state (the context stayed valid for 10 s, twice), so this
+        part does it too. From another thread: here, in the main thread, it
+        could wait for a lock that the interrupted code holds. A second
+        shutdown is a no-op.
+        """
+        self.received += 1
+        if self.starting and self.received > 1:
+            raise KeyboardInterrupt
+        threading.Thread(target=_try_shutdown_quietly, name="sigint-shutdown", daemon=True).start()
+
+
+def _try_shutdown_quietly() -> None:
+    # rclpy's signal thread may shut the context down between try_shutdown's
+    # check and its call: that error is the shutdown already done.
+    with contextlib.suppress(RuntimeError):
+        rclpy.try_shutdown()
+
+
+def _uninstall_rclpy_signal_handlers() -> None:
+    # rclpy.try_shutdown leaves them installed, and rclpy.init does not install
+    # them again over a handler set since: SIGINT would then not shut it down.
+    if get_current_signal_handlers_options() != SignalHandlerOptions.NO:
+        uninstall_signal_handlers()
+
+
+@contextlib.contextmanager
+def sigint_shuts_down_only() -> Iterator[_SigintShutdown | None]:
+    """While inside, SIGINT shuts rclpy's default context down and raises no KeyboardInterrupt.
+
+    :func:`run_node` runs every node inside. ``rclpy.init``, called inside,
+    installs rclpy's handler over this one and chains to it: rclpy's wakes
+    ``spin()`` and shuts the context down, and this one shuts it down as well,
+    so SIGINT ends ``spin()`` even where rclpy's is not the handler the kernel
+    calls. SIGTERM (rclpy's handler) and SIGKILL still end the process.
+    Outside the main thread, where no handler can be set, nothing changes
+    (yields None).
+
+    Yields:
+        The handler (:class:`_SigintShutdown`: its ``starting`` flag lets a
+        second SIGINT abandon a start-up), or None outside the main thread.
+    """
+    if threading.current_thread() is not threading.main_thread():
+        yield None
+        return
+    _uninstall_rclpy_signal_handlers()  # an earlier rclpy.init's, in this process
+    handler = _SigintShutdown()
+    previous = signal.signal(signal.SIGINT, handler)
+    try:
+        yield handler
+    finally:
+        _uninstall_rclpy_signal_handlers()  # so that a later rclpy.init installs them again
+        signal.signal(signal.SIGINT, previous)
+
+
 def run_node(factory: Callable[[], Node], args: Sequence[str] | None = None) -> int:
     """Create a node with ``factory`` and spin it until SIGINT or SIGTERM.
 
@@ -165,12 +258,19 @@ def run_node(factory: Callable[[], Node], args: Sequence[str] | None = None) -> 
     cannot start on its configuration (an :class:`Endo3dError` from
     ``factory``: a parameter out of range, a calibration file that does not
     load) gives one line on stderr naming the cause and exit code 2, never a
-    traceback.
+    traceback. SIGINT raises no KeyboardInterrupt in the node (see the module
+    docstring): the callback it lands in finishes and ``close()`` runs.
     """
     argv = list(sys.argv if args is None else args)
     ours, _ = split_ros_args(argv)
     if "-h" in ours or "--help" in ours:
         return print_node_help(factory, argv)
+    with sigint_shuts_down_only() as sigint:
+        return _run_node(factory, argv, sigint)
+
+
+def _run_node(factory: Callable[[], Node], argv: list[str],
+              sigint: _SigintShutdown | None) -> int:
     program = Path(argv[0]).name if argv else "node"
     # rclpy's default signal handlers cover SIGINT and SIGTERM: both shut the
     # context down, spin() returns, and the node's close() still runs below.
@@ -179,24 +279,29 @@ def run_node(factory: Callable[[], Node], args: Sequence[str] | None = None) -> 
     node: Node | None = None
     try:
         try:
+            if sigint is not None:
+                sigint.starting = True
             node = factory()
         except ParameterValidationError as error:
             print(f"{program}: {error}", file=sys.stderr)
             return 2
         except Endo3dError as error:
             return report_error(program, error)
+        finally:
+            if sigint is not None:
+                sigint.starting = False
         executor = SingleThreadedExecutor()
         executor.add_node(node)
-        # Logged once the executor exists: a SIGINT sent on seeing this line
-        # must not land inside the executor's constructor.
+        # Logged once the executor exists: a process that sees this line is up.
         log_dds_environment(node)
         executor.spin()
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
-    except RuntimeError:
-        # rclpy's signal handler may shut the context down while spin() builds
-        # its next wait set (an RCLError, "failed to initialize wait set: the
-        # given context is not valid"): that is the shutdown asked for, not a
+    except Exception:
+        # SIGINT may shut the context down while spin() builds its next wait
+        # set (an RCLError, "failed to initialize wait set: the given context
+        # is not valid") or while the factory still creates the node (rclpy's
+        # NotInitializedException): that is the shutdown asked for, not a
         # failure (exit 1 and a traceback after SIGINT, seen in CI). With the
         # context still valid it is one, and propagates.
         if rclpy.ok():

@@ -38,9 +38,10 @@ A flush timer closes the current chunk about once a second, so a recorder
 killed with SIGKILL leaves a file that reads up to the last flush (and a bag
 directory whose metadata.yaml counts it). SIGINT and SIGTERM end the
 recording cleanly (summary and footer written), as do ``--max-messages`` and
-``--max-duration``. A failed write (a full disk) stops the recording with one
-line; the summary then counts what the file holds and how many received
-messages were lost.
+``--max-duration``: SIGINT raises no KeyboardInterrupt inside the writer
+(:func:`endo_io.process.run_node`'s own, for every node). A failed write
+(a full disk) stops the recording with one line; the summary then counts
+what the file holds and how many received messages were lost.
 
 Each message is checked to decode as its topic's type
 (:func:`endo_io.bag.serde.cdr_check`: images by :func:`endo_io.image.image_from_cdr`,
@@ -57,24 +58,15 @@ graph it records.
 from __future__ import annotations
 
 import argparse
-import contextlib
 import functools
-import signal
 import sys
-import threading
 import time
-from collections.abc import Iterator, Sequence
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-import rclpy
 from rclpy.exceptions import InvalidHandle
 from rclpy.node import Node
-from rclpy.signals import (
-    SignalHandlerOptions,
-    get_current_signal_handlers_options,
-    uninstall_signal_handlers,
-)
 
 from endo_io.bag import BagWriter, message_class
 from endo_io.bag.qos_yaml import qos_profiles_to_yaml
@@ -381,64 +373,6 @@ class RecordNode(Node):
                   "before them (received earlier, takeable later)", flush=True)
 
 
-def _shutdown_on_sigint(signum: int, frame: Any) -> None:
-    """Python's part of SIGINT: shut the default context down from another thread.
-
-    rclpy's own handler, chained before this one, wakes the executor and shuts
-    the context down from its signal thread; it did not in a CI worker whose
-    earlier tests had left rclpy's handlers in some other state (the context
-    stayed valid for 10 s, twice). So this part does it too, from a thread of
-    its own: here, inside the main thread, it could wait for a lock the
-    interrupted code holds. Raising nothing is the point (see
-    :func:`sigint_shuts_down_only`); a second shutdown is a no-op.
-    """
-    threading.Thread(target=_try_shutdown_quietly, name="sigint-shutdown", daemon=True).start()
-
-
-def _try_shutdown_quietly() -> None:
-    # rclpy's signal thread may shut the context down between try_shutdown's
-    # check and its call: that error is the shutdown already done.
-    with contextlib.suppress(RuntimeError):
-        rclpy.try_shutdown()
-
-
-def _uninstall_rclpy_signal_handlers() -> None:
-    # rclpy.try_shutdown leaves them installed, and rclpy.init does not install
-    # them again over a handler set since: SIGINT would then not shut it down.
-    if get_current_signal_handlers_options() != SignalHandlerOptions.NO:
-        uninstall_signal_handlers()
-
-
-@contextlib.contextmanager
-def sigint_shuts_down_only() -> Iterator[None]:
-    """While inside, SIGINT shuts rclpy's default context down and raises no KeyboardInterrupt.
-
-    Python's default SIGINT handler raises KeyboardInterrupt at whatever bytecode
-    runs; in the recorder that is often the MCAP writer. Landing after a chunk's
-    ``os.write`` and before the writer counted it, it left the chunk on disk but
-    not in the byte count, and ``close()`` then wrote an empty copy of the chunk
-    and a summary whose offsets were short by the chunk's size: a file no reader
-    opens (seen once at load 9: a 2.03 MB chunk). ``rclpy.init``, called inside,
-    installs rclpy's handler over this one and chains to it: rclpy's wakes
-    ``spin()`` and shuts the context down, and this one shuts it down as well
-    (:func:`_shutdown_on_sigint`), so SIGINT ends ``spin()`` and the node's
-    ``close()`` runs even where rclpy's is not the handler the kernel calls; a
-    second SIGINT during ``close()`` changes nothing (SIGTERM and SIGKILL still
-    end the process). Outside the main
-    thread, where no handler can be set, nothing changes.
-    """
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-    _uninstall_rclpy_signal_handlers()  # an earlier rclpy.init's, in this process
-    previous = signal.signal(signal.SIGINT, _shutdown_on_sigint)
-    try:
-        yield
-    finally:
-        _uninstall_rclpy_signal_handlers()  # so that a later rclpy.init installs them again
-        signal.signal(signal.SIGINT, previous)
-
-
 def default_output(now: float | None = None) -> Path:
     """``endo_record_<YYYYmmdd>_<HHMMSS>.mcap`` in the working directory."""
     stamp = time.strftime("%Y%m%d_%H%M%S", time.localtime(now))
@@ -483,11 +417,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         return nodes[0]
 
     try:
-        with sigint_shuts_down_only():
-            code = run_node(factory, ros_args)
+        code = run_node(factory, ros_args)
     finally:
-        if not nodes:
-            recording.close()
+        recording.close()  # done by the node's close() unless it was never created (idempotent)
     return code
 
 

@@ -5,7 +5,6 @@ Review of issue 15's batched takes.
 
 from __future__ import annotations
 
-import signal
 import time
 
 import pytest
@@ -23,7 +22,6 @@ from endo_io.record_node import (
     RecordNode,
     _check_options,
     build_parser,
-    sigint_shuts_down_only,
 )
 
 MS = 1_000_000
@@ -188,31 +186,3 @@ def test_take_period_0_records_each_message_in_its_own_callback(tmp_path):
     assert [msg.data for _, msg in written] == [f"c{k}" for k in range(5)]
     times = [t for t, _ in written]
     assert times == sorted(times)
-
-
-@pytest.mark.ros
-@pytest.mark.parametrize("rclpy_handler", ["installed", "overridden"])
-def test_sigint_shuts_the_recorder_down_without_a_keyboard_interrupt(rclpy_handler):
-    # A KeyboardInterrupt landing in the MCAP writer between a chunk's os.write and its
-    # byte count left a file whose summary offsets were short by that chunk (session
-    # recdiag): endo-record's SIGINT only shuts the context down. "overridden": the
-    # kernel calls Python's handler alone, as in the CI worker where rclpy's never shut
-    # the context down (earlier tests' state); ours must do it then too.
-    previous = signal.getsignal(signal.SIGINT)
-    with sigint_shuts_down_only():
-        rclpy.init()
-        try:
-            node = Node("record_node_test_sigint")
-            if rclpy_handler == "overridden":
-                signal.signal(signal.SIGINT, signal.getsignal(signal.SIGINT))
-            signal.raise_signal(signal.SIGINT)  # raised KeyboardInterrupt here before
-            deadline = time.monotonic() + 10.0
-            # the context is shut down from other threads; no spinning here (a
-            # spin_once racing the shutdown fails to create its timeout timer)
-            while rclpy.ok():
-                assert time.monotonic() < deadline, "SIGINT did not shut the context down"
-                time.sleep(0.01)
-            node.destroy_node()
-        finally:
-            rclpy.try_shutdown()
-    assert signal.getsignal(signal.SIGINT) is previous
