@@ -19,7 +19,9 @@ Bags: the committed phantom (3 s, 90 frames) and a longer render
 
 Configurations, at ``solve_scale`` 1 and 0.5: every optimisation on; then
 each one off alone: ``newest_frame`` (correction, sfs and flow process every
-frame in arrival order instead of the newest), ``warm_start`` (sfs). Each
+frame in arrival order instead of the newest), ``warm_start`` (sfs); and
+``corrected 32FC1``: the corrected image as float instead of its default
+16UC1 fixed point (correction's ``output_encoding``). Each
 configuration runs ``--runs`` times (2); the runs are passes over all
 configurations, so the ratios inside one pass compare configurations under
 the same load.
@@ -103,7 +105,9 @@ class Configuration:
 def configurations(scales: list[float]) -> list[Configuration]:
     """All optimisations on, each off alone, then SFS's threads and workers, at every scale.
 
-    "all on" runs one endo-sfs with its default threads (2); "sfs threads 1"
+    "all on" runs one endo-sfs with its default threads (2), the corrected
+    image in 16UC1 fixed point (the default); "corrected 32FC1" publishes it
+    as float, as before 2026-12-02; "sfs threads 1"
     one endo-sfs on one thread; "sfs 2 workers x 1 thread" two endo-sfs
     processes (worker_count 2) of one thread each.
     """
@@ -115,6 +119,8 @@ def configurations(scales: list[float]) -> list[Configuration]:
     for scale in scales:
         found.append(Configuration("all on", scale))
         found += [Configuration(name, scale, params) for name, params in off.items()]
+        found.append(Configuration("corrected 32FC1", scale,
+                                   {CORRECTION: {"output_encoding": "32FC1"}}))
         found += [Configuration("sfs threads 1", scale, {SFS: {"threads": "1"}}),
                   Configuration("sfs 2 workers x 1 thread", scale, {SFS: {"threads": "1"}},
                                 sfs_workers=2)]

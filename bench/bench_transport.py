@@ -12,10 +12,10 @@
    (the camera's raw image, 0.3 MB). Latency = reception here, decoded,
    minus the DDS source timestamp of the publish; the publisher's own cost
    per frame (conversion + publish) and this side's decode, CPU ms.
-2. **Accuracy of 16-bit fixed point.** The candidate encoding of the corrected
-   image: ``u = round(x / scale)``, ``scale`` = :data:`FIXED_POINT_SCALE`
-   irradiance units per count (65534 counts: 0 … 6.55), 65535 reserved for
-   NaN, values above the range clipped. Every ground-truth frame of the
+2. **Accuracy of 16-bit fixed point.** The corrected image's encoding since
+   2026-12-02 (:func:`endo_io.image.encode_irradiance`): ``u = round(x /
+   scale)``, ``scale`` = 1e-4 irradiance units per count (65534 counts: 0 …
+   6.55), 65535 reserved for NaN, values above the range clipped. Every ground-truth frame of the
    phantom (tuned on: none; the colon render seed 2 as the second scene when
    ``--second`` names it) is corrected with its true calibration, solved by
    ``endo_sfs.relative_depth.solve`` from the float image and from the
@@ -42,29 +42,28 @@ import numpy as np
 from machine import cpu_model
 from results import replace_section
 
+from endo_io.image import (
+    IRRADIANCE_MAX,
+    IRRADIANCE_PER_COUNT,
+    decode_irradiance,
+    encode_irradiance,
+)
+
 ROOT = Path(__file__).resolve().parents[1]
 PHANTOM = ROOT / "bags" / "phantom_colon.mcap"
 TITLE = "## Transport: one image hop, and the corrected image in 16 bits (bench_transport)"
 TOPIC = "/bench_transport/image"
-#: Irradiance units per count of the 16-bit candidate (range 0 … 6.5534).
-FIXED_POINT_SCALE = 1e-4
-NAN_CODE = 65535
 FRAMES = 150
 
 
 def encode_fixed_point(x: np.ndarray) -> np.ndarray:
-    """(H, W) float irradiance -> uint16 counts of FIXED_POINT_SCALE; NaN -> NAN_CODE."""
-    counts = np.clip(np.rint(np.nan_to_num(x, nan=0.0) / FIXED_POINT_SCALE), 0, NAN_CODE - 1)
-    out = counts.astype(np.uint16)
-    out[~np.isfinite(x)] = NAN_CODE
-    return out
+    """(H, W) float irradiance -> uint16 counts (the correction node's codec)."""
+    return encode_irradiance(x, "16UC1").pixels
 
 
 def decode_fixed_point(u: np.ndarray) -> np.ndarray:
-    """uint16 counts -> float32 irradiance; NAN_CODE -> NaN."""
-    x = u.astype(np.float32) * np.float32(FIXED_POINT_SCALE)
-    x[u == NAN_CODE] = np.nan
-    return x
+    """uint16 counts -> float32 irradiance, NaN for the reserved count (the nodes' codec)."""
+    return decode_irradiance(u, "16UC1")
 
 
 def _frame(encoding: str, k: int) -> np.ndarray:
@@ -214,7 +213,7 @@ def accuracy(bags: list[Path]) -> list[tuple[str, float, float, float, int]]:
             finite = irradiance[np.isfinite(irradiance)]
             print(f"{bag.stem} scale {scale:g}: AbsRel float {rows[-1][2]:.5f}, 16-bit "
                   f"{rows[-1][3]:.5f}; irradiance max {finite.max():.3f}, "
-                  f"clipped {(finite > FIXED_POINT_SCALE * (NAN_CODE - 1)).mean():.2%}",
+                  f"clipped {(finite > IRRADIANCE_MAX).mean():.2%}",
                   flush=True)
     return rows
 
@@ -226,9 +225,15 @@ def main() -> int:
     parser.add_argument("--second", type=Path, default=None, help="a second rendered bag")
     parser.add_argument("--runs", type=int, default=2)
     parser.add_argument("--no-write", action="store_true")
+    parser.add_argument("--accuracy-only", action="store_true",
+                        help="only the accuracy part, printed (no DDS, nothing written)")
     args = parser.parse_args()
     if args.publish:
         publish(args.publish, os.environ.get("ROS_DOMAIN_ID", ""))
+        return 0
+    if args.accuracy_only:
+        for bag, scale, a, b, n in accuracy([PHANTOM] + ([args.second] if args.second else [])):
+            print(f"| {bag} | {scale:g} | {n} | {a:.5f} | {b:.5f} | {b - a:+.5f} |")
         return 0
     from endo_bringup.dds_profile import with_large_frame_profile
 
@@ -260,7 +265,7 @@ def main() -> int:
         lines.append(f"| {run} | {encoding} | {size[encoding]} | {load:.1f} | "
                      f"{f['received']:.0f}/{FRAMES} | {f['p50']:.1f} / {f['p95']:.1f} | "
                      f"{f['publish_cpu_ms']:.2f} | {f['decode_cpu_ms']:.2f} |")
-    lines += ["", f"16-bit fixed point of the corrected image ({FIXED_POINT_SCALE:g} per count, "
+    lines += ["", f"16-bit fixed point of the corrected image ({IRRADIANCE_PER_COUNT:g} per count, "
               "65535 = NaN): SFS median-scaled AbsRel against the truth, mean over the "
               "ground-truth frames:", "",
               "| bag | solve_scale | frames | AbsRel float | AbsRel 16-bit | difference |",

@@ -2,10 +2,13 @@
 
 Subscribes ``/endoscope/image_raw`` (sensor_msgs/Image, mono8/mono16/16UC1/
 rgb8/bgr8/rgba8/bgra8, sensor-data QoS) and publishes
-``/endoscope/image_corrected`` (:mod:`endo_io.topics`): 32FC1 linear
-irradiance g(v)/L(x) of the configured channel, or 32FC3 (R, G, B) with
-``channel: rgb``; saturated pixels and pixels outside the field of view are
-NaN. The calibration comes from the ``calibration_file`` parameter
+``/endoscope/image_corrected`` (:mod:`endo_io.topics`): linear irradiance
+g(v)/L(x) of the configured channel, in the ``output_encoding`` parameter's
+encoding: ``16UC1`` fixed point by default (:func:`endo_io.image.encode_irradiance`:
+1e-4 per count, 65535 = NaN, above 6.5534 saturated and counted on
+``/diagnostics``), or ``32FC1`` float; 32FC3 (R, G, B) with ``channel: rgb``
+whatever the parameter. Saturated pixels and pixels outside the field of view
+are NaN. The calibration comes from the ``calibration_file`` parameter
 (photometric.yaml) and is reloaded whenever the parameter is set, without a
 restart. Images of another resolution with the calibration's aspect ratio
 (binned or scaled streams) are corrected with a resampled light map.
@@ -43,9 +46,11 @@ from endo_io import topics
 from endo_io.diagnostics import HEALTH_PARAMETERS, InputHealth
 from endo_io.errors import ParameterValidationError
 from endo_io.image import (
+    IRRADIANCE_ENCODINGS,
     ImageMessage,
     array_to_image,
     array_to_image_cdr,
+    encode_irradiance,
     image_from_cdr,
     image_to_array,
 )
@@ -77,6 +82,13 @@ PARAMETERS: tuple[ParameterSpec, ...] = (
         "unsaturated (its inverse response is extrapolated there); the share of such pixels "
         "is on /diagnostics either way",
     ),
+    ParameterSpec(
+        "output_encoding", "16UC1",
+        "encoding of a single-channel image_corrected: 16UC1 fixed point (1e-4 irradiance per "
+        "count, 65535 = NaN, above 6.5534 saturated; half the bytes of 32FC1, the same SFS "
+        "result) or 32FC1 float; channel rgb is always 32FC3",
+        choices=IRRADIANCE_ENCODINGS,
+    ),
     *HEALTH_PARAMETERS,
 )
 
@@ -104,6 +116,7 @@ class PhotometricCorrectionNode(Node):
         self.parameters = NodeParameters(self, PARAMETERS)
         self.health = InputHealth(self, "image input", settings=self.parameters)
         self.calibration: PhotometricCalibration | None = None
+        self._saturated_pixels = 0
         self.load_error = "calibration_file is not set"
         self.publisher = create_reliable_publisher(self, Image, topics.IMAGE_CORRECTED)
         path = self.parameters["calibration_file"]
@@ -215,9 +228,15 @@ class PhotometricCorrectionNode(Node):
         mask = bool(self.parameters["mask_extrapolated"])
         corrected = calibration.correct(frame, mask_extrapolated=mask)
         output = select_channel(calibration, corrected, self.channel)
-        encoding = "32FC3" if output.ndim == 3 else "32FC1"
         stamp = stamp_to_ns(msg.header.stamp)
-        return array_to_image_cdr(output, encoding, stamp, msg.header.frame_id), frame
+        if output.ndim == 3:
+            return array_to_image_cdr(output, "32FC3", stamp, msg.header.frame_id), frame
+        encoded = encode_irradiance(output, str(self.parameters["output_encoding"]))
+        if encoded.saturated:
+            self._saturated_pixels += encoded.saturated
+            self.health.set_value("saturated_pixels_16bit", self._saturated_pixels)
+        return array_to_image_cdr(encoded.pixels, encoded.encoding, stamp,
+                                  msg.header.frame_id), frame
 
     def _on_image(self, msg: ImageMessage) -> None:
         calibration = self.calibration

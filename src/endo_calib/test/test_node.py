@@ -23,12 +23,26 @@ from endo_calib.node import PhotometricCorrectionNode
 from endo_calib.synthetic import synthetic_calibration
 from endo_io import topics
 from endo_io.errors import ParameterValidationError
-from endo_io.image import array_to_image, image_to_array
+from endo_io.image import (
+    IRRADIANCE_PER_COUNT,
+    array_to_image,
+    encode_irradiance,
+    image_to_array,
+    image_to_irradiance,
+)
 from endo_io.qos import SENSOR_DATA_QOS, reliable_qos
 
 pytestmark = pytest.mark.ros
 NS = "/calib_node_test"
 W, H = 64, 48
+HALF_COUNT = 0.5 * IRRADIANCE_PER_COUNT + 1e-6  # the 16UC1 round trip's bound
+
+
+def _assert_corrected(out, expected):
+    """``out`` (16UC1 fixed point by default) holds ``expected`` to half a count, NaN alike."""
+    got = image_to_irradiance(out)
+    np.testing.assert_array_equal(np.isnan(got), np.isnan(expected))
+    np.testing.assert_allclose(got, expected, rtol=0, atol=HALF_COUNT)
 
 
 def _write_calibration(path, exponent, colour=False):
@@ -107,27 +121,33 @@ def test_corrects_frames_and_reloads_on_parameter_change(ros, tmp_path):
 
     out = _exchange(executor, publisher, received, msg)
     assert out is not None, "no image_corrected received"
-    assert out.encoding == "32FC1" and out.header.frame_id == "endoscope_optical_frame"
+    assert out.encoding == "16UC1" and out.header.frame_id == "endoscope_optical_frame"
     assert out.header.stamp.nanosec == 123_456_789
     expected = PhotometricCalibration.load(first).correct(raw)
+    assert np.nanmax(expected) > 0.5  # the test covers a good part of the range
+    # the counts are the codec's, bit for bit, and decode to the float to half a count
+    np.testing.assert_array_equal(image_to_array(out), encode_irradiance(expected).pixels)
+    _assert_corrected(out, expected)
+    # float on request: the calibration's values as they are
+    assert node.set_parameters([Parameter("output_encoding", value="32FC1")])[0].successful
+    out = _exchange(executor, publisher, received, msg)
+    assert out.encoding == "32FC1"
     np.testing.assert_array_equal(np.isnan(image_to_array(out)), np.isnan(expected))
     np.testing.assert_allclose(image_to_array(out), expected, rtol=1e-6)
+    assert not node.set_parameters([Parameter("output_encoding", value="16FC1")])[0].successful
+    assert node.set_parameters([Parameter("output_encoding", value="16UC1")])[0].successful
 
     result = node.set_parameters([Parameter("calibration_file", value=str(second))])[0]
     assert result.successful
     out = _exchange(executor, publisher, received, msg)
-    np.testing.assert_allclose(
-        image_to_array(out), PhotometricCalibration.load(second).correct(raw), rtol=1e-6
-    )
+    _assert_corrected(out, PhotometricCalibration.load(second).correct(raw))
 
     # a missing file is rejected with its reason; the second calibration stays
     result = node.set_parameters([Parameter("calibration_file", value=str(tmp_path / "x.yaml"))])[0]
     assert not result.successful and "not found" in result.reason
     assert node.get_parameter("calibration_file").value == str(second)
     out = _exchange(executor, publisher, received, msg)
-    np.testing.assert_allclose(
-        image_to_array(out), PhotometricCalibration.load(second).correct(raw), rtol=1e-6
-    )
+    _assert_corrected(out, PhotometricCalibration.load(second).correct(raw))
     # a frame of another aspect ratio is dropped, counted, and the node lives on
     dropped = sum(node.health.dropped.values())
     wrong = array_to_image(np.zeros((H, H), np.uint8), "mono8", 1)
@@ -147,9 +167,9 @@ def test_colour_channels_binning_and_rgb_output(ros, tmp_path):
     bgr = np.ascontiguousarray(rgb[:, :, ::-1])
     out = _exchange(executor, publisher, received, array_to_image(bgr, "bgr8", 5))
     assert (
-        out is not None and out.encoding == "32FC1" and (out.height, out.width) == (H // 2, W // 2)
+        out is not None and out.encoding == "16UC1" and (out.height, out.width) == (H // 2, W // 2)
     )
-    np.testing.assert_allclose(image_to_array(out), cal.correct(rgb)[:, :, 0], rtol=1e-6)
+    _assert_corrected(out, cal.correct(rgb)[:, :, 0])
     assert node.set_parameters([Parameter("channel", value="rgb")])[0].successful
     out = _exchange(executor, publisher, received, array_to_image(bgr, "bgr8", 6))
     assert out.encoding == "32FC3"
@@ -235,7 +255,7 @@ def test_extrapolated_values_are_counted_and_masked_on_request(ros, tmp_path):
     raw[: H // 4] = 230  # a quarter of the frame above the observed range
     out = _exchange(executor, publisher, received, array_to_image(raw, "mono8", 7))
     assert out is not None
-    image = image_to_array(out)
+    image = image_to_irradiance(out)
     inside = PhotometricCalibration.load(path).fov_mask
     assert np.all(np.isnan(image[: H // 4]))
     assert np.all(np.isfinite(image[H // 4 :][inside[H // 4 :]]))
@@ -244,6 +264,26 @@ def test_extrapolated_values_are_counted_and_masked_on_request(ros, tmp_path):
     # off: the same frame corrected everywhere inside the field of view
     assert node.set_parameters([Parameter("mask_extrapolated", value=False)])[0].successful
     out = _exchange(executor, publisher, received, array_to_image(raw, "mono8", 8))
-    np.testing.assert_allclose(
-        image_to_array(out), PhotometricCalibration.load(path).correct(raw), rtol=1e-6
-    )
+    _assert_corrected(out, PhotometricCalibration.load(path).correct(raw))
+
+
+def test_irradiance_above_the_16bit_range_saturates_and_is_counted(ros, tmp_path):
+    """A light model 20x too dark gives irradiance above 6.5534: 65534, counted on /diagnostics."""
+    _, executor, _ = ros
+    calibration = synthetic_calibration(W, H, light_model_degree=4, light_source="model")
+    path = calibration.save(tmp_path / "dark.yaml")
+    document = yaml.safe_load(path.read_text())
+    coefficients = document["light_map"]["model"]["coefficients"]
+    coefficients["mono"] = [c / 20.0 for c in coefficients["mono"]]
+    path.write_text(yaml.safe_dump(document))
+    node, publisher, received = _start(ros, [Parameter("calibration_file", value=str(path))])
+    raw = np.full((H, W), 250, np.uint8)
+    out = _exchange(executor, publisher, received, array_to_image(raw, "mono8", 9))
+    assert out is not None
+    expected = PhotometricCalibration.load(path).correct(raw)
+    above = np.isfinite(expected) & (expected > 6.5534)
+    assert above.any()
+    counts = image_to_array(out)
+    assert np.all(counts[above] == 65534)
+    values = {kv.key: kv.value for kv in node.health.status().values}
+    assert int(values["saturated_pixels_16bit"]) >= int(np.count_nonzero(above))

@@ -7,7 +7,8 @@ Subscriptions:
 
 * ``/endoscope/depth_relative`` (32FC1), the frame input (newest frame): its
   arrival drives the node;
-* ``/endoscope/image_corrected`` (32FC1 linear irradiance) and
+* ``/endoscope/image_corrected`` (linear irradiance, 16UC1 fixed point or
+  32FC1: :func:`endo_io.image.image_to_irradiance`) and
   ``/endoscope/camera_info``, taken by stamp when a depth arrives
   (:meth:`endo_io.diagnostics.InputHealth.subscribe_passive`: they wait in
   DDS, :data:`endo_io.qos.BY_STAMP_QOS`, and cost no executor wake-up each),
@@ -71,11 +72,11 @@ first-frame work on synthetic frames of the ``warm_up_camera_file`` camera
 (:func:`endo_flow.warm_up.warm_up_pipeline`), so its first real frames are
 not slow; ``--help`` skips that.
 
-Bad input (one log line, counted, that frame dropped, the node keeps
-running): an image that is not 32FC1, a depth_relative or image of another
-size than camera_info, a NaN pose (rejected by the pose buffer), a
-textureless frame, undecodable CDR. Time that jumps (a looping bag, a
-restarted camera: :mod:`endo_io.clock_jump`, on the frames' stamps, and the
+Bad input (one log line, counted, that frame dropped, the node keeps running):
+an image that is not 16UC1/32FC1, a depth that is not 32FC1, a depth_relative
+or image of another size than camera_info, a NaN pose (rejected by the pose
+buffer), a textureless frame, undecodable CDR. Time that jumps (a looping bag,
+a restarted camera: :mod:`endo_io.clock_jump`, on the frames' stamps, and the
 pose buffer's own on the poses') resets the tracks, the scale filter and the
 map with one log line, counted as ``clock_jumps``, and tracking resumes; one
 frame stamped far in the future is dropped (``FutureStampError``).
@@ -121,7 +122,14 @@ from endo_io.errors import (
     PoseLookupError,
     PoseNotYetError,
 )
-from endo_io.image import ImageMessage, array_to_image_cdr, image_from_cdr, image_to_array
+from endo_io.image import (
+    IRRADIANCE_ENCODINGS,
+    ImageMessage,
+    array_to_image_cdr,
+    image_from_cdr,
+    image_to_array,
+    image_to_irradiance,
+)
 from endo_io.parameters import NodeParameters, ParameterSpec
 from endo_io.pose import PoseView, pose_stamped_from_cdr, pose_to_matrix
 from endo_io.pose_buffer import PoseBuffer
@@ -453,11 +461,13 @@ class FlowNode(Node):
         self._publish(pending, out)
 
     def _step(self, pending: _Pending, pose: np.ndarray | None) -> FlowOutput:
-        for name, msg in (("image_corrected", pending.image), ("depth_relative", pending.depth)):
-            if msg.encoding != "32FC1":
-                raise FlowInputError(f"{name} must be 32FC1, got {msg.encoding!r}")
+        if pending.image.encoding not in IRRADIANCE_ENCODINGS:
+            raise FlowInputError(
+                f"image_corrected must be 16UC1 or 32FC1, got {pending.image.encoding!r}")
+        if pending.depth.encoding != "32FC1":
+            raise FlowInputError(f"depth_relative must be 32FC1, got {pending.depth.encoding!r}")
         camera = self._camera_model(pending.info)
-        frame = FlowFrame(pending.stamp_ns, image_to_array(pending.image),
+        frame = FlowFrame(pending.stamp_ns, image_to_irradiance(pending.image),
                           image_to_array(pending.depth), camera, pose)
         jump = self._frame_time.check(pending.stamp_ns, time.monotonic_ns())
         if jump is not None:

@@ -9,7 +9,9 @@ ROS                            Foxglove                    what changes
 =============================  ==========================  =================================
 ``sensor_msgs/Image``          ``foxglove.RawImage``       packed, native byte order;
                                                            32FC3 becomes rgb8 (Foxglove has
-                                                           no 3-channel float encoding)
+                                                           no 3-channel float encoding); the
+                                                           corrected image's 16UC1 fixed
+                                                           point becomes 32FC1 irradiance
 ``sensor_msgs/CameraInfo``     ``foxglove.CameraCalibration``  K/P of the image as published
                                                            (binning and ROI applied)
 ``sensor_msgs/PointCloud2``    ``foxglove.PointCloud``     finite points only, decimated
@@ -48,7 +50,7 @@ from geometry_msgs.msg import PoseStamped
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 
 from endo_io.camera import CameraModel
-from endo_io.image import image_to_array
+from endo_io.image import image_to_array, image_to_irradiance
 from endo_io.pointcloud import pointcloud2_to_xyz
 from endo_io.pose import matrix_to_quaternion, pose_to_matrix
 from endo_io.stamp import NS_PER_S, stamp_to_ns
@@ -64,27 +66,15 @@ def timestamp(stamp_ns: int) -> Timestamp:
     return Timestamp(sec, nsec)
 
 
-def raw_image(msg: Image) -> RawImage:
-    """A ``sensor_msgs/Image`` as a Foxglove ``RawImage``.
-
-    The pixels are validated and repacked by :func:`endo_io.image.image_to_array`
-    (padded rows and big-endian data become packed, native little-endian).
-    ``32FC3`` (colour irradiance, normals) is scaled to ``rgb8`` by its
-    largest finite value, NaN black.
+def raw_image(msg: Image, *, irradiance: bool = False) -> RawImage:
+    """A ``sensor_msgs/Image`` as a Foxglove ``RawImage`` (pixels of :func:`display_pixels`).
 
     Raises:
-        ImageEncodingError: an encoding endo_io does not read.
+        ImageEncodingError: an encoding endo_io does not read (or, with
+            ``irradiance``, not 16UC1, 32FC1 or 32FC3).
         ImageLayoutError: step, size and data length disagree.
     """
-    pixels = image_to_array(msg)
-    encoding = msg.encoding
-    if encoding == "32FC3":
-        finite = np.isfinite(pixels)
-        top = float(np.max(pixels, where=finite, initial=0.0))
-        scale = 255.0 / top if top > 0.0 else 0.0
-        with np.errstate(invalid="ignore"):
-            scaled = np.clip(np.where(finite, pixels, 0.0) * scale, 0.0, 255.0)
-        pixels, encoding = (scaled + 0.5).astype(np.uint8), "rgb8"
+    pixels, encoding = display_pixels(msg, irradiance=irradiance)
     height, width = pixels.shape[:2]
     return RawImage(
         timestamp=timestamp(stamp_to_ns(msg.header.stamp)),
@@ -95,6 +85,39 @@ def raw_image(msg: Image) -> RawImage:
         step=pixels.strides[0],
         data=pixels.tobytes(),
     )
+
+
+def display_pixels(msg: Image, *, irradiance: bool = False) -> tuple[np.ndarray, str]:
+    """The pixels and encoding a viewer is sent for ``msg``.
+
+    The pixels are validated and repacked by :func:`endo_io.image.image_to_array`
+    (padded rows and big-endian data become packed, native little-endian).
+    ``32FC3`` (colour irradiance, normals) is scaled to ``rgb8`` by its
+    largest finite value, NaN black. With ``irradiance`` (the message is a
+    corrected image) a single-channel image, 16UC1 fixed point or 32FC1, is
+    sent as 32FC1 irradiance (:func:`endo_io.image.image_to_irradiance`),
+    so the layout's 0-1 range shows it whatever the correction node's
+    ``output_encoding``.
+
+    Returns:
+        (H, W) or (H, W, C) C-contiguous pixels, and their encoding.
+
+    Raises:
+        ImageEncodingError: as :func:`raw_image`.
+        ImageLayoutError: as :func:`raw_image`.
+    """
+    if irradiance and msg.encoding != "32FC3":
+        pixels, encoding = image_to_irradiance(msg), "32FC1"
+    else:
+        pixels, encoding = image_to_array(msg), msg.encoding
+    if encoding == "32FC3":
+        finite = np.isfinite(pixels)
+        top = float(np.max(pixels, where=finite, initial=0.0))
+        scale = 255.0 / top if top > 0.0 else 0.0
+        with np.errstate(invalid="ignore"):
+            scaled = np.clip(np.where(finite, pixels, 0.0) * scale, 0.0, 255.0)
+        pixels, encoding = (scaled + 0.5).astype(np.uint8), "rgb8"
+    return pixels, encoding
 
 
 def camera_calibration(msg: CameraInfo) -> CameraCalibration:

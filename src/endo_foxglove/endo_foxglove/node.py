@@ -473,7 +473,7 @@ class FoxgloveBridgeNode(Node):
         elif key == "camera_info":
             channel.log(convert.camera_calibration(msg))
         else:
-            channel.log(convert.raw_image(msg))
+            channel.log(convert.raw_image(msg, irradiance=key == "image_corrected"))
         self._forwarded[key] += 1
 
     # -- diagnostics ------------------------------------------------------------

@@ -10,10 +10,11 @@ import pytest
 from geometry_msgs.msg import PointStamped, Vector3Stamped
 from std_msgs.msg import Float32, Float64MultiArray
 
-from endo_foxglove.convert import pack_points, point_cloud
+from endo_foxglove.convert import display_pixels, pack_points, point_cloud
 from endo_foxglove.mailbox import NewestWins
 from endo_foxglove.plot_message import PlotFieldError, json_schema, plot_message
-from endo_io.errors import PointCloudError
+from endo_io.errors import ImageEncodingError, PointCloudError
+from endo_io.image import IRRADIANCE_PER_COUNT, array_to_image, encode_irradiance
 from endo_io.pointcloud import xyz_to_pointcloud2
 
 
@@ -110,3 +111,20 @@ def test_newest_wins_take_wakes_on_put_and_on_close():
     assert got == [[("a", 1)]]
     box.close()
     assert box.take(10.0) == [] and box.closed
+
+
+def test_a_corrected_image_is_served_as_float_irradiance_in_either_encoding():
+    irradiance = np.random.default_rng(4).uniform(0.0, 1.7, (6, 8)).astype(np.float32)
+    irradiance[2, 3] = np.nan
+    for encoding in ("16UC1", "32FC1"):
+        msg = array_to_image(encode_irradiance(irradiance, encoding).pixels, encoding, 5, "cam")
+        shown, shown_as = display_pixels(msg, irradiance=True)
+        assert shown_as == "32FC1" and shown.dtype == np.float32 and shown.shape == (6, 8)
+        np.testing.assert_allclose(shown, irradiance, atol=0.5 * IRRADIANCE_PER_COUNT + 1e-6)
+        assert np.isnan(shown[2, 3])
+    # a raw camera's 16UC1 (counts, not irradiance) passes as it is
+    counts = np.arange(48, dtype=np.uint16).reshape(6, 8)
+    shown, shown_as = display_pixels(array_to_image(counts, "16UC1"))
+    assert shown_as == "16UC1" and np.array_equal(shown, counts)
+    with pytest.raises(ImageEncodingError):
+        display_pixels(array_to_image(counts.astype(np.uint8), "mono8"), irradiance=True)

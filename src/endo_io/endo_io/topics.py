@@ -10,7 +10,7 @@ topic                              what
 =================================  =================================================
 ``/endoscope/image_raw``           the camera driver's image (any encoding)
 ``/endoscope/camera_info``         its calibration, same stamp and frame
-``/endoscope/image_corrected``     linear irradiance, 32FC1 (``endo_calib``)
+``/endoscope/image_corrected``     linear irradiance, 16UC1 fixed point or 32FC1 (``endo_calib``)
 ``/endoscope/depth_relative``      relative depth along z, 32FC1 (``endo_sfs``)
 ``/endoscope/normals``             unit normals, 32FC3, optical frame (``endo_sfs``)
 ``/endoscope/depth``               metric depth, 32FC1 metres, REP 118 (``endo_flow``)

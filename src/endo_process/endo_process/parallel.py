@@ -117,7 +117,7 @@ class ShadingPool:
             return
         worker_config = StageConfig(
             config.calibration_path, config.channel, dict(config.sfs_parameters, threads=1),
-            config.mask_extrapolated,
+            config.mask_extrapolated, config.output_encoding,
         )
         try:
             if workers is None or len(workers) != self.worker_count or workers.taken:

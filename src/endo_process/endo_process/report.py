@@ -72,7 +72,8 @@ def write_report_figure(
     if stamp is not None:
         for key, topic in (("image", topics.IMAGE_CORRECTED), ("relative", topics.DEPTH_RELATIVE),
                            ("metric", topics.DEPTH), ("truth", topics.TRUE_DEPTH)):  # fmt: skip
-            frames[key] = read_depth_frames(recording, topic, {stamp}).get(stamp)
+            frames[key] = read_depth_frames(recording, topic, {stamp},
+                                            irradiance=key == "image").get(stamp)
     first = read_scale_stream(recording)[0]
     start = int(first[0]) if len(first) else (stamp or 0)
     when = "" if stamp is None else f", t = {(stamp - start) / 1e9:.2f} s"

@@ -49,7 +49,7 @@ from endo_flow.warm_up import warm_up_pipeline
 from endo_io import topics
 from endo_io.bag import BagMessage, BagReader
 from endo_io.errors import Endo3dError, PoseLookupError
-from endo_io.image import image_to_array
+from endo_io.image import IRRADIANCE_ENCODINGS, encode_irradiance, image_to_array
 from endo_io.pose import transforms_to_pose_stamped_cdr
 from endo_io.pose_buffer import PoseBuffer
 from endo_io.progress import Progress
@@ -121,7 +121,9 @@ class ProcessReport:
     ``first_frame_seconds``: wall seconds from the loop's start until the
     first frame was written (with workers, mostly the wait for their
     start-up: loading kernels, warming up); the rest of the loop is the
-    steady state (:attr:`steady_real_time_factor`).
+    steady state (:attr:`steady_real_time_factor`). ``saturated_pixels``:
+    pixels of the corrected images above the 16-bit fixed point's range
+    (6.5534), written as its top.
     """
 
     frames_in: int = 0
@@ -132,6 +134,7 @@ class ProcessReport:
     frames_metric: int = 0
     flow_dropped: Counter[str] = field(default_factory=Counter)
     map_points: int = 0
+    saturated_pixels: int = 0
     ply_vertices: int = 0
     dropped: Counter[str] = field(default_factory=Counter)
     without_pose: Counter[str] = field(default_factory=Counter)
@@ -381,9 +384,12 @@ def _write_frame(
         info.header.stamp = ns_to_stamp(stamp)
     output.write(topics.CAMERA_INFO, info, stamp)
     if shaded.irradiance is not None:
-        encoding = "32FC3" if shaded.irradiance.ndim == 3 else "32FC1"
-        output.write_image(topics.IMAGE_CORRECTED, shaded.irradiance, encoding, stamp,
+        # the fixed point's decoded values encode back to the same counts (tested)
+        pixels = encode_irradiance(shaded.irradiance, shaded.encoding).pixels \
+            if shaded.encoding in IRRADIANCE_ENCODINGS else shaded.irradiance
+        output.write_image(topics.IMAGE_CORRECTED, pixels, shaded.encoding, stamp,
                            shaded.frame_id)  # fmt: skip
+        report.saturated_pixels += shaded.saturated
     if shaded.depth_relative is not None:
         output.write_image(topics.DEPTH_RELATIVE, shaded.depth_relative, "32FC1", stamp,
                            shaded.frame_id)  # fmt: skip
@@ -478,11 +484,12 @@ def process_bag(
     photometric, handeye = _load_calibrations(options)
     inputs = open_recording(options.bag, options.topics, options.camera_info)
     config = StageConfig(options.calibration, settings.channel, settings.sfs,
-                         settings.mask_extrapolated)  # fmt: skip
+                         settings.mask_extrapolated, settings.output_encoding)  # fmt: skip
     stage = None
     if options.jobs == 1:  # the calibration loaded above, not a second time
         stage = ShadingStage(photometric, settings.channel, settings.sfs,
-                             mask_extrapolated=settings.mask_extrapolated)  # fmt: skip
+                             mask_extrapolated=settings.mask_extrapolated,
+                             output_encoding=settings.output_encoding)  # fmt: skip
     camera = None
     with contextlib.suppress(Endo3dError):  # a bad camera_info is the frame loop's to report
         camera = first_camera(inputs)

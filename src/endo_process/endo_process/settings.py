@@ -50,7 +50,7 @@ BRIDGE_NODE = "tracker_bridge"
 FLOW_NODE = "flow"
 
 #: The correction node's parameters (``endo_calib.node.PARAMETERS``) and their
-#: defaults; ``channel`` and ``mask_extrapolated`` change the result.
+#: defaults; ``channel``, ``mask_extrapolated`` and ``output_encoding`` change the result.
 CORRECTION_DEFAULTS: dict[str, Any] = {spec.name: spec.default for spec in CORRECTION_PARAMETERS}
 #: The bridge's parameters that apply to a recorded ``ros`` source
 #: (``endo_tracker_bridge.node``; the others choose and open a live source).
@@ -138,6 +138,8 @@ class ProcessSettings:
         channel: the correction node's ``channel``.
         mask_extrapolated: the correction node's ``mask_extrapolated`` (NaN
             above the calibration's observed range).
+        output_encoding: the correction node's ``output_encoding`` (16UC1
+            fixed point or 32FC1), of image_corrected and of what is solved.
         sfs: the SFS node's parameters (name -> value), every one of them.
         bridge: the tracker bridge's parameters for a ``ros`` source.
         flow: the flow node's parameters, every one of them.
@@ -145,6 +147,7 @@ class ProcessSettings:
 
     channel: str = "luminance"
     mask_extrapolated: bool = False
+    output_encoding: str = "16UC1"
     sfs: dict[str, Any] = field(
         default_factory=lambda: dict(SFS_DEFAULTS)
     )
@@ -188,6 +191,7 @@ def load_settings(path: Path | None, *, solve_scale: float | None = None) -> Pro
     settings = ProcessSettings(
         channel=str(correction["channel"]),
         mask_extrapolated=bool(correction["mask_extrapolated"]),
+        output_encoding=str(correction["output_encoding"]),
         sfs=_node_values(nodes, SFS_NODE, SFS_DEFAULTS, where),
         bridge=_node_values(nodes, BRIDGE_NODE, BRIDGE_DEFAULTS, where),
         flow=_node_values(nodes, FLOW_NODE, FLOW_DEFAULTS, where),

@@ -4,7 +4,10 @@
 calibration, the camera model, the SFS warm start) and calls their cores:
 
 * ``photometric_correction`` (``endo_calib.node``): ``to_raw_frame`` of the
-  decoded image, :meth:`PhotometricCalibration.correct`, ``select_channel``;
+  decoded image, :meth:`PhotometricCalibration.correct`, ``select_channel``,
+  and its ``output_encoding``: with ``16UC1`` (the default) the irradiance
+  goes through :func:`endo_io.image.encode_irradiance` and back before the
+  solve, so SFS and flow see the values the live nodes receive;
 * ``sfs`` (``endo_sfs.node``): :func:`endo_sfs.relative_depth.solve` with the
   node's parameters, the field-of-view mask of ``fov_radius`` and the
   previous solution as warm start; a camera change drops the warm start,
@@ -28,6 +31,7 @@ from endo_calib.calibration import PhotometricCalibration, select_channel
 from endo_calib.raw_image import to_raw_frame
 from endo_io.camera import CameraModel
 from endo_io.errors import Endo3dError
+from endo_io.image import decode_irradiance, encode_irradiance
 from endo_sfs.errors import NoValidPixelsError
 from endo_sfs.options import SfsOptions
 from endo_sfs.relative_depth import SfsSolution, solve
@@ -59,7 +63,11 @@ class ShadedFrame:
     """The correction and SFS outputs of one frame.
 
     irradiance: (H, W) float32 (or (H, W, 3) for channel rgb) linear
-    irradiance, None when the correction dropped the frame. depth_relative:
+    irradiance, None when the correction dropped the frame; with
+    ``encoding`` 16UC1 the fixed point's values (decoded), as the live
+    consumers see them. encoding: what ``/endoscope/image_corrected``
+    carries it in (16UC1, 32FC1, or 32FC3 for channel rgb); saturated:
+    pixels the 16-bit fixed point clipped at its top (6.5534). depth_relative:
     (H, W) float32 relative depth, NaN invalid; None when the correction
     dropped the frame. dropped: the cause (error class name) and one-line
     message of a drop or of an all-NaN depth, else None. solve_ms: wall
@@ -82,6 +90,8 @@ class ShadedFrame:
     iterations: int = 0
     timings: dict[str, float] = field(default_factory=dict)
     worker_cpu_s: float = 0.0
+    encoding: str = "32FC1"
+    saturated: int = 0
 
 
 class ShadingStage:
@@ -91,6 +101,8 @@ class ShadingStage:
         calibration: the loaded ``photometric.yaml``.
         channel: the correction node's ``channel`` parameter.
         mask_extrapolated: the correction node's ``mask_extrapolated`` parameter.
+        output_encoding: the correction node's ``output_encoding`` parameter
+            (16UC1 or 32FC1).
         sfs_parameters: the SFS node's parameters (every name of
             ``endo_sfs.node.PARAMETERS``).
     """
@@ -102,10 +114,12 @@ class ShadingStage:
         sfs_parameters: dict[str, Any],
         *,
         mask_extrapolated: bool = False,
+        output_encoding: str = "16UC1",
     ) -> None:
         self.calibration = calibration
         self.channel = channel
         self.mask_extrapolated = mask_extrapolated
+        self.output_encoding = output_encoding
         self.fov_radius = float(sfs_parameters["fov_radius"])
         self.warm_start = bool(sfs_parameters["warm_start"])
         # The solver's options among the node's parameters (endo_process.settings
@@ -153,8 +167,14 @@ class ShadingStage:
             return ShadedFrame(**base, irradiance=None, depth_relative=None,
                                dropped=(type(error).__name__, str(error)))  # fmt: skip
         if irradiance.ndim != 2:
-            cause = ("SfsInputError", "the SFS node takes 32FC1 only (channel rgb gives 32FC3)")
-            return ShadedFrame(**base, irradiance=irradiance, depth_relative=None, dropped=cause)
+            cause = ("SfsInputError",
+                     "the SFS node takes 16UC1/32FC1 only (channel rgb gives 32FC3)")
+            return ShadedFrame(**base, irradiance=irradiance, depth_relative=None, dropped=cause,
+                               encoding="32FC3")  # fmt: skip
+        # what the correction node publishes, as its consumers decode it
+        encoded = encode_irradiance(irradiance, self.output_encoding)
+        irradiance = decode_irradiance(encoded.pixels, encoded.encoding)
+        base.update(encoding=encoded.encoding, saturated=encoded.saturated)
         mask = self._mask_for(frame.camera)
         timings = {"correct": time.perf_counter() - start}
         start = time.perf_counter()

@@ -28,6 +28,11 @@ def _rows(report: ProcessReport) -> list[tuple[str, str]]:
          f"{report.frames_flow} / {report.frames_metric}"),
         ("frames refused by flow", _causes(report.flow_dropped)),
         ("map points (last state)", f"{report.map_points}"),
+    ]
+    if report.saturated_pixels:
+        rows.append(("corrected pixels above the 16UC1 range (saturated)",
+                     f"{report.saturated_pixels}"))
+    rows += [
         ("tracker samples", f"{report.tracker_samples}"),
         ("tracker samples rejected", _causes(report.tracker_rejected)),
         ("poses refused or reset by the pose buffer", _causes(report.pose_buffer_events)),

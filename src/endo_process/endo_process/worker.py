@@ -35,12 +35,14 @@ class StageConfig:
     channel: str
     sfs_parameters: dict[str, Any]
     mask_extrapolated: bool = False
+    output_encoding: str = "16UC1"
 
     def build(self) -> ShadingStage:
         """Load the calibration and return a stage."""
         calibration = PhotometricCalibration.load(self.calibration_path)
         return ShadingStage(calibration, self.channel, self.sfs_parameters,
-                            mask_extrapolated=self.mask_extrapolated)  # fmt: skip
+                            mask_extrapolated=self.mask_extrapolated,
+                            output_encoding=self.output_encoding)  # fmt: skip
 
 
 @dataclass(frozen=True)

@@ -1,8 +1,9 @@
 """``sfs`` node: linear irradiance in, relative depth out, one frame at a time.
 
-Subscribes ``/endoscope/image_corrected`` (sensor_msgs/Image 32FC1, the
-linear irradiance from ``photometric_correction``; NaN = saturated or outside
-the field of view) and ``/endoscope/camera_info``, pairs them by stamp, and
+Subscribes ``/endoscope/image_corrected`` (sensor_msgs/Image, the linear
+irradiance from ``photometric_correction``: 16UC1 fixed point or 32FC1, read
+by :func:`endo_io.image.image_to_irradiance`; NaN = saturated or outside the
+field of view) and ``/endoscope/camera_info``, pairs them by stamp, and
 publishes ``/endoscope/depth_relative`` (32FC1, same header, relative depth
 along the optical axis, NaN invalid; see :mod:`endo_sfs.relative_depth` for
 the convention) and, with ``publish_normals``, ``/endoscope/normals`` (32FC3
@@ -63,7 +64,14 @@ from endo_io.camera import CameraInfoCache, CameraModel
 from endo_io.clock_jump import ClockJumpDetector
 from endo_io.diagnostics import HEALTH_PARAMETERS, InputHealth
 from endo_io.errors import Endo3dError, ParameterValidationError
-from endo_io.image import ImageMessage, array_to_image_cdr, image_from_cdr, image_to_array
+from endo_io.image import (
+    IRRADIANCE_ENCODINGS,
+    ImageMessage,
+    array_to_image_cdr,
+    image_from_cdr,
+    image_to_array,
+    image_to_irradiance,
+)
 from endo_io.parameters import NodeParameters, ParameterSpec
 from endo_io.process import describing_only, run_node
 from endo_io.qos import (
@@ -369,11 +377,12 @@ class SfsNode(Node):
         return self._fov_mask[1]
 
     def _process(self, image_msg: ImageMessage, info: CameraInfo) -> None:
-        if image_msg.encoding != "32FC1":
+        if image_msg.encoding not in IRRADIANCE_ENCODINGS:
             raise SfsInputError(
-                f"image_corrected must be 32FC1 linear irradiance, got {image_msg.encoding!r}"
+                "image_corrected must be linear irradiance, 16UC1 fixed point or 32FC1, got "
+                f"{image_msg.encoding!r}"
             )
-        irradiance = image_to_array(image_msg)
+        irradiance = image_to_irradiance(image_msg)
         camera = self._camera_model(info)
         stamp_ns = stamp_to_ns(image_msg.header.stamp)
         frame_id = image_msg.header.frame_id

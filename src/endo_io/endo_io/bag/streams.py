@@ -35,7 +35,7 @@ from endo_io.bag.mcap_records import (
 )
 from endo_io.bag.reader import BagReader
 from endo_io.bag.serde import deserialize
-from endo_io.image import image_to_array
+from endo_io.image import image_to_array, image_to_irradiance
 from endo_io.pose import pose_to_matrix
 from endo_io.stamp import stamp_to_ns
 
@@ -270,7 +270,7 @@ def read_pose_stream(path: BagPath, topic: str, *, metres_per_unit: float = 1.0)
 
 
 def read_depth_frames(
-    path: BagPath, topic: str, stamps: set[int] | None = None
+    path: BagPath, topic: str, stamps: set[int] | None = None, *, irradiance: bool = False
 ) -> dict[int, np.ndarray]:
     """Header stamp (ns) -> (H, W) float32 depth image of the messages on ``topic``.
 
@@ -280,11 +280,15 @@ def read_depth_frames(
             a topic the bag lacks gives no frames.
         stamps: keep only frames with these header stamps (all when None), so
             that a long recording is not held in memory to score a few frames.
+        irradiance: the topic is a corrected image (``image_corrected``):
+            16UC1 fixed point or 32FC1, both given as float32 irradiance
+            (:func:`endo_io.image.image_to_irradiance`).
 
     Raises:
         BagError: the bag is missing, unreadable or damaged.
         MessageConversionError: an image cannot be converted.
     """
+    convert = image_to_irradiance if irradiance else image_to_array
     frames: dict[int, np.ndarray] = {}
     with BagReader(path) as reader:
         if topic not in reader.topics:
@@ -293,5 +297,5 @@ def read_depth_frames(
             msg = deserialize(message)
             stamp = stamp_to_ns(msg.header.stamp)
             if stamps is None or stamp in stamps:
-                frames[stamp] = image_to_array(msg)
+                frames[stamp] = convert(msg)
     return frames
