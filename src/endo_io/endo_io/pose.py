@@ -82,6 +82,9 @@ def canonical_quaternion(q_xyzw: np.ndarray) -> np.ndarray:
     positive, so that equal rotations always give equal quaternions.
     """
     q = np.array(q_xyzw, dtype=np.float64)
+    w = q[..., 3:4]
+    if np.all(w != 0.0):  # the usual case: the sign of w decides
+        return q * np.where(w < 0.0, -1.0, 1.0)
     # index of the first non-zero component in the order w, x, y, z
     ordered = np.concatenate([q[..., 3:4], q[..., :3]], axis=-1)
     first = np.argmax(ordered != 0.0, axis=-1)[..., None]
@@ -166,28 +169,22 @@ def matrix_to_quaternion(R: np.ndarray, *, tolerance: float = DEFAULT_TOLERANCE)
 
 def _quaternion_of_rotation(rot: np.ndarray) -> np.ndarray:
     """(..., 3, 3) rotations (not checked) -> (..., 4) canonical quaternions x, y, z, w."""
-    m = {(i, j): rot[..., i, j] for i in range(3) for j in range(3)}
+    m00, m01, m02 = rot[..., 0, 0], rot[..., 0, 1], rot[..., 0, 2]
+    m10, m11, m12 = rot[..., 1, 0], rot[..., 1, 1], rot[..., 1, 2]
+    m20, m21, m22 = rot[..., 2, 0], rot[..., 2, 1], rot[..., 2, 2]
     # Shepperd's method: build the quaternion from whichever of 4w^2, 4x^2,
     # 4y^2, 4z^2 is largest, so the divisor is never close to zero.
-    t = np.stack(
-        [
-            1.0 + m[0, 0] - m[1, 1] - m[2, 2],
-            1.0 - m[0, 0] + m[1, 1] - m[2, 2],
-            1.0 - m[0, 0] - m[1, 1] + m[2, 2],
-            1.0 + m[0, 0] + m[1, 1] + m[2, 2],
-        ],
-        axis=-1,
-    )
+    t0 = 1.0 + m00 - m11 - m22
+    t1 = 1.0 - m00 + m11 - m22
+    t2 = 1.0 - m00 - m11 + m22
+    t3 = 1.0 + m00 + m11 + m22
+    s01, s02, s12 = m01 + m10, m02 + m20, m12 + m21
+    d21, d02, d10 = m21 - m12, m02 - m20, m10 - m01
+    # the four candidates as rows of one (..., 4, 4) array, built by one stack
     candidates = np.stack(
-        [
-            np.stack([t[..., 0], m[0, 1] + m[1, 0], m[0, 2] + m[2, 0], m[2, 1] - m[1, 2]], -1),
-            np.stack([m[0, 1] + m[1, 0], t[..., 1], m[1, 2] + m[2, 1], m[0, 2] - m[2, 0]], -1),
-            np.stack([m[0, 2] + m[2, 0], m[1, 2] + m[2, 1], t[..., 2], m[1, 0] - m[0, 1]], -1),
-            np.stack([m[2, 1] - m[1, 2], m[0, 2] - m[2, 0], m[1, 0] - m[0, 1], t[..., 3]], -1),
-        ],
-        axis=-2,
-    )
-    best = np.argmax(t, axis=-1)[..., None, None]
+        [t0, s01, s02, d21, s01, t1, s12, d02, s02, s12, t2, d10, d21, d02, d10, t3], axis=-1
+    ).reshape(*rot.shape[:-2], 4, 4)
+    best = np.argmax(candidates[..., (0, 1, 2, 3), (0, 1, 2, 3)], axis=-1)[..., None, None]
     q = np.take_along_axis(candidates, best, axis=-2)[..., 0, :]
     q = q / np.linalg.norm(q, axis=-1, keepdims=True)
     return canonical_quaternion(q)
@@ -416,11 +413,19 @@ def _slerp_unit(q0: np.ndarray, q1: np.ndarray, alpha: float | np.ndarray) -> np
     return canonical_quaternion(q)
 
 
-def _interpolate_rigid(T0: np.ndarray, T1: np.ndarray, alpha: np.ndarray) -> np.ndarray:
-    """Transforms at fraction ``alpha`` (N,) between (N, 4, 4) ``T0`` and ``T1`` (not checked).
+def interpolate_rigid(T0: np.ndarray, T1: np.ndarray, alpha: np.ndarray) -> np.ndarray:
+    """Transforms at fraction ``alpha`` between rigid transforms already checked.
 
     Linear translation, SLERP rotation; ``alpha`` outside [0, 1] extrapolates.
-    Returns (N, 4, 4) float64.
+    The core of :func:`interpolate_transform` and :func:`interpolate_transforms`,
+    for a caller that validated its transforms once (a pose buffer at insert).
+
+    Args:
+        T0, T1: (N, 4, 4) float64 rigid transforms (not checked), metres.
+        alpha: (N,) float64 fractions (0 gives ``T0``'s pose, 1 ``T1``'s).
+
+    Returns:
+        (N, 4, 4) float64 transforms.
     """
     q = _slerp_unit(
         _quaternion_of_rotation(T0[:, :3, :3]), _quaternion_of_rotation(T1[:, :3, :3]), alpha
@@ -473,7 +478,7 @@ def interpolate_transform(
     if t_ns == t1_ns:
         return B.copy()
     alpha = (int(t_ns) - int(t0_ns)) / (int(t1_ns) - int(t0_ns))  # exact int difference
-    return _interpolate_rigid(A[None], B[None], np.array([alpha]))[0]
+    return interpolate_rigid(A[None], B[None], np.array([alpha]))[0]
 
 
 def _check_transforms(T: np.ndarray, tolerance: float, name: str) -> np.ndarray:
@@ -565,7 +570,7 @@ def interpolate_transforms(
     if np.any(between):
         b, a, t = b[between], a[between], query[between]
         alpha = (t - stamps[b]) / (stamps[a] - stamps[b])  # exact int64 differences
-        result[between] = _interpolate_rigid(samples[b], samples[a], alpha)
+        result[between] = interpolate_rigid(samples[b], samples[a], alpha)
     return result, exact | between
 
 
