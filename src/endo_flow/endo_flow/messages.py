@@ -51,5 +51,7 @@ def grey_cloud_cdr(points: np.ndarray, grey: np.ndarray, stamp_ns: int, frame_id
 
 
 def _grey_rgb(grey: np.ndarray) -> np.ndarray:
-    level = np.clip(np.rint(np.asarray(grey, np.float64)), 0, 255).astype(np.uint8)
+    level = np.asarray(grey)
+    if level.dtype != np.uint8:  # the pipeline's grey levels are uint8 already
+        level = np.clip(np.rint(level.astype(np.float64)), 0, 255).astype(np.uint8)
     return np.repeat(level[:, None], 3, axis=1)

@@ -132,6 +132,29 @@ def observe_scale(
                               floor_std=floor_std, iterations=iterations)
 
 
+def median(values: np.ndarray) -> float:
+    """``float(np.median(values))``, bit for bit, of a 1-D float array without NaN.
+
+    ``np.median`` partitions the same way but costs ~15 µs per call in its
+    wrappers, and the robust location takes a dozen medians per frame.
+
+    Args:
+        values: (N,) float32 or float64, no NaN.
+
+    Returns:
+        The median (the mean of the two middle values for even N, in the
+        array's precision); NaN for N = 0.
+    """
+    n = values.size
+    if n == 0:
+        return float("nan")
+    half = n // 2
+    if n % 2:
+        return float(np.partition(values, half)[half])
+    part = np.partition(values, (half - 1, half))
+    return float((part[half - 1] + part[half]) / 2.0)
+
+
 def observe_log_ratios(
     log_ratio: np.ndarray,
     weights: np.ndarray | None = None,
@@ -155,8 +178,8 @@ def observe_log_ratios(
         return None
     r = values[ok]
     w = w[ok] / w[ok].max()
-    location = float(np.median(r))
-    sigma = max(1.4826 * float(np.median(np.abs(r - location))), 1e-4)
+    location = median(r)
+    sigma = max(1.4826 * median(np.abs(r - location)), 1e-4)
     robust = np.ones_like(r)
     for iteration in range(iterations):
         u = np.abs(r - location) / sigma
@@ -170,7 +193,7 @@ def observe_log_ratios(
         location = float(np.sum(total * r) / np.sum(total))
         inside = robust > 0.0
         # the spread of the points that carry weight, not of the outliers
-        sigma = max(1.4826 * float(np.median(np.abs(r[inside] - location))), 1e-4)
+        sigma = max(1.4826 * median(np.abs(r[inside] - location)), 1e-4)
     total = w * robust
     n_eff = float(total.sum() ** 2 / max(np.sum(total**2), 1e-300))
     stat = sigma / np.sqrt(max(n_eff, 1.0))

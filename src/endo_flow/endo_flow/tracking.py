@@ -27,9 +27,11 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import cv2
+import numba
 import numpy as np
 
 from endo_flow.errors import FlowInputError
+from endo_flow.scale import median
 from endo_io.image import irradiance_to_mono8
 from endo_sfs.highlights import detect_highlights
 
@@ -136,15 +138,40 @@ def _brightness_ratio(before: np.ndarray, after: np.ndarray, old: np.ndarray,
                       new: np.ndarray) -> float:
     """Median of after(new) / before(old) over tracks, nearest pixels; NaN if none."""
     h, w = before.shape
-    col0 = np.clip(np.rint(old[:, 0]).astype(np.int64), 0, w - 1)
-    row0 = np.clip(np.rint(old[:, 1]).astype(np.int64), 0, h - 1)
-    col1 = np.clip(np.rint(new[:, 0]).astype(np.int64), 0, w - 1)
-    row1 = np.clip(np.rint(new[:, 1]).astype(np.int64), 0, h - 1)
-    a, b = before[row0, col0], after[row1, col1]
+    # both point sets' (col, row) at once; np.minimum / np.maximum, not np.clip
+    # (the same integers, without np.clip's wrappers)
+    pixel = np.rint(np.concatenate([old, new], axis=1)).astype(np.int64)
+    pixel = np.maximum(np.minimum(pixel, np.array([w - 1, h - 1, w - 1, h - 1])), 0)
+    a, b = before[pixel[:, 1], pixel[:, 0]], after[pixel[:, 3], pixel[:, 2]]
     with np.errstate(invalid="ignore", divide="ignore"):
         ratio = b / a
     ratio = ratio[np.isfinite(ratio) & (ratio > 0.0)]
-    return float(np.median(ratio)) if ratio.size else float("nan")
+    return median(ratio) if ratio.size else float("nan")
+
+
+@numba.njit(cache=True, nogil=True)
+def _valid_data(image: np.ndarray, valid: np.ndarray, data: np.ndarray, weight: np.ndarray
+                ) -> None:
+    """data = image where valid else 0, weight = valid as 0 / 1 (float32, in one pass)."""
+    h, w = image.shape
+    for r in range(h):
+        for c in range(w):
+            if valid[r, c]:
+                data[r, c] = image[r, c]
+                weight[r, c] = 1.0
+            else:
+                data[r, c] = 0.0
+                weight[r, c] = 0.0
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _local_ratio(data: np.ndarray, norm: np.ndarray, blurred: np.ndarray, valid: np.ndarray,
+                 out: np.ndarray) -> None:
+    """out = data · norm / blurred where valid, else 1, in float32 as numpy computes it."""
+    h, w = data.shape
+    for r in range(h):
+        for c in range(w):
+            out[r, c] = data[r, c] * norm[r, c] / blurred[r, c] if valid[r, c] else 1.0
 
 
 def flatten_shading(image: np.ndarray, valid: np.ndarray, sigma_px: float) -> np.ndarray:
@@ -159,17 +186,19 @@ def flatten_shading(image: np.ndarray, valid: np.ndarray, sigma_px: float) -> np
         (h, w) float32 ratio to the local mean (about 1 on the tissue), 1
         where ``valid`` is False.
     """
-    weight = valid.astype(np.float32)
-    data = np.where(valid, image, 0.0).astype(np.float32)
+    image = np.ascontiguousarray(image, np.float32)
+    valid = np.ascontiguousarray(valid, np.bool_)
+    data = np.empty(image.shape, np.float32)
+    weight = np.empty(image.shape, np.float32)
+    _valid_data(image, valid, data, weight)
     # ±2.5σ: OpenCV's own choice for float images is ±4σ, twice the work
     size = 2 * int(np.ceil(2.5 * sigma_px)) + 1
     blurred = cv2.GaussianBlur(data, (size, size), sigma_px, borderType=cv2.BORDER_CONSTANT)
     norm = cv2.GaussianBlur(weight, (size, size), sigma_px, borderType=cv2.BORDER_CONSTANT)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        ratio = data * norm / blurred
-    # invalid pixels read as the local mean: no edge at the field of view's
+    # invalid pixels read as the local mean (1): no edge at the field of view's
     # rim or around a saturated blob for Lucas–Kanade's window to lock onto
-    ratio[~valid] = 1.0
+    ratio = np.empty(image.shape, np.float32)
+    _local_ratio(data, norm, blurred, valid, ratio)
     return ratio
 
 
@@ -280,7 +309,8 @@ class FeatureTracker:
         if opts.border_px > 0:
             size = 2 * opts.border_px + 1
             kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (size, size))
-            usable = cv2.erode(valid.astype(np.uint8), kernel).astype(bool)
+            # bool and uint8 share their bytes: views, not two conversions
+            usable = cv2.erode(valid.view(np.uint8), kernel).view(bool)
 
         lost = 0
         ratio = float("nan")
