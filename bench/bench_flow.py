@@ -22,8 +22,13 @@
    times as a looping bag plays them (each loop a clock jump: every state and
    the map reset), the process's RSS after every frame.
 
+5. With ``--map``: instead of the tracking configurations of 1., the step
+   with the map on, at the map's decimations and rates (``map_decimation``,
+   ``map_every``) against the map off, interleaved frame by frame alike: what
+   the map at full resolution costs per frame.
+
 Usage: ``bench/bench_flow.py [--frames 150] [--map-minutes 10] [--cache FILE]
-[--reference DIR --rounds 2] [--rss-loops 0] [--skip-configs]``.
+[--reference DIR --rounds 2] [--rss-loops 0] [--skip-configs] [--map]``.
 """
 
 from __future__ import annotations
@@ -230,6 +235,8 @@ def main() -> int:
     parser.add_argument("--rounds", type=int, default=2)
     parser.add_argument("--rss-loops", type=int, default=0)
     parser.add_argument("--skip-configs", action="store_true")
+    parser.add_argument("--map", action="store_true",
+                        help="compare the map's decimations and rates instead of tracking's")
     parser.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.worker:  # one child of --reference: the step alone, one JSON line
@@ -283,16 +290,27 @@ def main() -> int:
         "seeds not checked for highlights": tracking(mask_highlights=False),
         "cloud every 8th pixel": dataclasses.replace(base, cloud_decimation=8),
     }
+    if args.map and not args.skip_configs:
+        on = dataclasses.replace(base, map_enabled=True)
+        configs = {
+            "map off": base,
+            "map every 4th pixel, every frame": dataclasses.replace(on, map_decimation=4),
+            "map full resolution, every frame": dataclasses.replace(on, map_decimation=1),
+            **{f"map full resolution, every {n}th frame":
+               dataclasses.replace(on, map_decimation=1, map_every=n) for n in (2, 4, 8)},
+        }
     results = per_frame(frames, configs, args.warmup) if configs else {}
     if results:
         print("| configuration | CPU ms (mean) | wall median ms | p90 ms | tracking |"
-              " triangulation | scale | depth | cloud | scale error at the end |")
-        print("|---|---|---|---|---|---|---|---|---|---|")
+              " triangulation | scale | depth | cloud | map (median of frames fused) |"
+              " scale error at the end |")
+        print("|---|---|---|---|---|---|---|---|---|---|---|")
     for name, row in results.items():
         print(f"| {name} | {row['cpu_ms']:.1f} | {row['median_ms']:.1f} | {row['p90_ms']:.1f} | "
               f"{row.get('tracking_ms', 0):.1f} | {row.get('triangulation_ms', 0):.1f} | "
               f"{row.get('scale_ms', 0):.1f} | {row.get('depth_ms', 0):.1f} | "
-              f"{row.get('cloud_ms', 0):.1f} | {100 * row['scale_error']:+.2f} % |", flush=True)
+              f"{row.get('cloud_ms', 0):.1f} | {row.get('map_ms', 0):.1f} | "
+              f"{100 * row['scale_error']:+.2f} % |", flush=True)
     print(f"load average after: {os.getloadavg()[0]:.1f}", flush=True)
     if args.map_minutes > 0:
         result = map_bench(args.map_minutes, 2_000_000)

@@ -1,7 +1,7 @@
 """One live node alone at video rate: its CPU per frame, fed from a graph recording.
 
     .venv/bin/python bench/bench_flow_node.py RECORDING [--runs 2] [--rate 1.0]
-        [--node flow|record] [--baseline SRC_ROOT]
+        [--node flow|record] [--baseline SRC_ROOT] [--variant NAME=PARAM:=VALUE,...]
     .venv/bin/python bench/bench_flow_node.py --decoding [RECORDING]
 
 RECORDING is a live graph's recording (``graph.mcap`` of a bench_graph or
@@ -21,6 +21,11 @@ CPU is reported per image_corrected frame played (a frame of the graph).
 -x -C /tmp/base``) alternates each run of this tree's node with one of the
 baseline's (its ``src/*`` packages first on PYTHONPATH), so that the two
 compare as a ratio inside one pass, under the same load.
+
+``--variant NAME=PARAM:=VALUE[,PARAM:=VALUE]`` (repeatable) runs the flow
+node of this tree once per variant in each pass, with those parameters
+added to its command line (e.g. ``map1=map_decimation:=1``
+``map4=map_decimation:=4``), so that settings compare inside one pass too.
 
 ``--decoding`` times, instead, what flow does with each pose and camera_info
 it takes, rclpy's message objects against endo_io's CDR readers, on the
@@ -79,15 +84,19 @@ PLAYED = (IMAGE_CORRECTED, DEPTH_RELATIVE, CAMERA_INFO, CAMERA_POSE)
 
 
 def run_once(recording: Path, rate: float, env: dict[str, str], logs: Path,
-             node_name: str = "flow") -> dict[str, float]:
-    """One play of ``recording`` into a fresh node (``flow`` or ``record``); its CPU figures."""
+             node_name: str = "flow", parameters: tuple[str, ...] = ()) -> dict[str, float]:
+    """One play of ``recording`` into a fresh node (``flow`` or ``record``); its CPU figures.
+
+    ``parameters``: ``name:=value`` items added to the flow node's command line.
+    """
     with BagReader(recording) as reader:
         wanted = PLAYED if node_name == "flow" else tuple(reader.topics)
         counts = {t: reader.topics[t].message_count for t in wanted if t in reader.topics}
     if node_name == "flow":
         name = "endo-flow"
         command = [console_script(name), "--ros-args", "-p",
-                   f"warm_up_camera_file:={camera_file_path(recording)}"]
+                   f"warm_up_camera_file:={camera_file_path(recording)}",
+                   *(item for parameter in parameters for item in ("-p", parameter))]
         up = NODE_UP
     else:
         name = RECORDER
@@ -225,6 +234,10 @@ def main() -> int:
     parser.add_argument("--node", choices=("flow", "record"), default="flow")
     parser.add_argument("--baseline", type=Path, default=None,
                         help="a checkout's root whose src/* packages run in alternate runs")
+    parser.add_argument("--variant", action="append", default=[],
+                        metavar="NAME=PARAM:=VALUE[,PARAM:=VALUE]",
+                        help="a run of this tree's flow node with these parameters in each "
+                        "pass (repeatable)")
     parser.add_argument("--decoding", action="store_true",
                         help="time flow's pose and camera_info decoding instead (no node)")
     args = parser.parse_args()
@@ -241,18 +254,26 @@ def main() -> int:
     env, note = with_large_frame_profile(env, work)
     print(f"bench_flow_node: {args.node} on {args.recording}, rate {args.rate:g}; "
           f"{note}", flush=True)
-    variants = {"this tree": env}
+    variants: dict[str, tuple[dict[str, str], tuple[str, ...]]] = {"this tree": (env, ())}
+    if args.variant:
+        variants = {}
+        for spec in args.variant:
+            name, _, parameters = spec.partition("=")
+            if not name or ":=" not in parameters:
+                parser.error(f"--variant {spec!r}: expected NAME=PARAM:=VALUE[,...]")
+            variants[name] = (env, tuple(parameters.split(",")))
     if args.baseline is not None:
         packages = sorted(str(p) for p in (args.baseline / "src").iterdir() if p.is_dir())
-        variants = {"baseline": dict(env, PYTHONPATH=os.pathsep.join(packages)), **variants}
+        variants = {"baseline": (dict(env, PYTHONPATH=os.pathsep.join(packages)), ()),
+                    **variants}
     figures: dict[str, list[float]] = {name: [] for name in variants}
     hops: dict[str, list[tuple[float, float]]] = {name: [] for name in variants}
     for run in range(1, args.runs + 1):
-        for name, variant_env in variants.items():
+        for name, (variant_env, parameters) in variants.items():
             load = os.getloadavg()[0]
             result = run_once(args.recording, args.rate, variant_env,
                               work / f"logs{run}_{len(figures[name])}_{name.replace(' ', '_')}",
-                              args.node)
+                              args.node, parameters)
             figures[name].append(result["ms per frame"])
             hops[name].append((result["hop p50 ms"], result["hop p99 ms"]))
             print(f"run {run}, {name} (load {load:.1f} -> {os.getloadavg()[0]:.1f}): "
@@ -264,7 +285,7 @@ def main() -> int:
         for name, pairs in hops.items():
             print(f"flow hop (depth_relative published -> cloud published), {name}: "
                   + ", ".join(f"p50 {p50:.1f} / p99 {p99:.1f}" for p50, p99 in pairs) + " ms")
-    if args.baseline is not None:
+    if args.baseline is not None and "this tree" in figures:
         ratios = [a / b for a, b in zip(figures["this tree"], figures["baseline"], strict=True)]
         print(f"this tree / baseline, per pass: {', '.join(f'{r:.3f}' for r in ratios)}")
     return 0

@@ -26,8 +26,9 @@ the bytes per frame on disk.
 
 A configuration is ``solve_scale:jobs``, optionally ``:compression`` and
 ``:crc`` (the output's chunk compression, default none, and whether chunk
-CRCs are stored, default not: endo-process's defaults), e.g.
-``--configs 0.5:2,0.5:2:lz4,0.5:2:lz4:crc``.
+CRCs are stored, default not: endo-process's defaults) and ``:cN``
+(``--cloud-decimation N``, default 1: full-resolution /endoscope/points),
+e.g. ``--configs 0.5:2,0.5:2:lz4,0.5:2:lz4:crc,0.5:2:none:c4``.
 
 Run by hand: ``.venv/bin/python bench/bench_process.py [--rounds 2] [--bag B]``;
 prints Markdown for docs/benchmarks.md ("endo-process").
@@ -59,27 +60,33 @@ COMPRESSION = "none"
 
 @dataclasses.dataclass(frozen=True)
 class Config:
-    """One configuration: solve scale, jobs, output compression, chunk CRCs stored."""
+    """One configuration: solve scale, jobs, output compression, chunk CRCs, cloud decimation."""
 
     scale: float
     jobs: int
     compression: str = COMPRESSION
     crc: bool = False
+    cloud_decimation: int = 1
 
     @classmethod
     def parse(cls, text: str) -> Config:
         parts = text.split(":")
+        cloud = 1
+        if len(parts) > 2 and parts[-1][:1] == "c" and parts[-1][1:].isdigit():
+            cloud = int(parts.pop()[1:])
         if len(parts) < 2 or len(parts) > 4 or (len(parts) == 4 and parts[3] != "crc"):
-            raise SystemExit(f"--configs: {text!r} is not scale:jobs[:compression[:crc]]")
+            raise SystemExit(f"--configs: {text!r} is not scale:jobs[:compression[:crc]][:cN]")
         return cls(float(parts[0]), int(parts[1]),
-                   parts[2] if len(parts) > 2 else COMPRESSION, len(parts) == 4)  # fmt: skip
+                   parts[2] if len(parts) > 2 else COMPRESSION, len(parts) == 4,
+                   cloud)  # fmt: skip
 
     @property
     def label(self) -> str:
         """The table's first columns: solve_scale | jobs, and the output's if not the default."""
         output = "" if (self.compression, self.crc) == (COMPRESSION, False) else (
             f" ({self.compression}{', CRC' if self.crc else ''})")
-        return f"{self.scale:g} | {self.jobs}{output}"
+        cloud = "" if self.cloud_decimation == 1 else f" (points every {self.cloud_decimation})"
+        return f"{self.scale:g} | {self.jobs}{output}{cloud}"
 
 
 def machine() -> str:
@@ -116,6 +123,8 @@ def one_run(args: argparse.Namespace) -> None:
     extra = {} if workers is None else {"workers": workers}
     fields = {f.name for f in dataclasses.fields(ProcessOptions)}
     crcs = {"chunk_crcs": args.crc} if "chunk_crcs" in fields else {}  # not in an older tree
+    if "cloud_decimation" in fields:  # not in an older tree
+        crcs["cloud_decimation"] = args.cloud_decimation
     report = process_bag(ProcessOptions(
         bag=args.bag, output=args.out, calibration=args.photometric, handeye=args.handeye,
         params=args.params, solve_scale=args.scale, jobs=args.jobs, progress=False,
@@ -271,6 +280,7 @@ def main() -> None:
     parser.add_argument("--max-frames", type=int, help=argparse.SUPPRESS)
     parser.add_argument("--compression", default=COMPRESSION, help=argparse.SUPPRESS)
     parser.add_argument("--crc", action="store_true", help=argparse.SUPPRESS)
+    parser.add_argument("--cloud-decimation", type=int, default=1, help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.one:
         one_run(args)
@@ -324,6 +334,7 @@ def main() -> None:
                 "--photometric", str(photometric.result), "--handeye", str(handeye.result),
                 "--params", str(params), "--scale", str(scale), "--jobs", str(jobs),
                 "--compression", config.compression, *(["--crc"] if config.crc else []),
+                "--cloud-decimation", str(config.cloud_decimation),
             ], capture_output=True, text=True, check=True, env=env)  # fmt: skip
             run_s = time.perf_counter() - run_start
             figures = json.loads(done.stdout.strip().splitlines()[-1])
@@ -338,13 +349,18 @@ def main() -> None:
             figures.setdefault("stages_cpu_ms", {})
             results[(tree, config)].append(figures)
             print(f"round {round_index + 1} {tree} solve_scale {scale:g} jobs {jobs} "
-                  f"{config.compression}{' crc' if config.crc else ''}: "
+                  f"{config.compression}{' crc' if config.crc else ''} "
+                  f"points every {config.cloud_decimation}: "
                   f"{figures['fps']:.1f} frames/s, {figures['real_time']:.2f}x real time "
                   f"({figures['steady_real_time']:.2f}x after the first frame, which took "
                   f"{figures['first_frame_s']:.2f} s; whole run {figures['run_s']:.2f} s, "
                   f"{figures['whole_real_time']:.2f}x), CPU "
                   f"main {figures['main_ms']:.0f} + workers {figures['workers_ms']:.0f} ms per "
-                  f"frame, median solve {figures['solve_ms']:.1f} ms, load {load()}",
+                  f"frame, median solve {figures['solve_ms']:.1f} ms, output "
+                  f"{figures['mb_per_frame']:.2f} MB per frame, flow step "
+                  f"{figures['stages_cpu_ms'].get('flow', 0.0):.1f} + its writing "
+                  f"{figures['stages_cpu_ms'].get('flow_write', 0.0):.1f} CPU-ms per frame, "
+                  f"load {load()}",
                   flush=True)  # fmt: skip
             out.unlink()
         loads.append(load())

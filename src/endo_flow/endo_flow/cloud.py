@@ -1,17 +1,26 @@
-"""The world cloud of one frame: decimated metric depth → world points, grey levels, normals.
+"""The world clouds of one frame: metric depth → world points, grey levels, normals.
 
-Every ``decimation``-th pixel along each axis of the metric depth is
-back-projected by :meth:`endo_io.camera.CameraModel.depth_to_points` of the
-binned camera model (:func:`binned_camera`: the same rays at those pixels,
-cached by the model), its camera-facing normal taken from central
-differences of the organised point grid, and the points within the depth
-range moved into ``world`` by :func:`endo_io.pose.transform_points`; normals
-are rotated alike. The grid's normals, the range test and the rotation are one
-numba pass over the grid (the numpy version made ~10 full-grid temporaries and
-cost 1.3 of the cloud's 2.0 ms per 640×480 frame).
+A frame gives two clouds: the live topic's, every ``cloud_decimation``-th
+pixel along each axis, and the map's, every ``map_decimation``-th (1: full
+resolution). Both come from one back-projection (:func:`world_clouds`): the
+pixels of the grid at the decimations' greatest common divisor are
+back-projected once by :meth:`endo_io.camera.CameraModel.depth_to_points` of
+the binned camera model (:func:`binned_camera`: the same rays at those
+pixels, cached by the model), and each cloud takes every n-th node of that
+organised grid. Each cloud's camera-facing normals come from central
+differences of its own grid (neighbours ``decimation`` pixels apart, so the
+live cloud's normals do not depend on whether the map took a cloud this
+frame), and its points within the depth range are moved into ``world`` by
+:func:`endo_io.pose.transform_points`; normals are rotated alike. The grid's
+normals, the range test and the rotation are one numba pass over the grid
+(the numpy version made ~10 full-grid temporaries and cost 1.3 of the
+cloud's 2.0 ms per 640×480 frame).
 """
 
 from __future__ import annotations
+
+import math
+from collections.abc import Sequence
 
 import numba
 import numpy as np
@@ -90,16 +99,139 @@ def surface_normals(points: np.ndarray) -> np.ndarray:
 
 
 @numba.njit(cache=True, nogil=True)
-def _in_range(points: np.ndarray, depth: np.ndarray, lo: float, hi: float) -> np.ndarray:
-    """(h, w) bool: depth in [lo, hi] and a finite point."""
+def _kept_normals(
+    points: np.ndarray, depth: np.ndarray, lo: float, hi: float, R: np.ndarray,
+    index: np.ndarray, normals: np.ndarray,
+) -> int:
+    """The grid nodes kept and their world normals, in one pass; returns how many were kept.
+
+    A node is kept when its depth is in [lo, hi] and its point is finite;
+    ``index[:n]`` receives the kept nodes' flat indices (row-major) and
+    ``normals[:n]`` their unit normals (:func:`surface_normals`'s arithmetic,
+    NaN on the border and next to a missing neighbour) rotated by ``R`` in
+    float64 and stored as float32.
+    """
     h, w = depth.shape
-    keep = np.zeros((h, w), np.bool_)
+    n = 0
     for r in range(h):
         for c in range(w):
             z = depth[r, c]
-            keep[r, c] = (z >= lo and z <= hi and np.isfinite(points[r, c, 0])
-                          and np.isfinite(points[r, c, 1]) and np.isfinite(points[r, c, 2]))
-    return keep
+            if not (z >= lo and z <= hi and np.isfinite(points[r, c, 0])
+                    and np.isfinite(points[r, c, 1]) and np.isfinite(points[r, c, 2])):
+                continue
+            index[n] = r * w + c
+            if r == 0 or c == 0 or r == h - 1 or c == w - 1:
+                normals[n, 0] = np.nan
+                normals[n, 1] = np.nan
+                normals[n, 2] = np.nan
+                n += 1
+                continue
+            dux = np.float32(points[r, c + 1, 0]) - np.float32(points[r, c - 1, 0])
+            duy = np.float32(points[r, c + 1, 1]) - np.float32(points[r, c - 1, 1])
+            duz = np.float32(points[r, c + 1, 2]) - np.float32(points[r, c - 1, 2])
+            dvx = np.float32(points[r + 1, c, 0]) - np.float32(points[r - 1, c, 0])
+            dvy = np.float32(points[r + 1, c, 1]) - np.float32(points[r - 1, c, 1])
+            dvz = np.float32(points[r + 1, c, 2]) - np.float32(points[r - 1, c, 2])
+            nx = duy * dvz - duz * dvy
+            ny = duz * dvx - dux * dvz
+            nz = dux * dvy - duy * dvx
+            facing = (nx * np.float32(points[r, c, 0]) + ny * np.float32(points[r, c, 1])
+                      + nz * np.float32(points[r, c, 2]))
+            length = np.sqrt(nx * nx + ny * ny + nz * nz)
+            denom = np.float64(length) * (-1.0 if facing > 0.0 else 1.0)
+            ax = np.float64(np.float32(np.float64(nx) / denom))
+            ay = np.float64(np.float32(np.float64(ny) / denom))
+            az = np.float64(np.float32(np.float64(nz) / denom))
+            normals[n, 0] = np.float32(R[0, 0] * ax + R[0, 1] * ay + R[0, 2] * az)
+            normals[n, 1] = np.float32(R[1, 0] * ax + R[1, 1] * ay + R[1, 2] * az)
+            normals[n, 2] = np.float32(R[2, 0] * ax + R[2, 1] * ay + R[2, 2] * az)
+            n += 1
+    return n
+
+
+Cloud = tuple[np.ndarray, np.ndarray, np.ndarray]
+"""(M, 3) float32 world points, metres; (M,) uint8 grey; (M, 3) float32 unit world normals."""
+
+
+def world_clouds(
+    depth: np.ndarray,
+    image: np.ndarray,
+    camera: CameraModel,
+    T_world_camera: np.ndarray,
+    *,
+    decimations: Sequence[int],
+    min_depth_m: float,
+    max_depth_m: float,
+    white: float,
+    gamma: float,
+) -> list[Cloud]:
+    """World clouds of one metric depth image at several decimations, from one back-projection.
+
+    Args:
+        depth: (H, W) float32 metric depth along z, metres, NaN invalid.
+        image: (H, W) float linear irradiance of the same frame.
+        camera: the binned model of the grid at the greatest common divisor
+            g of ``decimations`` (``binned_camera(full_camera, g)``).
+        T_world_camera: (4, 4) camera pose, metres.
+        decimations: each cloud takes every this-th pixel along each axis;
+            each must be a multiple of g (true of any set: g divides them).
+        min_depth_m, max_depth_m: depth range of the points kept.
+        white, gamma: the 8-bit mapping of the grey level
+            (:func:`endo_io.image.irradiance_to_mono8`).
+
+    Returns:
+        One cloud per decimation, in their order (equal decimations share
+        one): ((M, 3) float32 world points, metres; (M,) uint8 grey; (M, 3)
+        float32 unit world normals facing the camera, NaN where a neighbour
+        was missing), in row-major order of that decimation's grid, which is
+        ``binned_camera(full_camera, decimation)``'s.
+
+    Raises:
+        ValueError: no decimation or one below 1, or ``depth`` too small
+            for ``camera`` at step g.
+    """
+    if not decimations or min(decimations) < 1:
+        raise ValueError(f"decimations must be >= 1, got {list(decimations)}")
+    step = math.gcd(*(int(k) for k in decimations))
+    rows, cols = slice(0, camera.height * step, step), slice(0, camera.width * step, step)
+    sub = np.asarray(depth)[rows, cols]
+    if sub.shape != (camera.height, camera.width):
+        raise ValueError(f"depth {np.shape(depth)} has no {camera.width}x{camera.height} grid "
+                         f"at step {step}")
+    local = camera.depth_to_points(sub)
+    grey_grid = np.asarray(image)[rows, cols]
+    clouds: dict[int, Cloud] = {}
+    for k in decimations:
+        if int(k) in clouds:
+            continue
+        s = int(k) // step
+        if s == 1:
+            clouds[int(k)] = _grid_cloud(local, sub, grey_grid, T_world_camera, min_depth_m,
+                                         max_depth_m, white, gamma)
+            continue
+        h, w = camera.height // s * s, camera.width // s * s
+        clouds[int(k)] = _grid_cloud(
+            np.ascontiguousarray(local[:h:s, :w:s]), sub[:h:s, :w:s], grey_grid[:h:s, :w:s],
+            T_world_camera, min_depth_m, max_depth_m, white, gamma)
+    return [clouds[int(k)] for k in decimations]
+
+
+def _grid_cloud(
+    local: np.ndarray, depth: np.ndarray, image: np.ndarray, T_world_camera: np.ndarray,
+    min_depth_m: float, max_depth_m: float, white: float, gamma: float,
+) -> Cloud:
+    """The world cloud of an organised (h, w, 3) camera-frame grid (see :func:`world_clouds`)."""
+    h, w = depth.shape
+    R = np.ascontiguousarray(np.asarray(T_world_camera, np.float64)[:3, :3])
+    index = np.empty(h * w, np.int64)
+    normals = np.empty((h * w, 3), np.float32)
+    n = _kept_normals(np.ascontiguousarray(local), np.ascontiguousarray(depth),
+                      float(min_depth_m), float(max_depth_m), R, index, normals)
+    index, normals = index[:n], normals[:n]
+    world = transform_points(T_world_camera, local.reshape(-1, 3).take(index, axis=0))
+    grey = irradiance_to_mono8(np.asarray(image).reshape(1, -1).take(index, axis=1),
+                               white=white, gamma=gamma)[0]
+    return world.astype(np.float32), grey, normals
 
 
 def world_cloud(
@@ -113,8 +245,8 @@ def world_cloud(
     max_depth_m: float,
     white: float,
     gamma: float,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Decimated world points of a metric depth image, their grey level and world normals.
+) -> Cloud:
+    """The world cloud of one decimation (:func:`world_clouds` with one).
 
     Args:
         depth: (H, W) float32 metric depth along z, metres, NaN invalid.
@@ -124,24 +256,13 @@ def world_cloud(
         T_world_camera: (4, 4) camera pose, metres.
         decimation: every this-th pixel along each axis.
         min_depth_m, max_depth_m: depth range of the points kept.
-        white, gamma: the 8-bit mapping of the grey level
-            (:func:`endo_io.image.irradiance_to_mono8`).
+        white, gamma: the 8-bit mapping of the grey level.
 
     Returns:
         ((M, 3) float32 world points, metres; (M,) uint8 grey; (M, 3)
         float32 unit world normals facing the camera, NaN where a neighbour
         was missing), in row-major order of the decimated grid.
     """
-    k = decimation
-    rows, cols = slice(0, camera.height * k, k), slice(0, camera.width * k, k)
-    sub = depth[rows, cols]
-    local = camera.depth_to_points(sub)
-    keep = _in_range(local, np.ascontiguousarray(sub), float(min_depth_m), float(max_depth_m))
-    index = np.flatnonzero(keep)  # a flat take is ~5x faster than a 2-D boolean mask here
-    normals_local = surface_normals(local).reshape(-1, 3).take(index, axis=0)
-    R = np.asarray(T_world_camera, np.float64)[:3, :3]
-    world = transform_points(T_world_camera, local.reshape(-1, 3).take(index, axis=0))
-    normals = (normals_local @ R.T).astype(np.float32)
-    grey = irradiance_to_mono8(np.asarray(image)[rows, cols].reshape(1, -1).take(index, axis=1),
-                               white=white, gamma=gamma)[0]
-    return world.astype(np.float32), grey, normals
+    return world_clouds(depth, image, camera, T_world_camera, decimations=(decimation,),
+                        min_depth_m=min_depth_m, max_depth_m=max_depth_m, white=white,
+                        gamma=gamma)[0]

@@ -49,12 +49,16 @@ Publications (reliable, QoS overridable):
 
 * ``/endoscope/points``: the frame's world cloud, PointCloud2 (x, y, z, rgb
   grey from the image) in ``world_frame``, every ``cloud_decimation``-th
-  pixel; published first (the graph's latency is timed to it);
+  pixel per axis (4: a 16th of the pixels); published first (the graph's
+  latency is timed to it);
 * ``/endoscope/depth``: metric depth, 32FC1 metres, NaN invalid (REP 118), the
   image's header, so ``/endoscope/camera_info`` describes it; nothing before
   the scale has converged once;
 * ``/endoscope/map``: the fused voxel map, PointCloud2 in ``world_frame``,
-  transient-local, every ``map_period_s``;
+  transient-local, every ``map_period_s``. The map fuses every
+  ``map_decimation``-th pixel (1: full resolution) of every ``map_every``-th
+  frame with world points, from the same back-projection as the topic's
+  cloud (:func:`endo_flow.cloud.world_clouds`);
 * ``/endoscope/scale``: ``geometry_msgs/Vector3Stamped`` with x = s (metres
   per unit of depth_relative), y = the standard deviation of ln s, z = the
   state (:class:`endo_flow.scale.ScaleState`: 0 initializing, 1 tracking,
@@ -194,10 +198,17 @@ PARAMETERS: tuple[ParameterSpec, ...] = (
     ParameterSpec("shape_correction", "none",
                   "smooth correction field of the SFS depth from the metric points",
                   choices=SHAPE_CORRECTION_MODES, read_only=True),
-    ParameterSpec("cloud_decimation", 4, "the world cloud takes every n-th pixel per axis",
-                  range=(1, 32)),
+    ParameterSpec("cloud_decimation", 4,
+                  "/endoscope/points takes every n-th pixel per axis (the map has its own, "
+                  "map_decimation)", range=(1, 32)),
     ParameterSpec("map_enabled", True, "fuse the world clouds into the voxel map",
                   read_only=True),
+    ParameterSpec("map_decimation", 1,
+                  "the map fuses every n-th pixel per axis of the metric depth (1: full "
+                  "resolution)", range=(1, 32)),
+    ParameterSpec("map_every", 1,
+                  "the map fuses every n-th frame with world points (the live map's CPU "
+                  "knob: it keeps the resolution)", range=(1, 100)),
     ParameterSpec("map_voxel_size_m", 1e-3, "voxel edge of the map, metres",
                   range=(1e-5, 0.1), read_only=True),
     ParameterSpec("map_max_voxels", 2_000_000,
@@ -234,6 +245,7 @@ def pipeline_options(values: dict[str, Any]) -> FlowOptions:
         pose_smoothing_s=values["pose_smoothing_s"],
         scale_observation=values["scale_observation"],
         cloud_decimation=values["cloud_decimation"], map_enabled=values["map_enabled"],
+        map_decimation=values["map_decimation"], map_every=values["map_every"],
         voxel_size_m=values["map_voxel_size_m"], max_voxels=values["map_max_voxels"],
     )
 
@@ -339,9 +351,11 @@ class FlowNode(Node):
     # ------------------------------------------------------------------ parameters
 
     def _apply(self, changes: Mapping[str, Any], values: Mapping[str, Any]) -> None:
-        if "cloud_decimation" in changes:
-            # the decimation only changes the cloud; the pipeline keeps its state
-            self.pipeline.set_cloud_decimation(changes["cloud_decimation"])
+        cloud = {name: changes[name] for name in ("cloud_decimation", "map_decimation",
+                                                  "map_every") if name in changes}
+        if cloud:
+            # these only change the clouds; the pipeline keeps its state
+            self.pipeline.set_cloud_options(**cloud)
 
     # ------------------------------------------------------------------ inputs
 

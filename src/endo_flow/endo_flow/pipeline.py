@@ -14,9 +14,13 @@ stamp order:
 4. Optionally fit the **shape correction** field to the residuals
    (:mod:`endo_flow.shape_correction`).
 5. Once the scale is usable: **metric depth** = s · e^c · d_rel, the
-   decimated **world points** (``CameraModel.depth_to_points`` on a binned
-   model of the same camera, then :func:`endo_io.pose.transform_points`),
-   their grey level and normals, and the **voxel map** update.
+   **world points** (``CameraModel.depth_to_points`` on a binned model of
+   the same camera, then :func:`endo_io.pose.transform_points`), their grey
+   level and normals, and the **voxel map** update. One back-projection
+   gives both clouds (:func:`endo_flow.cloud.world_clouds`): the output's,
+   every ``cloud_decimation``-th pixel (the live topic's), and the map's,
+   every ``map_decimation``-th (1: full resolution) on every
+   ``map_every``-th frame with world points.
 
 Without a pose (a tracker dropout) the tracks continue and the depth is made
 metric with the held scale, but nothing is triangulated and no world point
@@ -28,13 +32,15 @@ every buffer, the filter, the shape correction and the map, and raises
 from __future__ import annotations
 
 import dataclasses
+import math
 import time
 import warnings
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
-from endo_flow.cloud import binned_camera, world_cloud
+from endo_flow.cloud import Cloud, binned_camera, world_clouds
 from endo_flow.errors import FlowInputError, NoFeaturesError
 from endo_flow.keyframes import Keyframe, KeyframeWindow, TrackViews
 from endo_flow.pose_smoothing import PoseSmoother
@@ -178,10 +184,16 @@ class FlowOptions:
             (rendered test frames with tracker noise: worse at 1.5 s on 5
             of 8 seeds).
         min_features: a frame with fewer features raises NoFeaturesError.
-        cloud_decimation: the world cloud takes every n-th pixel along each
-            axis.
+        cloud_decimation: the output's world cloud (the live topic's) takes
+            every n-th pixel along each axis.
         cloud_min_depth_m, cloud_max_depth_m: depth range of cloud points.
-        map_enabled: fuse the world points into the voxel map.
+        map_enabled: fuse world points into the voxel map.
+        map_decimation: the map fuses every n-th pixel along each axis (1:
+            full resolution), from the same back-projection as the output's
+            cloud.
+        map_every: the map fuses the points of every n-th frame that has
+            world points (1: every frame); the CPU knob of the live map
+            (docs/flow.md), where a coarser grid would lose resolution.
         voxel_size_m: voxel edge of the map, metres.
         max_voxels: capacity of the map (memory bound).
     """
@@ -217,6 +229,8 @@ class FlowOptions:
     cloud_min_depth_m: float = 1e-3
     cloud_max_depth_m: float = 0.3
     map_enabled: bool = True
+    map_decimation: int = 1
+    map_every: int = 1
     voxel_size_m: float = 1e-3
     max_voxels: int = 2_000_000
 
@@ -249,8 +263,10 @@ class FlowOptions:
             raise ValueError("novelty_floor must be in (0, 1]")
         if self.observation_rings < 1 or self.observation_sectors < 1:
             raise ValueError("observation_rings and observation_sectors must be >= 1")
-        if self.cloud_decimation < 1:
-            raise ValueError("cloud_decimation must be >= 1")
+        if self.cloud_decimation < 1 or self.map_decimation < 1:
+            raise ValueError("cloud_decimation and map_decimation must be >= 1")
+        if self.map_every < 1:
+            raise ValueError("map_every must be >= 1")
         if not 0.0 <= self.cloud_min_depth_m < self.cloud_max_depth_m:
             raise ValueError("need 0 <= cloud_min_depth_m < cloud_max_depth_m")
         if not self.voxel_size_m > 0.0 or self.max_voxels < 1:
@@ -302,7 +318,9 @@ class FlowDiagnostics:
         brightness_ratio: median brightness of the tracked points over the
             previous frame's.
         shape_correction: the shape correction field was applied.
-        cloud_points: world points produced.
+        cloud_points: world points produced (the output's cloud).
+        map_points: points fused into the map this frame (0 when the map
+            did not take this frame).
         timings_ms: wall time per stage, milliseconds (tracking,
             triangulation, scale, depth, cloud, map).
     """
@@ -324,6 +342,7 @@ class FlowDiagnostics:
     brightness_ratio: float
     shape_correction: bool
     cloud_points: int
+    map_points: int
     timings_ms: dict[str, float]
 
 
@@ -336,8 +355,9 @@ class FlowOutput:
         depth: (H, W) float32 metric depth along z, metres, NaN invalid
             (REP 118), or None while the scale is not usable yet (the filter
             has not converged once: ``scale.usable`` is False).
-        points: (N, 3) float32 world points of the decimated depth, metres
-            (empty without depth or without a pose).
+        points: (N, 3) float32 world points of the depth, every
+            ``cloud_decimation``-th pixel, metres (empty without depth or
+            without a pose).
         intensity: (N,) uint8 grey level of those points (the tracking
             image's 8-bit mapping).
         normals: (N, 3) float32 unit world normals facing the camera (NaN
@@ -565,7 +585,8 @@ class FlowPipeline:
         self.voxel_map = VoxelMap(opts.voxel_size_m, opts.max_voxels) if opts.map_enabled else None
         self._shape: ShapeCorrector | None = None
         self._camera: CameraModel | None = None
-        self._cloud_camera: CameraModel | None = None
+        self._binned: dict[int, CameraModel] = {}  # binned models of self._camera by factor
+        self._map_turn = 0  # frames with world points so far: the map takes every map_every-th
         self._last_stamp_ns: int | None = None
         self._observed_version = -1  # the window's version at the last keyframes-only fit
         self.frames = 0
@@ -593,14 +614,22 @@ class FlowPipeline:
             self._shape.reset()
         if self.voxel_map is not None:
             self.voxel_map.reset()
+        self._map_turn = 0
         self._last_stamp_ns = None
         self.resets += 1
 
-    def set_cloud_decimation(self, factor: int) -> None:
-        """Change the world cloud's decimation (every ``factor``-th pixel); state is kept."""
-        self.options = dataclasses.replace(self.options, cloud_decimation=int(factor))
-        if self._camera is not None:
-            self._cloud_camera = binned_camera(self._camera, int(factor))
+    def set_cloud_options(self, **changes: int) -> None:
+        """Change ``cloud_decimation``, ``map_decimation`` or ``map_every``; state is kept.
+
+        Raises:
+            ValueError: another field, or a value FlowOptions refuses.
+        """
+        allowed = {"cloud_decimation", "map_decimation", "map_every"}
+        if not set(changes) <= allowed:
+            raise ValueError(f"only {sorted(allowed)} change on the fly, not "
+                             f"{sorted(set(changes) - allowed)}")
+        values: dict[str, Any] = {name: int(value) for name, value in changes.items()}
+        self.options = dataclasses.replace(self.options, **values)
 
     def _keyframe_pose(self, keyframe: Keyframe) -> np.ndarray:
         try:
@@ -638,7 +667,7 @@ class FlowPipeline:
             self.window.clear()
             self.camera_changes += 1
         self._camera = camera
-        self._cloud_camera = binned_camera(camera, self.options.cloud_decimation)
+        self._binned = {}
         radius = 0.5 * min(camera.width, camera.height)
         self._shape = ShapeCorrector(camera.width, camera.height, (camera.cx, camera.cy), radius,
                                      self.options.shape)
@@ -668,7 +697,7 @@ class FlowPipeline:
             )
         self._last_stamp_ns = frame.stamp_ns
         self._prepare(frame.camera)
-        assert self._shape is not None and self._cloud_camera is not None
+        assert self._shape is not None and self._camera is not None
         camera = frame.camera
         timings: dict[str, float] = {}
         t0 = time.perf_counter()
@@ -789,6 +818,7 @@ class FlowPipeline:
         points = np.empty((0, 3), np.float32)
         intensity = np.empty(0, np.uint8)
         normals = np.empty((0, 3), np.float32)
+        map_points = 0
         if estimate.usable:
             t0 = time.perf_counter()
             depth = np.asarray(frame.depth_relative, np.float32) * np.float32(estimate.value)
@@ -798,11 +828,15 @@ class FlowPipeline:
             timings["depth"] = 1e3 * (time.perf_counter() - t0)
             if T is not None:
                 t0 = time.perf_counter()
-                points, intensity, normals = self._cloud(frame, depth, T)
+                fuse = self.voxel_map is not None and self._map_turn % opts.map_every == 0
+                (points, intensity, normals), fused = self._cloud(frame, depth, T, fuse)
                 timings["cloud"] = 1e3 * (time.perf_counter() - t0)
-                if self.voxel_map is not None and len(points):
+                if len(points) or (fused is not None and len(fused[0])):
+                    self._map_turn += 1
+                if self.voxel_map is not None and fused is not None and len(fused[0]):
                     t0 = time.perf_counter()
-                    self.voxel_map.insert(points, intensity, normals)
+                    self.voxel_map.insert(*fused)
+                    map_points = len(fused[0])
                     timings["map"] = 1e3 * (time.perf_counter() - t0)
 
         diagnostics = FlowDiagnostics(
@@ -823,6 +857,7 @@ class FlowPipeline:
             brightness_ratio=features.brightness_ratio,
             shape_correction=self._shape.active,
             cloud_points=len(points),
+            map_points=map_points,
             timings_ms=timings,
         )
         return FlowOutput(frame.stamp_ns, depth, points, intensity, normals, estimate,
@@ -867,15 +902,26 @@ class FlowPipeline:
                                 triangulated.inliers)
 
     def _cloud(
-        self, frame: FlowFrame, depth: np.ndarray, T: np.ndarray
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Decimated world points, their grey level and world normals (:func:`world_cloud`)."""
+        self, frame: FlowFrame, depth: np.ndarray, T: np.ndarray, fuse: bool
+    ) -> tuple[Cloud, Cloud | None]:
+        """The output's cloud and, with ``fuse``, the map's, from one back-projection.
+
+        Each is (world points, grey level, world normals)
+        (:func:`endo_flow.cloud.world_clouds`).
+        """
         opts = self.options
-        assert self._cloud_camera is not None
-        return world_cloud(depth, frame.image, self._cloud_camera, T,
-                           decimation=opts.cloud_decimation, min_depth_m=opts.cloud_min_depth_m,
-                           max_depth_m=opts.cloud_max_depth_m,
-                           white=self.tracker.white_level or 1.0, gamma=opts.tracking.gamma)
+        assert self._camera is not None
+        decimations = ((opts.cloud_decimation, opts.map_decimation) if fuse
+                       else (opts.cloud_decimation,))
+        step = math.gcd(*decimations)
+        camera = self._binned.get(step)
+        if camera is None:  # its ray table is cached by the model: keep the model
+            camera = self._binned[step] = binned_camera(self._camera, step)
+        clouds = world_clouds(depth, frame.image, camera, T, decimations=decimations,
+                              min_depth_m=opts.cloud_min_depth_m,
+                              max_depth_m=opts.cloud_max_depth_m,
+                              white=self.tracker.white_level or 1.0, gamma=opts.tracking.gamma)
+        return clouds[0], clouds[1] if fuse else None
 
 
 __all__ = [

@@ -44,9 +44,20 @@ class Scored:
     absrel: list[float]
     oracle_absrel: list[float]
     cloud_rms_m: list[float]
+    map_rms_m: dict[int, float]  # map_decimation -> RMS distance of the map's voxels to the truth
+    map_counts: dict[int, int]  # map_decimation -> points fused in all
 
 
-def _run(scene: str, seed: int, seconds: float, kit, **config: object) -> Scored:
+def _map_rms(pipe: FlowPipeline, truth: cKDTree) -> float:
+    """RMS distance (m) of the map's voxel means to the true surface (points of the frames)."""
+    assert pipe.voxel_map is not None
+    distance, _ = truth.query(pipe.voxel_map.points().points.astype(np.float64), k=1)
+    return float(np.sqrt(np.mean(distance**2)))
+
+
+def _run(scene: str, seed: int, seconds: float, kit, maps: tuple[int, ...] = (),
+         **config: object) -> Scored:
+    """One render through SFS and the pipeline; ``maps``: map decimations to score against truth."""
     cfg = SimulationConfig(scene=scene, width=320, height=240, fps=FPS, duration_s=seconds,
                            seed=seed, **config)  # type: ignore[arg-type]
     seq = build_sequence(cfg)
@@ -73,10 +84,13 @@ def _run(scene: str, seed: int, seconds: float, kit, **config: object) -> Scored
     poses = kit.tracked_poses(true_poses, seed=seed)
     stamps = cfg.start_ns + times
     pipe = FlowPipeline(kit.options())
+    assert pipe.options.map_decimation == 1 and pipe.options.map_every == 1  # the defaults
+    fused = 0
     ratios = np.full(count, np.nan)
     mae, absrel, oracle, cloud = [], [], [], []
     for k in range(count):
         out = pipe.process(FlowFrame(int(stamps[k]), images[k], relative[k], camera, poses[k]))
+        fused += out.diagnostics.map_points
         if not out.scale.usable:
             continue
         ratios[k] = out.scale.value / s_oracle
@@ -95,13 +109,32 @@ def _run(scene: str, seed: int, seconds: float, kit, **config: object) -> Scored
     moved = motion_onset(true_poses[:, :3, 3], 2e-3)
     assert moved is not None, "the test trajectory must move 2 mm"
     usable = int(np.argmax(np.isfinite(ratios))) if np.isfinite(ratios).any() else count
-    return Scored(moved / FPS, usable / FPS, ratios, mae, absrel, oracle, cloud)
+    map_rms: dict[int, float] = {}
+    map_counts: dict[int, int] = {}
+    if maps:
+        # the true surface the map saw: every other frame's true points from the first usable
+        seen = [transform_points(true_poses[k], camera.depth_to_points(depths[k])).reshape(-1, 3)
+                for k in range(usable, count, 2)]
+        truth = np.concatenate(seen)
+        tree = cKDTree(truth[np.isfinite(truth).all(axis=1)])
+        for decimation in maps:
+            if decimation == 1:
+                run, total = pipe, fused
+            else:  # the same frames again, the map at that decimation
+                run = FlowPipeline(kit.options(map_decimation=decimation))
+                total = 0
+                for k in range(count):
+                    total += run.process(FlowFrame(int(stamps[k]), images[k], relative[k],
+                                                   camera, poses[k])).diagnostics.map_points
+            map_rms[decimation], map_counts[decimation] = _map_rms(run, tree), total
+    return Scored(moved / FPS, usable / FPS, ratios, mae, absrel, oracle, cloud, map_rms,
+                  map_counts)
 
 
 @pytest.fixture(scope="module")
 def matte_abdomen(kit) -> Scored:
     """2.5 s of the matte abdomen, seed 4 (the held-out seed of the variant)."""
-    return _run("abdomen", 4, 2.5, kit, **MATTE)
+    return _run("abdomen", 4, 2.5, kit, maps=(1, 4), **MATTE)
 
 
 @pytest.fixture(scope="module")
@@ -135,3 +168,20 @@ def test_colon_metric_absrel_within_0_01_of_the_oracle(colon):
     assert len(r.absrel) >= 5
     gap = np.mean(r.absrel) - np.mean(r.oracle_absrel)
     assert abs(gap) <= 0.01, (np.mean(r.absrel), np.mean(r.oracle_absrel))
+
+
+def test_full_resolution_map_against_the_truth(matte_abdomen):
+    """The map fused from every pixel: its voxels lie on the true surface, 1.5 mm RMS at most.
+
+    The bar is issue 11's for the frame's cloud (seed 4, not tuned on: the
+    map's settings were not tuned at all). Measured at 320x240: the map at
+    full resolution (the default) fused 2.31 M points, 16.0x the 144 k of the
+    live topic's decimation 4 over the same frames, and its voxels are
+    1.10 mm RMS from the truth against 1.04 mm at decimation 4: full
+    resolution does not make the map more accurate here (the error is the
+    depth's bias and the poses', not noise that more points average out).
+    The frames' own clouds after 1.5 s: 0.86 mm.
+    """
+    r = matte_abdomen
+    assert r.map_counts[1] > 14 * r.map_counts[4], r.map_counts
+    assert r.map_rms_m[1] <= 1.5e-3, r.map_rms_m

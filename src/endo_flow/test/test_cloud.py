@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from endo_flow.cloud import binned_camera, surface_normals, world_cloud
+from endo_flow.cloud import binned_camera, surface_normals, world_cloud, world_clouds
 from endo_io.camera import CameraModel
 from endo_io.pose import rigid_transform
 
@@ -61,3 +61,35 @@ def test_a_plane_gives_points_on_it_and_its_normal():
     np.testing.assert_allclose(normals[finite], np.tile(plane_normal_world, (finite.sum(), 1)),
                                atol=3e-5)
     assert (grey == 128).all()
+
+
+def test_one_back_projection_gives_the_live_and_the_full_resolution_clouds():
+    """world_clouds at (4, 1): the 4th-pixel cloud is world_cloud's at 4, the other every pixel."""
+    camera = _camera()
+    T = rigid_transform(np.array([0.2, -0.1, 0.05]), np.array([0.02, -0.01, 0.04]))
+    v, u = np.mgrid[0:480, 0:640]
+    depth = (0.05 + 0.01 * np.sin(u / 50.0) + 0.005 * np.cos(v / 30.0)).astype(np.float32)
+    depth[100:140, 200:260] = np.nan
+    depth[300:, :100] = 0.5  # beyond the 0.3 m range: not kept
+    image = np.random.default_rng(3).random(depth.shape).astype(np.float32)
+    kw = {"min_depth_m": 1e-3, "max_depth_m": 0.3, "white": 1.0, "gamma": 1.0}
+    live, full = world_clouds(depth, image, camera, T, decimations=(4, 1), **kw)
+    alone = world_cloud(depth, image, binned_camera(camera, 4), T, decimation=4, **kw)
+    # the same pixels, grey levels and normals (4 px apart) as the live cloud made alone
+    np.testing.assert_allclose(live[0], alone[0], rtol=0, atol=1e-9)
+    np.testing.assert_array_equal(live[1], alone[1])
+    np.testing.assert_allclose(live[2], alone[2], rtol=0, atol=1e-6)
+    # full resolution: one point per pixel in range
+    in_range = np.isfinite(depth) & (depth <= 0.3)
+    assert len(full[0]) == in_range.sum() == len(full[1]) == len(full[2])
+    assert len(live[0]) == in_range[::4, ::4].sum()
+    # every point back in the camera has its pixel's depth
+    local = (full[0].astype(np.float64) - T[:3, 3]) @ T[:3, :3]
+    np.testing.assert_allclose(local[:, 2], depth[in_range], rtol=1e-6)
+    # a decimation that does not divide the other: the grid at their gcd, 3 and 2 -> 1
+    three, two = world_clouds(depth, image, camera, T, decimations=(3, 2), **kw)
+    assert len(three[0]) == in_range[:480:3, :639:3].sum()
+    assert len(two[0]) == in_range[::2, ::2].sum()
+    np.testing.assert_allclose(
+        three[0], world_cloud(depth, image, binned_camera(camera, 3), T, decimation=3, **kw)[0],
+        rtol=0, atol=1e-9)

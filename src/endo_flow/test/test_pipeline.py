@@ -132,3 +132,49 @@ def test_reprojection_observation_gives_the_scale(moving, kit, gate, views):
         outputs = [pipe.process(frame) for frame in moving.frames(poses)]
         errors = [abs(o.scale.value / kit.S_TRUE - 1.0) for o in outputs if o.scale.usable]
         assert outputs[-1].scale.usable and errors[-1] < bar, (gate, errors[-1])
+
+
+def test_live_cloud_decimated_map_at_full_resolution(moving, kit):
+    """The output's cloud takes every 4th pixel; the map fuses every pixel, from the same depth."""
+    pipe = FlowPipeline(kit.options())
+    assert (pipe.options.cloud_decimation, pipe.options.map_decimation) == (4, 1)
+    every_third = FlowPipeline(kit.options(map_every=3))
+    with_points = 0
+    for frame in moving.frames(moving.poses):
+        out = pipe.process(frame)
+        other = every_third.process(frame)
+        if out.depth is None:
+            assert out.diagnostics.map_points == 0
+            continue
+        in_range = np.isfinite(out.depth) & (out.depth >= 1e-3) & (out.depth <= 0.3)
+        assert len(out.points) == out.diagnostics.cloud_points == in_range[::4, ::4].sum()
+        assert out.diagnostics.map_points == in_range.sum()
+        # map_every changes what the map takes, never the output's cloud
+        np.testing.assert_array_equal(other.points, out.points)
+        expected = in_range.sum() if with_points % 3 == 0 else 0
+        assert other.diagnostics.map_points == expected
+        with_points += 1
+    assert with_points > 20
+    # every 3rd frame at full resolution: about a third of the points
+    total, taken = pipe.voxel_map, every_third.voxel_map
+    assert total is not None and taken is not None
+    fused = int(total.points().count.sum())
+    assert 0.3 < taken.points().count.sum() / fused < 0.37
+    # fewer points, and a surface covered nearly as well (the frames overlap at 30 fps)
+    assert len(taken) > 0.8 * len(total)
+
+
+def test_cloud_options_change_on_the_fly(moving, kit):
+    pipe = FlowPipeline(kit.options())
+    frames = moving.frames(moving.poses)
+    outputs = [pipe.process(frame) for frame in frames[:40]]
+    assert outputs[-1].depth is not None
+    pipe.set_cloud_options(cloud_decimation=2, map_decimation=4)
+    out = pipe.process(frames[40])
+    in_range = np.isfinite(out.depth) & (out.depth >= 1e-3) & (out.depth <= 0.3)
+    assert len(out.points) == in_range[::2, ::2].sum()
+    assert out.diagnostics.map_points == in_range[::4, ::4].sum()
+    with pytest.raises(ValueError, match="map_every must be >= 1"):
+        pipe.set_cloud_options(map_every=0)
+    with pytest.raises(ValueError, match="change on the fly"):
+        pipe.set_cloud_options(voxel_size_m=2)

@@ -64,6 +64,11 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--camera-info", type=Path,
                         help="camera YAML (camera_calibration format) instead of the topic")
     parser.add_argument("--ply", type=Path, help="write the fused map as PLY")
+    parser.add_argument("--cloud-decimation", type=int, default=1, metavar="N",
+                        help="/endoscope/points takes every N-th pixel per axis (default 1: "
+                        "full resolution, ~4.9 MB per 640x480 frame; the live graph's is 4); "
+                        "the map is fused from every frame at the flow node's map_decimation "
+                        "(default 1) either way")
     parser.add_argument("--jobs", type=int, default=2,
                         help="SFS chains (default 2: correction + SFS in 2 worker processes "
                         "taking the frames in turn, flow and writing in this one; 1: all in "
@@ -119,6 +124,8 @@ def _options(args: argparse.Namespace) -> ProcessOptions:
         raise Endo3dError(f"--jobs must be >= 1, got {args.jobs}")
     if args.chunk_frames < 1:
         raise Endo3dError(f"--chunk-frames must be >= 1, got {args.chunk_frames}")
+    if args.cloud_decimation < 1:
+        raise Endo3dError(f"--cloud-decimation must be >= 1, got {args.cloud_decimation}")
     for name in ("bag", "calibration", "handeye", "params", "camera_info"):
         path = getattr(args, name)
         if path is not None and not path.exists():
@@ -131,7 +138,8 @@ def _options(args: argparse.Namespace) -> ProcessOptions:
         bag=args.bag, output=args.output, calibration=args.calibration, handeye=args.handeye,
         params=args.params, solve_scale=args.solve_scale,
         topics=InputTopics(args.image_topic, args.camera_info_topic, args.tracker_topic),
-        camera_info=args.camera_info, ply=args.ply, jobs=args.jobs,
+        camera_info=args.camera_info, ply=args.ply, cloud_decimation=args.cloud_decimation,
+        jobs=args.jobs,
         chunk_frames=args.chunk_frames, compression=args.compression,
         chunk_crcs=args.chunk_crc, progress=not args.quiet, max_frames=args.max_frames,
     )  # fmt: skip

@@ -5,8 +5,10 @@ dropout: the pipeline keeps tracking and holds the scale, and makes no
 world points), goes through ``FlowPipeline.process``. Its output becomes
 the live graph's topics: ``/endoscope/depth`` (32FC1 metres, REP 118, once
 the scale is usable), ``/endoscope/points`` (the frame's world points,
-PointCloud2 in ``world``, grey as rgb), ``/endoscope/scale`` and, at the end,
-``/endoscope/map`` (the fused voxel map's last state).
+PointCloud2 in ``world``, grey as rgb; full resolution by default, unlike the
+live topic: :func:`offline_flow_options`), ``/endoscope/scale`` and, at the
+end, ``/endoscope/map`` (the fused voxel map's last state, fused from every
+frame).
 
 The messages are the ``flow`` node's, built by the same functions
 (:mod:`endo_flow.messages`: ``scale_message``, ``grey_cloud`` and its CDR
@@ -16,6 +18,7 @@ from at least ``map_min_count`` points.
 
 from __future__ import annotations
 
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -37,6 +40,25 @@ def flow_options(values: dict[str, Any]) -> FlowOptions:
     try:
         return pipeline_options(values)
     except (TypeError, ValueError) as error:
+        raise ParameterFileError(f"flow: {error}") from None
+
+
+def offline_flow_options(values: dict[str, Any], cloud_decimation: int = 1) -> FlowOptions:
+    """The flow node's options (:func:`flow_options`) as an offline run uses them.
+
+    ``/endoscope/points`` takes every ``cloud_decimation``-th pixel (the
+    command line's; 1, full resolution, by default) rather than the live
+    topic's ``cloud_decimation``, and the map fuses every frame
+    (``map_every`` 1: its rate is a CPU budget of the live node), at the
+    parameters' ``map_decimation`` (1, full resolution, by default).
+
+    Raises:
+        ParameterFileError: a value the options refuse.
+    """
+    options = flow_options(values)
+    try:
+        return replace(options, cloud_decimation=int(cloud_decimation), map_every=1)
+    except ValueError as error:
         raise ParameterFileError(f"flow: {error}") from None
 
 

@@ -18,8 +18,9 @@
    order, as a live consumer sees them; frames without one are counted;
 5. the flow step (:class:`endo_process.flow_stage.FlowStage`, i.e.
    ``FlowPipeline.process``), written as ``/endoscope/depth``,
-   ``/endoscope/points`` and ``/endoscope/scale``, and at the end the voxel
-   map's last state as ``/endoscope/map`` (and ``--ply``).
+   ``/endoscope/points`` (full resolution unless ``--cloud-decimation``) and
+   ``/endoscope/scale``, and at the end the voxel map's last state as
+   ``/endoscope/map`` (and ``--ply``), fused from every frame.
 
 Ground truth in the input is copied through. A stop request (Ctrl-C,
 SIGTERM) ends the run after the current frame and the output is finalised.
@@ -56,7 +57,7 @@ from endo_io.progress import Progress
 from endo_io.stamp import NS_PER_S, ns_to_stamp, stamp_to_ns
 from endo_io.tf import StampedTransform, static_transforms
 from endo_process.errors import ProcessInputError
-from endo_process.flow_stage import FlowStage, flow_options
+from endo_process.flow_stage import FlowStage, offline_flow_options
 from endo_process.inputs import (
     CameraInfoPairing,
     InputTopics,
@@ -92,6 +93,7 @@ class ProcessOptions:
     topics: InputTopics = field(default_factory=InputTopics)
     camera_info: Path | None = None
     ply: Path | None = None
+    cloud_decimation: int = 1
     jobs: int = 1
     chunk_frames: int = DEFAULT_CHUNK_FRAMES
     compression: str = "zstd"
@@ -535,7 +537,8 @@ def process_bag(
             round(float(settings.flow["pose_max_gap_s"]) * NS_PER_S),
             report,
         )
-        flow = FlowStage(flow_options(settings.flow), int(settings.flow["map_min_count"]))
+        flow = FlowStage(offline_flow_options(settings.flow, options.cloud_decimation),
+                         int(settings.flow["map_min_count"]))
         if camera is not None and pool.worker_count > 0:
             # Overlapped with the workers' first frames; with one job it would only add.
             warm_up_pipeline(flow.pipeline.options, camera)

@@ -23,7 +23,7 @@ import pytest
 from endo_io import topics
 from endo_io.bag import BagReader
 from endo_io.bag.streams import read_depth_frames
-from endo_process.accuracy import read_scale_stream, score_recording
+from endo_process.accuracy import messages_at, read_scale_stream, score_recording
 from endo_process.report import headline, write_report_figure
 from endo_process.runner import LOOP_STAGES, ProcessOptions, ProcessReport, process_bag
 from endo_process.summary import summary_document
@@ -40,6 +40,7 @@ def full_run(
     report = process_bag(ProcessOptions(
         bag=PHANTOM, output=output, calibration=calibrations[0], handeye=calibrations[1],
         params=phantom_params, solve_scale=0.5, jobs=2, progress=False,
+        ply=output.with_suffix(".ply"),
     ))  # fmt: skip
     return report, output
 
@@ -105,6 +106,42 @@ def test_every_frame_is_processed_and_the_truth_copied(full_run: tuple[ProcessRe
     assert report.steady_real_time_factor > 0.0
     assert report.shading_seconds["correct"] > 0.0
     assert report.shading_seconds["sfs.sweeps"] < report.shading_seconds["solve"]
+
+
+def read_ply_vertices(path: Path) -> np.ndarray:
+    """The vertex table of a binary little-endian PLY as a structured array."""
+    types = {"float": "<f4", "uchar": "u1", "uint": "<u4"}
+    with path.open("rb") as stream:
+        fields, count = [], 0
+        while (line := stream.readline().decode("ascii").strip()) != "end_header":
+            words = line.split()
+            if words[:2] == ["element", "vertex"]:
+                count = int(words[2])
+            elif words[0] == "property":
+                fields.append((words[2], types[words[1]]))
+        return np.frombuffer(stream.read(), dtype=fields, count=count)
+
+
+def test_points_and_map_at_full_resolution(full_run: tuple[ProcessReport, Path]) -> None:
+    """Offline, /endoscope/points has a point per pixel in range; the map fused all of them."""
+    report, output = full_run
+    depths = read_depth_frames(output, topics.DEPTH)
+    clouds = messages_at(output, topics.POINTS, set(depths))
+    assert len(clouds) >= len(depths) - 1
+    total = 0
+    for stamp, cloud in clouds.items():
+        depth = depths[stamp]
+        in_range = np.isfinite(depth) & (depth >= 1e-3) & (depth <= 0.3)
+        # every pixel in range (the phantom's field of view and highlights leave ~half);
+        # decimation 4 would give a 16th
+        assert cloud.width * cloud.height == in_range.sum() > 0.3 * depth.size  # type: ignore[attr-defined]
+        total += int(in_range.sum())
+    # the map: every point of every frame fused (map_every 1, map_decimation 1), none evicted
+    vertices = read_ply_vertices(output.with_suffix(".ply"))
+    assert len(vertices) == report.ply_vertices == report.map_points
+    assert int(vertices["count"].sum()) == total
+    # ~60 points per 1 mm voxel at the phantom's 20-60 mm (a 640x480 pixel is ~0.1 mm there)
+    assert total > 20 * len(vertices)
 
 
 def test_accuracy_against_the_ground_truth(full_run: tuple[ProcessReport, Path]) -> None:
