@@ -6,7 +6,7 @@ import numpy as np
 
 from endo_flow.cloud import binned_camera, surface_normals, world_cloud, world_clouds
 from endo_io.camera import CameraModel
-from endo_io.pose import rigid_transform
+from endo_io.pose import rigid_transform, transform_points
 
 
 def numpy_surface_normals(points: np.ndarray) -> np.ndarray:
@@ -83,6 +83,9 @@ def test_one_back_projection_gives_the_live_and_the_full_resolution_clouds():
     in_range = np.isfinite(depth) & (depth <= 0.3)
     assert len(full[0]) == in_range.sum() == len(full[1]) == len(full[2])
     assert len(live[0]) == in_range[::4, ::4].sum()
+    # the points are transform_points' (the pass does its arithmetic), to float32's rounding
+    expected = transform_points(T, camera.depth_to_points(depth)[in_range])
+    np.testing.assert_allclose(full[0], expected, rtol=0, atol=1e-7)
     # every point back in the camera has its pixel's depth
     local = (full[0].astype(np.float64) - T[:3, 3]) @ T[:3, :3]
     np.testing.assert_allclose(local[:, 2], depth[in_range], rtol=1e-6)
