@@ -206,9 +206,9 @@ PARAMETERS: tuple[ParameterSpec, ...] = (
     ParameterSpec("map_decimation", 1,
                   "the map fuses every n-th pixel per axis of the metric depth (1: full "
                   "resolution)", range=(1, 32)),
-    ParameterSpec("map_every", 1,
+    ParameterSpec("map_every", 8,
                   "the map fuses every n-th frame with world points (the live map's CPU "
-                  "knob: it keeps the resolution)", range=(1, 100)),
+                  "knob: it keeps the resolution; 8: docs/flow.md)", range=(1, 100)),
     ParameterSpec("map_voxel_size_m", 1e-3, "voxel edge of the map, metres",
                   range=(1e-5, 0.1), read_only=True),
     ParameterSpec("map_max_voxels", 2_000_000,
