@@ -179,6 +179,12 @@ def print_node_help(factory: Callable[[], Node], argv: Sequence[str]) -> int:
 class _SigintShutdown:
     """Python's SIGINT handler under :func:`sigint_shuts_down_only`.
 
+    The handler only wakes a watcher thread started with it, which shuts the
+    context down: starting a thread from the handler would take Python's
+    thread-registry lock, which the interrupted main thread may hold (inside
+    ``Thread.start``, ``threading.enumerate``, an executor's ``submit``), and
+    deadlock; waking an event the main thread never otherwise touches cannot.
+
     Attributes:
         starting: True while the node is being created; a second SIGINT then
             raises KeyboardInterrupt (the start-up is abandoned).
@@ -188,22 +194,40 @@ class _SigintShutdown:
     def __init__(self) -> None:
         self.starting = False
         self.received = 0
+        self._wake = threading.Event()
+        self._closed = False
+        self._watcher = threading.Thread(target=self._watch, name="sigint-shutdown", daemon=True)
+        self._watcher.start()
 
     def __call__(self, signum: int, frame: FrameType | None) -> None:
-        """Shut the default context down from a thread of its own; raise nothing.
+        """Have the watcher shut the default context down; raise nothing.
 
         rclpy's own handler, which ``rclpy.init`` chains before this one, wakes
         the executor and shuts the context down from its signal thread; it did
         not in a CI worker whose earlier tests had left rclpy's handlers in
         some other state (the context stayed valid for 10 s, twice), so this
-        part does it too. From another thread: here, in the main thread, it
-        could wait for a lock that the interrupted code holds. A second
-        shutdown is a no-op.
+        part does it too, from the watcher: here, in the main thread, the
+        shutdown could wait for a lock that the interrupted code holds. A
+        second shutdown is a no-op.
         """
         self.received += 1
         if self.starting and self.received > 1:
             raise KeyboardInterrupt
-        threading.Thread(target=_try_shutdown_quietly, name="sigint-shutdown", daemon=True).start()
+        self._wake.set()
+
+    def _watch(self) -> None:
+        while True:
+            self._wake.wait()
+            self._wake.clear()
+            if self._closed:
+                return
+            _try_shutdown_quietly()
+
+    def close(self) -> None:
+        """Stop the watcher (the handler is no longer installed)."""
+        self._closed = True
+        self._wake.set()
+        self._watcher.join(timeout=5.0)
 
 
 def _try_shutdown_quietly() -> None:
@@ -247,6 +271,7 @@ def sigint_shuts_down_only() -> Iterator[_SigintShutdown | None]:
     finally:
         _uninstall_rclpy_signal_handlers()  # so that a later rclpy.init installs them again
         signal.signal(signal.SIGINT, previous)
+        handler.close()
 
 
 def run_node(factory: Callable[[], Node], args: Sequence[str] | None = None) -> int:

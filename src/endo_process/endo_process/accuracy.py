@@ -172,27 +172,45 @@ def cloud_distances(
     return np.asarray(distance, np.float64)
 
 
+CLOUD_SCORE_POINTS = 50_000
+"""At most this many points of one cloud are scored (an even stride over them).
+
+A full-resolution cloud holds ~300 000 points; the RMS of 50 000 of them taken
+evenly over the image is the same figure to well under 1 % and costs a sixth
+of the nearest-neighbour queries.
+"""
+
+
 def cloud_rms_at_truth(path: Path, truths: dict[int, np.ndarray]) -> dict[int, float]:
     """RMS distance (m) of each frame's world points to that frame's true surface.
 
     The true surface is the true depth through the frame's camera model and
-    its true pose (:func:`cloud_distances`). Frames without points,
-    camera_info or true pose are left out.
+    its true pose (:func:`cloud_distances`), at most :data:`CLOUD_SCORE_POINTS`
+    points per cloud. One pass over the points topic, each cloud scored and
+    dropped as it is read: full-resolution clouds are ~5 MB each. Frames
+    without points, camera_info or true pose are left out.
     """
     stamps = set(truths)
-    clouds = messages_at(path, topics.POINTS, stamps)
     infos = messages_at(path, topics.CAMERA_INFO, stamps)
     true_stamps, true_poses = read_pose_stream(path, topics.TRUE_CAMERA_POSE)
     poses = dict(zip(true_stamps.tolist(), true_poses, strict=True))
+    wanted = stamps & set(infos) & set(poses)
     rms: dict[int, float] = {}
-    for stamp in sorted(set(clouds) & set(infos) & set(poses)):
-        points, _ = pointcloud2_to_xyz(clouds[stamp])
-        camera = CameraModel.from_camera_info(infos[stamp])
-        distance = cloud_distances(points, truths[stamp], camera, poses[stamp])
-        if len(distance) == 0:
-            continue
-        rms[stamp] = float(np.sqrt(np.mean(distance**2)))
-    return rms
+    with BagReader(path) as reader:
+        if topics.POINTS not in reader.topics:
+            return rms
+        for message in reader.messages([topics.POINTS]):
+            cloud = deserialize(message)
+            stamp = stamp_to_ns(cloud.header.stamp)
+            if stamp not in wanted:
+                continue
+            points, _ = pointcloud2_to_xyz(cloud)
+            stride = max(1, -(-len(points) // CLOUD_SCORE_POINTS))
+            camera = CameraModel.from_camera_info(infos[stamp])
+            distance = cloud_distances(points[::stride], truths[stamp], camera, poses[stamp])
+            if len(distance):
+                rms[stamp] = float(np.sqrt(np.mean(distance**2)))
+    return dict(sorted(rms.items()))
 
 
 def score_recording(path: Path) -> Accuracy:
