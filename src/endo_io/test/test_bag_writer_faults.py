@@ -6,6 +6,15 @@ writes what fits and then fails with ENOSPC, as a real full disk does; the
 writer must cut the partial record off, count as written exactly the
 messages in complete chunks, count the rest as lost, and leave a file that
 reads to its last chunk.
+
+An exception other than OSError inside a write (session robust): the writer
+used to keep its file position in Python, and a KeyboardInterrupt after a
+chunk's ``os.write`` and before the position update left a summary 2.03 MB
+off, a file no reader opened (session recdiag). ``os.write`` here writes
+part of its data and then raises (a MemoryError, a KeyboardInterrupt of a
+tool that embeds the writer) at every write of a small recording in turn:
+the file must open in our reader, the MCAP library's and rosbags' with every
+message written before the failure.
 """
 
 from __future__ import annotations
@@ -18,6 +27,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
+from mcap.reader import make_reader
+from rosbags.highlevel import AnyReader
 from sensor_msgs.msg import Image
 from std_msgs.msg import Float32
 
@@ -178,3 +189,127 @@ def test_metadata_yaml_counts_what_each_flush_put_on_disk(tmp_path):
         assert meta["topics_with_message_count"][0]["message_count"] == flushed
         assert meta["files"][0]["message_count"] == flushed
     writer.close()
+
+
+MESSAGES = 40
+
+
+def small_message(i: int) -> tuple[str, bytes]:
+    if i % 3:
+        return "/image", image(i)
+    return "/value", serialize(Float32(data=float(i)))
+
+
+class FailingWrite:
+    """``os.write`` that, at its ``fail_at``-th call, writes half its data and raises."""
+
+    def __init__(self, fail_at: int, error: type[BaseException]) -> None:
+        self.fail_at = fail_at
+        self.error = error
+        self.calls = 0
+        self.real_write = os.write
+
+    def __call__(self, fd: int, data) -> int:
+        self.calls += 1
+        if self.calls == self.fail_at:
+            view = memoryview(data)
+            self.real_write(fd, view[: len(view) // 2])
+            raise self.error("injected")
+        return self.real_write(fd, data)
+
+
+def record(path: Path, write: FailingWrite, compression: str):
+    """A small recording; returns (the writer, sent per topic, written counts before the failure).
+
+    Every message handed to ``write`` counts as sent; the counts before are
+    the writer's messages on disk just before the call that failed (None: none
+    failed). A bag directory is split every 4 kB.
+    """
+    sent: dict[str, list[bytes]] = {"/image": [], "/value": []}
+    before: dict[str, int] = {}
+    split = None if path.suffix == ".mcap" else 4_000
+    writer = BagWriter(path, compression=compression, chunk_size=1_500, split_size_bytes=split)
+    failed = False
+
+    def call(function, *args) -> None:
+        nonlocal failed, before
+        if failed:
+            with pytest.raises(BagError, match="writing stopped by"):
+                function(*args)
+            return
+        counts = {t: n for t, (n, _) in writer.written.items()}
+        try:
+            function(*args)
+        except write.error:
+            failed, before = True, counts
+
+    call(writer.add_topic, "/image", "sensor_msgs/msg/Image")
+    call(writer.add_topic, "/value", "std_msgs/msg/Float32")
+    for i in range(MESSAGES):
+        topic, data = small_message(i)
+        if topic in writer.written:
+            sent[topic].append(data)
+        call(writer.write, topic, data, T0 + i * 10_000_000)
+        if i % 15 == 14:
+            call(writer.flush)
+    counts = {t: n for t, (n, _) in writer.written.items()}
+    try:
+        writer.close()
+    except write.error:
+        assert not failed
+        failed, before = True, counts
+    return writer, sent, before if failed else None
+
+
+def clean_writes(path: Path, compression: str) -> int:
+    counter = FailingWrite(0, RuntimeError)
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(writer_module, "os", with_write(counter))
+        writer, _, _ = record(path, counter, compression)
+    assert len(writer.file_paths) == (1 if path.suffix == ".mcap" else 7)
+    return counter.calls
+
+
+@pytest.mark.parametrize(("suffix", "compression"),
+                         [(".mcap", "zstd"), (".mcap", "none"), ("_dir", "lz4")])
+@pytest.mark.parametrize("error", [KeyboardInterrupt, MemoryError])
+def test_a_failure_at_any_write_leaves_a_file_every_reader_opens(
+        tmp_path, suffix, compression, error):
+    writes = clean_writes(tmp_path / f"clean{suffix}", compression)
+    assert writes > 20  # headers, several chunks and their indexes, summaries
+    for fail_at in range(1, writes + 1):
+        path = tmp_path / f"fail_{fail_at}{suffix}"
+        failing = FailingWrite(fail_at, error)
+        with pytest.MonkeyPatch.context() as patch:
+            patch.setattr(writer_module, "os", with_write(failing))
+            try:
+                writer, sent, before = record(path, failing, compression)
+            except error:
+                # the constructor's header: no file rather than one no reader opens
+                assert fail_at <= 2 and not path.exists(), fail_at
+                continue
+        assert before is not None, fail_at
+        written = {t: n for t, (n, _) in writer.written.items()}
+        with BagReader(path) as reader:
+            assert reader.damage is None, (fail_at, reader.damage)
+            got: dict[str, list[bytes]] = {}
+            for m in reader.messages():
+                got.setdefault(m.topic, []).append(bytes(m.data))
+        for topic, data in sent.items():
+            held = got.get(topic, [])
+            assert held == data[: len(held)], (fail_at, topic)  # a prefix of what was sent
+            assert len(held) == written.get(topic, 0), (fail_at, topic)
+            assert len(held) >= before.get(topic, 0), (fail_at, topic)  # nothing written lost
+        by_library = []
+        for file_path in writer.file_paths:  # a file its header did not reach is not listed
+            with file_path.open("rb") as stream:
+                mcap = make_reader(stream)
+                summary = mcap.get_summary()
+                assert summary is not None and summary.statistics is not None, fail_at
+                in_file = [(c.topic, bytes(m.data)) for _, c, m in mcap.iter_messages()]
+                assert summary.statistics.message_count == len(in_file), fail_at
+                by_library += in_file
+        with AnyReader([path]) as rosbags_reader:
+            by_rosbags = [(c.topic, bytes(raw)) for c, _, raw in rosbags_reader.messages()]
+        ours = sorted((t, d) for t, ds in got.items() for d in ds)
+        assert sorted(by_library) == ours and sorted(by_rosbags) == ours, fail_at

@@ -16,6 +16,16 @@ read back (by :class:`endo_io.bag.BagReader`, which falls back to a linear
 scan when the summary is missing). Only the chunk still being filled in
 memory is lost; :meth:`BagWriter.flush` closes it early.
 
+The summary (schemas, channels, statistics, chunk and metadata indexes) is
+built from what the file sink saw reach the disk whole, never from the MCAP
+library's bookkeeping, and file positions come from the file itself
+(``os.lseek``). Any exception other than OSError inside a write (a
+MemoryError, a KeyboardInterrupt of a tool that embeds the writer) stops the
+writer: the file is cut back to its last whole chunk and message indexes
+(the MCAP library's state is unknown then), the exception propagates, and
+:meth:`BagWriter.close` still writes the summary and footer, so that every
+reader opens the file with every message written before the failure.
+
 What counts as *written* is what is in a complete chunk on disk:
 :attr:`BagWriter.written` counts those messages per topic, and the metadata
 (metadata.yaml, the ``rosbag2`` record) counts only them. A write that fails
@@ -36,14 +46,29 @@ from __future__ import annotations
 
 import contextlib
 import os
+import struct
 import time
 import types
+import zlib
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import IO, Any, cast
 
+from mcap.data_stream import RecordBuilder
 from mcap.opcode import Opcode
-from mcap.writer import CompressionType
+from mcap.records import (
+    Channel,
+    ChunkIndex,
+    DataEnd,
+    Footer,
+    Metadata,
+    MetadataIndex,
+    Schema,
+    Statistics,
+    SummaryOffset,
+)
+from mcap.writer import MCAP0_MAGIC, CompressionType
 from mcap.writer import Writer as McapWriter
 
 from endo_io.bag.errors import BagError
@@ -74,7 +99,7 @@ _MAX_TIME_NS = 2**64 - 1
 
 
 class _OsFileSink:
-    """Write-only file that hands every write to the OS at once.
+    """Write-only file that hands every write to the OS at once, and indexes what is whole.
 
     Page-cache writes survive the death of the process, so a SIGKILLed
     recorder loses nothing that the MCAP writer had already written. A write
@@ -82,6 +107,15 @@ class _OsFileSink:
     ends at the last whole record (the MCAP writer hands over one record, or
     one chunk's message indexes, per call); ``chunks_written`` counts the
     chunk records written whole.
+
+    Every chunk record written whole becomes a chunk index once its message
+    indexes are written whole too; metadata records become metadata indexes.
+    ``_committed`` (one tuple, assigned at once) is the end of the last whole
+    group (header, chunk and its message indexes, metadata record) and how
+    many indexes of each kind it holds: :meth:`cut_to_committed` cuts the
+    file back to it after an exception anywhere, whatever the MCAP library's
+    state. Positions come from the file (``os.lseek``), never from a count
+    that an exception between a write and its update could leave stale.
     """
 
     def __init__(self, path: Path) -> None:
@@ -92,34 +126,106 @@ class _OsFileSink:
         except OSError as exc:
             raise BagError(f"{path}: cannot create ({exc.strerror})") from exc
         self.path = path
-        self._position = 0
         self.chunks_written = 0
+        self.chunk_indexes: list[ChunkIndex] = []
+        self.metadata_indexes: list[MetadataIndex] = []
+        self._open_chunk: ChunkIndex | None = None
+        self._committed = (0, 0, 0)
 
     def write(self, data: bytes | bytearray | memoryview) -> int:
         view = memoryview(data)
-        start = self._position
+        if not view.nbytes:
+            return 0
+        start = self.tell()
         try:
             while view.nbytes:
                 written = os.write(self._fd, view)
                 view = view[written:]
-                self._position += written
         except OSError:
             with contextlib.suppress(OSError):  # if this fails too, readers stop at the cut
-                os.ftruncate(self._fd, start)
-                self._position = start
+                self._cut(start)
             raise
-        if len(data) and data[0] == Opcode.CHUNK:
-            self.chunks_written += 1
+        self._index(memoryview(data), start)
         return len(data)
 
+    def _index(self, data: memoryview, start: int) -> None:
+        """Account for one whole write at ``start`` (see the class docstring)."""
+        opcode = data[0]
+        if opcode == Opcode.CHUNK:
+            self._open_chunk = _chunk_index(data, start)
+            self.chunks_written += 1
+            return
+        chunk = self._open_chunk
+        if chunk is not None:
+            if opcode == Opcode.MESSAGE_INDEX:
+                chunk.message_index_offsets = _message_index_offsets(data, start)
+                chunk.message_index_length = len(data)
+            self.chunk_indexes.append(chunk)
+            self._open_chunk = None
+        if opcode == Opcode.METADATA:
+            (name_length,) = struct.unpack_from("<I", data, 9)
+            name = bytes(data[13 : 13 + name_length]).decode()
+            self.metadata_indexes.append(MetadataIndex(start, len(data), name))
+        self._committed = (start + len(data), len(self.chunk_indexes), len(self.metadata_indexes))
+
     def tell(self) -> int:
-        return self._position
+        return os.lseek(self._fd, 0, os.SEEK_CUR)
+
+    def _cut(self, end: int) -> None:
+        os.ftruncate(self._fd, end)
+        os.lseek(self._fd, end, os.SEEK_SET)
+
+    @property
+    def committed(self) -> tuple[int, int, int]:
+        """(end of the last whole group, chunk indexes, metadata indexes) up to it."""
+        return self._committed
+
+    def cut_to_committed(self, committed: tuple[int, int, int] | None = None) -> None:
+        """Cut the file back to its last whole group (or an earlier ``committed``)."""
+        end, chunks, metadata = self._committed if committed is None else committed
+        self._cut(end)
+        del self.chunk_indexes[chunks:]
+        del self.metadata_indexes[metadata:]
+        self._open_chunk = None
+        self.chunks_written = chunks
+        self._committed = (end, chunks, metadata)
 
     def flush(self) -> None:
         """Nothing is buffered here."""
 
     def close(self) -> None:
         os.close(self._fd)
+
+
+def _chunk_index(record: memoryview, offset: int) -> ChunkIndex:
+    """The chunk index of one whole Chunk record written at ``offset`` (no message indexes yet)."""
+    start_ns, end_ns, uncompressed_size, _crc, compression_length = struct.unpack_from(
+        "<QQQII", record, 9)
+    compression = bytes(record[41 : 41 + compression_length]).decode()
+    (compressed_size,) = struct.unpack_from("<Q", record, 41 + compression_length)
+    return ChunkIndex(
+        message_start_time=start_ns,
+        message_end_time=end_ns,
+        chunk_start_offset=offset,
+        chunk_length=len(record),
+        message_index_offsets={},
+        message_index_length=0,
+        compression=compression,
+        compressed_size=compressed_size,
+        uncompressed_size=uncompressed_size,
+    )
+
+
+def _message_index_offsets(data: memoryview, offset: int) -> dict[int, int]:
+    """Channel id -> file offset of each MessageIndex record in one write at ``offset``."""
+    offsets = {}
+    position = 0
+    while position + 11 <= len(data):
+        opcode, length, channel_id = struct.unpack_from("<BQH", data, position)
+        if opcode == Opcode.MESSAGE_INDEX:
+            offsets[channel_id] = offset + position
+        position += 9 + length
+    return offsets
 
 
 @dataclass
@@ -230,10 +336,19 @@ class BagWriter:
         self._pending: list[tuple[str, int, int]] = []
         self._chunks_seen = 0
         self._failure = ""
+        self._summary_possible = True  # False after an OSError: the disk refused
         self._lost = 0
+        self._schemas: dict[int, Schema] = {}
+        self._channels: dict[int, Channel] = {}
         self._metadata_due = False
         self._metadata_written = time.monotonic()
-        self._open_next_file()
+        try:
+            self._open_next_file()
+        except BaseException:
+            if self._is_directory:
+                with contextlib.suppress(OSError):
+                    self.path.rmdir()  # created here, and empty
+            raise
 
     # -- what is on disk -----------------------------------------------------
 
@@ -271,17 +386,55 @@ class BagWriter:
 
     def _fail(self, exc: OSError, doing: str) -> BagError:
         """Stop the writer after a failed write; returns the error to raise."""
+        self._summary_possible = False
         if self._sink is not None:
             self._settle()
+        self._stop(f"cannot {doing} ({exc.strerror or exc})")
+        return BagError(self._failure)
+
+    def _interrupted(self, exc: BaseException) -> None:
+        """Stop the writer after an exception other than OSError inside a write.
+
+        The MCAP library's state is unknown then (the exception may have
+        landed between any two of its statements): the file is cut back to
+        its last whole group, the messages beyond it are lost, and
+        :meth:`close` writes the summary from what the file holds.
+        """
+        if self._failure:
+            return
+        if self._sink is not None:
+            try:
+                self._sink.cut_to_committed()
+            except OSError:
+                self._summary_possible = False
+            self._settle()
+        self._mcap = None
+        self._stop(f"writing stopped by {type(exc).__name__}" + (f" ({exc})" if str(exc) else ""))
+
+    def _library_call(self, call: Callable[..., object], *args: Any, **kwargs: Any) -> None:
+        """One call into the MCAP library that may write; then count what reached the disk.
+
+        An OSError stops the writer with a BagError (:meth:`_fail`), any other
+        exception stops it and propagates (:meth:`_interrupted`).
+        """
+        try:
+            call(*args, **kwargs)
+        except OSError as exc:
+            raise self._fail(exc, "write") from exc
+        except BaseException as exc:
+            self._interrupted(exc)
+            raise
+        self._settle()
+
+    def _stop(self, cause: str) -> None:
         self._lost += len(self._pending)
         self._pending.clear()
         held = sum(t.written for t in self._topics.values())
         where = self._sink.path if self._sink is not None else self.path
         self._failure = (
-            f"{where}: cannot {doing} ({exc.strerror or exc}); the bag holds the {held} "
+            f"{where}: {cause}; the bag holds the {held} "
             f"messages written before, {self._lost} not yet on disk are lost"
         )
-        return BagError(self._failure)
 
     # -- file handling -------------------------------------------------------
 
@@ -301,36 +454,121 @@ class BagWriter:
         self._sink = _OsFileSink(file_path)
         self._chunks_seen = 0
         self._files.append(_FileStats(relative))
-        self._mcap = McapWriter(
-            cast(IO[Any], self._sink),  # write/tell/flush is all it uses
-            chunk_size=self.chunk_size,
-            compression=_COMPRESSION[self.compression],
-            enable_crcs=self.crcs,
-        )
-        try:
-            self._mcap.start(profile="ros2", library=_LIBRARY)
-        except OSError as exc:
-            raise self._fail(exc, "write") from exc
         self._schema_ids.clear()
         self._channel_ids.clear()
-        for topic in self._topics.values():
-            self._register(topic)
+        self._schemas.clear()
+        self._channels.clear()
+        try:
+            self._mcap = McapWriter(
+                cast(IO[Any], self._sink),  # write/tell/flush is all it uses
+                chunk_size=self.chunk_size,
+                compression=_COMPRESSION[self.compression],
+                enable_crcs=self.crcs,
+            )
+            self._mcap.start(profile="ros2", library=_LIBRARY)
+            for topic in self._topics.values():
+                self._register(topic)
+        except BaseException as exc:
+            # Not even a header is whole: no file rather than one no reader opens.
+            self._files.pop()
+            sink, self._sink, self._mcap = self._sink, None, None
+            sink.close()
+            with contextlib.suppress(OSError):
+                file_path.unlink()
+            if isinstance(exc, OSError):
+                raise self._fail(exc, "write") from exc
+            self._stop(f"writing stopped by {type(exc).__name__}")
+            raise
         self._write_metadata_yaml()
 
     def _close_current_file(self) -> None:
-        assert self._mcap is not None and self._sink is not None
+        """Write the last chunk, the rosbag2 metadata record, summary and footer; close.
+
+        After an exception other than OSError (here or in a write before),
+        the file is cut back to its last whole group and finished from there
+        (once more when the exception came while finishing), and the first
+        exception propagates; after an OSError only the file is closed.
+        """
+        sink = self._sink
+        assert sink is not None
+        first: BaseException | None = None
         try:
-            # The last chunk first, so that the rosbag2 record counts what is on disk.
-            self._mcap.flush()
-            self._settle()
-            record = dump_bag_metadata(self._metadata(all_files=False))
-            self._mcap.add_metadata(ROSBAG2_METADATA_RECORD, {SERIALIZED_METADATA_KEY: record})
-            self._mcap.finish()
-        except OSError as exc:
-            raise self._fail(exc, "finish") from exc
+            for _attempt in range(2):
+                mark = None  # the file before the metadata record and summary
+                try:
+                    if self._mcap is not None and not self._failure:
+                        # The last chunk first, so that the rosbag2 record counts what is on disk.
+                        self._mcap.flush()
+                        self._settle()
+                    if self._summary_possible:
+                        mark = sink.committed
+                        self._finish_file(sink)
+                    break
+                except OSError as exc:
+                    with contextlib.suppress(OSError):
+                        sink.cut_to_committed(mark)  # no summary rather than half of one
+                    if first is None:
+                        raise self._fail(exc, "finish") from exc
+                    break
+                except BaseException as exc:
+                    first = first or exc
+                    self._interrupted(exc)
+                    if not self._summary_possible:
+                        break
+                    sink.cut_to_committed(mark)
         finally:
-            self._sink.close()
-            self._mcap = None
+            self._sink = self._mcap = None
+            sink.close()
+        if first is not None:
+            raise first
+
+    def _finish_file(self, sink: _OsFileSink) -> None:
+        """The rosbag2 metadata record, data end, summary and footer, from what the file holds."""
+        builder = RecordBuilder()
+        record = dump_bag_metadata(self._metadata(all_files=False))
+        Metadata(ROSBAG2_METADATA_RECORD, {SERIALIZED_METADATA_KEY: record}).write(builder)
+        sink.write(builder.end())
+        DataEnd(0).write(builder)
+        sink.write(builder.end())
+        stats = self._files[-1]
+        statistics = Statistics(
+            attachment_count=0,
+            channel_count=len(self._channels),
+            channel_message_counts={
+                self._channel_ids[topic]: n for topic, n in stats.topic_counts.items()},
+            chunk_count=len(sink.chunk_indexes),
+            message_count=stats.message_count,
+            message_end_time=stats.end_ns if stats.message_count else 0,
+            message_start_time=stats.start_ns if stats.message_count else 0,
+            metadata_count=len(sink.metadata_indexes),
+            schema_count=len(self._schemas),
+        )
+        summary_start = sink.tell()
+        offsets = []
+        for opcode, group in (
+            (Opcode.SCHEMA, list(self._schemas.values())),
+            (Opcode.CHANNEL, list(self._channels.values())),
+            (Opcode.STATISTICS, [statistics]),
+            (Opcode.CHUNK_INDEX, sink.chunk_indexes),
+            (Opcode.METADATA_INDEX, sink.metadata_indexes),
+        ):
+            group_start = builder.count
+            for item in group:
+                item.write(builder)
+            if builder.count > group_start:
+                offsets.append(SummaryOffset(
+                    opcode, summary_start + group_start, builder.count - group_start))
+        summary_offset_start = summary_start + builder.count
+        for offset in offsets:
+            offset.write(builder)
+        summary = builder.end()
+        crc = 0
+        if self.crcs:
+            footer_head = struct.pack(
+                "<BQQQ", Opcode.FOOTER, 20, summary_start, summary_offset_start)
+            crc = zlib.crc32(footer_head, zlib.crc32(summary))
+        Footer(summary_start, summary_offset_start, crc).write(builder)
+        sink.write(summary + builder.end() + MCAP0_MAGIC)
 
     def _metadata(self, *, all_files: bool) -> dict[str, Any]:
         files = self._files if all_files else self._files[-1:]
@@ -406,28 +644,29 @@ class BagWriter:
         topic = _Topic(name, msgtype, offered_qos_profiles, definition, type_hash)
         self._topics[name] = topic
         self._sequence[name] = 0
-        self._register(topic)
+        self._library_call(self._register, topic)  # may write the chunk being filled
         self._write_metadata_yaml()
 
     def _register(self, topic: _Topic) -> None:
         assert self._mcap is not None
         schema_id = self._schema_ids.get(topic.msgtype)
         if schema_id is None:
+            data = topic.definition.text.encode()
             schema_id = self._mcap.register_schema(
-                name=topic.msgtype,
-                encoding=topic.definition.encoding,
-                data=topic.definition.text.encode(),
-            )
+                name=topic.msgtype, encoding=topic.definition.encoding, data=data)
+            self._schemas[schema_id] = Schema(
+                id=schema_id, data=data, encoding=topic.definition.encoding, name=topic.msgtype)
             self._schema_ids[topic.msgtype] = schema_id
-        self._channel_ids[topic.name] = self._mcap.register_channel(
-            topic=topic.name,
-            message_encoding="cdr",
-            schema_id=schema_id,
-            metadata={
-                "offered_qos_profiles": topic.offered_qos_profiles,
-                "topic_type_hash": topic.type_hash,
-            },
-        )
+        metadata = {
+            "offered_qos_profiles": topic.offered_qos_profiles,
+            "topic_type_hash": topic.type_hash,
+        }
+        channel_id = self._mcap.register_channel(
+            topic=topic.name, message_encoding="cdr", schema_id=schema_id, metadata=metadata)
+        self._channels[channel_id] = Channel(
+            id=channel_id, topic=topic.name, message_encoding="cdr", metadata=metadata,
+            schema_id=schema_id)
+        self._channel_ids[topic.name] = channel_id
 
     # -- messages ------------------------------------------------------------
 
@@ -464,17 +703,14 @@ class BagWriter:
         assert self._mcap is not None and self._sink is not None
         sequence = self._sequence[topic] = (self._sequence[topic] + 1) & 0xFFFFFFFF
         self._pending.append((topic, len(data), int(log_time_ns)))
-        try:
-            self._mcap.add_message(
-                channel_id=channel_id,
-                log_time=int(log_time_ns),
-                data=cast(bytes, data),  # any buffer works; avoid copying images
-                publish_time=int(publish_time_ns),
-                sequence=sequence,
-            )
-        except OSError as exc:
-            raise self._fail(exc, "write") from exc
-        self._settle()
+        self._library_call(
+            self._mcap.add_message,
+            channel_id=channel_id,
+            log_time=int(log_time_ns),
+            data=cast(bytes, data),  # any buffer works; avoid copying images
+            publish_time=int(publish_time_ns),
+            sequence=sequence,
+        )
         if self._split_size is not None and self._sink.tell() >= self._split_size:
             self._close_current_file()
             self._open_next_file()
@@ -500,11 +736,7 @@ class BagWriter:
         """
         self._check_open()
         assert self._mcap is not None
-        try:
-            self._mcap.flush()
-        except OSError as exc:
-            raise self._fail(exc, "write") from exc
-        self._settle()
+        self._library_call(self._mcap.flush)
         if self._metadata_due:
             self._write_metadata_yaml()
 
@@ -519,9 +751,11 @@ class BagWriter:
     def close(self) -> None:
         """Write the last chunk, the rosbag2 metadata record, summary and footer; idempotent.
 
-        After a failed write, only the file is closed (it reads to its last
-        complete chunk; ``endo-bag recover`` makes a complete copy) and a bag
-        directory's metadata.yaml is rewritten with what is on disk.
+        After a failed write (an OSError: the disk refused), only the file is
+        closed (it reads to its last complete chunk; ``endo-bag recover``
+        makes a complete copy); after an exception of another kind the file
+        is finished from its last whole chunk. A bag directory's
+        metadata.yaml is rewritten with what is on disk.
 
         Raises:
             BagError: finishing the file or its metadata.yaml failed.
@@ -529,14 +763,8 @@ class BagWriter:
         if self._closed:
             return
         self._closed = True
-        failed_before = bool(self._failure)
         try:
-            if failed_before:
-                if self._sink is not None:
-                    self._sink.close()
-                    self._sink = None
-                    self._mcap = None
-            else:
+            if self._sink is not None:
                 self._close_current_file()
         finally:
             if self._is_directory:
