@@ -21,6 +21,7 @@ cost ~10 ms per 640×480 frame).
 from __future__ import annotations
 
 import math
+from collections import OrderedDict
 from collections.abc import Sequence
 
 import numba
@@ -29,6 +30,12 @@ import numpy as np
 from endo_io.camera import CameraModel
 from endo_io.image import irradiance_to_mono8
 
+#: Binned models by (ray geometry, factor), newest last: their ray tables are
+#: computed once per process (the warm-up's camera and the stream's are two
+#: instances of one geometry; a 640×480 table took 340 ms at load 11).
+_BINNED: OrderedDict[tuple[object, ...], CameraModel] = OrderedDict()
+_BINNED_HELD = 8
+
 
 def binned_camera(camera: CameraModel, factor: int) -> CameraModel:
     """The model of ``image[:H//f*f:f, :W//f*f:f]``: every f-th pixel of the camera's image.
@@ -36,16 +43,34 @@ def binned_camera(camera: CameraModel, factor: int) -> CameraModel:
     Pixel u' of the decimated image is pixel f·u' of the original, which is
     exactly image_geometry's binning mapping (``CameraModel`` binning
     without ROI), so its ray table is the original's at those pixels.
+
+    The model is shared by every camera of the same size, K, D and
+    distortion model (the last 8 asked for are held), so that its ray table
+    (:meth:`CameraModel.unit_rays`, cached by the model) is computed once
+    per process: the flow node's warm-up computes the tables its frames
+    will use. Only the rays are the same: use it for back-projection, not
+    for its frame_id.
     """
-    if factor == 1:
-        return camera
-    K = camera.K.copy()
-    K[:2] /= factor
-    return CameraModel(
-        width=camera.width // factor, height=camera.height // factor, K=K, D=camera.D,
-        distortion_model=camera.distortion_model, binning_x=factor, binning_y=factor,
-        frame_id=camera.frame_id, full_width=camera.width, full_height=camera.height,
-    )
+    key = (camera.width, camera.height, camera.distortion_model, camera.K.tobytes(),
+           np.asarray(camera.D, np.float64).tobytes(), int(factor))
+    model = _BINNED.get(key)
+    if model is None:
+        K = camera.K.copy()
+        K[:2] /= factor
+        model = CameraModel(
+            width=camera.width // factor, height=camera.height // factor, K=K, D=camera.D,
+            distortion_model=camera.distortion_model, binning_x=factor, binning_y=factor,
+            frame_id=camera.frame_id, full_width=camera.width, full_height=camera.height,
+        ) if factor != 1 else CameraModel(
+            width=camera.width, height=camera.height, K=camera.K.copy(), D=camera.D,
+            distortion_model=camera.distortion_model, frame_id=camera.frame_id,
+        )
+        _BINNED[key] = model
+        while len(_BINNED) > _BINNED_HELD:
+            _BINNED.popitem(last=False)
+    else:
+        _BINNED.move_to_end(key)
+    return model
 
 
 @numba.njit(cache=True, nogil=True)

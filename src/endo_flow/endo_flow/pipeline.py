@@ -585,7 +585,6 @@ class FlowPipeline:
         self.voxel_map = VoxelMap(opts.voxel_size_m, opts.max_voxels) if opts.map_enabled else None
         self._shape: ShapeCorrector | None = None
         self._camera: CameraModel | None = None
-        self._binned: dict[int, CameraModel] = {}  # binned models of self._camera by factor
         self._map_turn = 0  # frames with world points so far: the map takes every map_every-th
         self._last_stamp_ns: int | None = None
         self._observed_version = -1  # the window's version at the last keyframes-only fit
@@ -667,7 +666,6 @@ class FlowPipeline:
             self.window.clear()
             self.camera_changes += 1
         self._camera = camera
-        self._binned = {}
         radius = 0.5 * min(camera.width, camera.height)
         self._shape = ShapeCorrector(camera.width, camera.height, (camera.cx, camera.cy), radius,
                                      self.options.shape)
@@ -914,10 +912,8 @@ class FlowPipeline:
         decimations = ((opts.cloud_decimation, opts.map_decimation) if fuse
                        else (opts.cloud_decimation,))
         step = math.gcd(*decimations)
-        camera = self._binned.get(step)
-        if camera is None:  # its ray table is cached by the model: keep the model
-            camera = self._binned[step] = binned_camera(self._camera, step)
-        clouds = world_clouds(depth, frame.image, camera, T, decimations=decimations,
+        clouds = world_clouds(depth, frame.image, binned_camera(self._camera, step), T,
+                              decimations=decimations,
                               min_depth_m=opts.cloud_min_depth_m,
                               max_depth_m=opts.cloud_max_depth_m,
                               white=self.tracker.white_level or 1.0, gamma=opts.tracking.gamma)

@@ -15,12 +15,13 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import math
 import time
 
 import cv2
 import numpy as np
 
-from endo_flow.cloud import binned_camera, world_cloud
+from endo_flow.cloud import binned_camera, world_clouds
 from endo_flow.errors import FlowError
 from endo_flow.pipeline import FlowFrame, FlowOptions, FlowPipeline
 from endo_flow.voxel_map import VoxelMap
@@ -80,11 +81,13 @@ def warm_up_pipeline(options: FlowOptions, camera: CameraModel) -> float:
     # a metric depth inside the cloud's range: the world cloud and the map insert run
     metric = np.full((height, width), 0.5 * (options.cloud_min_depth_m + options.cloud_max_depth_m),
                      np.float32)  # fmt: skip
-    k = options.cloud_decimation
-    points, grey, normals = world_cloud(
-        metric, texture[:, :width], binned_camera(camera, k), np.eye(4), decimation=k,
-        min_depth_m=options.cloud_min_depth_m, max_depth_m=options.cloud_max_depth_m,
-        white=1.0, gamma=options.tracking.gamma,
+    # both clouds, as a fused frame makes them: the ray tables of the binned
+    # models (shared by geometry, endo_flow.cloud.binned_camera) are computed here
+    decimations = (options.cloud_decimation, options.map_decimation)
+    _, (points, grey, normals) = world_clouds(
+        metric, texture[:, :width], binned_camera(camera, math.gcd(*decimations)), np.eye(4),
+        decimations=decimations, min_depth_m=options.cloud_min_depth_m,
+        max_depth_m=options.cloud_max_depth_m, white=1.0, gamma=options.tracking.gamma,
     )
     voxel_map = VoxelMap(options.voxel_size_m, WARM_UP_VOXELS)
     voxel_map.insert(points, grey, normals)

@@ -96,3 +96,18 @@ def test_one_back_projection_gives_the_live_and_the_full_resolution_clouds():
     np.testing.assert_allclose(
         three[0], world_cloud(depth, image, binned_camera(camera, 3), T, decimation=3, **kw)[0],
         rtol=0, atol=1e-9)
+
+
+def test_binned_models_are_shared_by_cameras_of_one_geometry():
+    """Two instances of one camera (the warm-up's, the stream's) share the ray table."""
+    first, second = _camera(), _camera()
+    assert first is not second
+    for factor in (1, 4):
+        model = binned_camera(first, factor)
+        assert binned_camera(second, factor) is model
+        rays = model.unit_rays()
+        assert binned_camera(second, factor).unit_rays() is rays
+        # the rays are the camera's own at those pixels
+        np.testing.assert_allclose(rays, first.unit_rays()[::factor, ::factor], atol=1e-12)
+    other = CameraModel.pinhole(640, 480, 500.0, 515.0, 322.0, 238.5)
+    assert binned_camera(other, 4) is not binned_camera(first, 4)
