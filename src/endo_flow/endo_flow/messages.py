@@ -17,13 +17,18 @@ optical frame id).
 
 from __future__ import annotations
 
+import struct
+
 import numpy as np
 from geometry_msgs.msg import Vector3Stamped
 from sensor_msgs.msg import PointCloud2
 
 from endo_flow.scale import ScaleEstimate
 from endo_io.pointcloud import xyz_to_pointcloud2, xyz_to_pointcloud2_cdr
-from endo_io.stamp import ns_to_stamp
+from endo_io.stamp import NS_PER_S, ns_to_stamp
+
+#: The scale topic's message type (layout in the module docstring).
+SCALE_TYPE = "geometry_msgs/msg/Vector3Stamped"
 
 
 def scale_message(estimate: ScaleEstimate, stamp_ns: int, frame_id: str) -> Vector3Stamped:
@@ -35,6 +40,29 @@ def scale_message(estimate: ScaleEstimate, stamp_ns: int, frame_id: str) -> Vect
     msg.vector.y = float(estimate.log_std) if np.isfinite(estimate.log_std) else float("inf")
     msg.vector.z = float(int(estimate.state))
     return msg
+
+
+def scale_message_cdr(estimate: ScaleEstimate, stamp_ns: int, frame_id: str) -> bytes:
+    """:func:`scale_message`'s CDR bytes, built directly (endo-process writes them).
+
+    Little-endian CDR (the 4-byte encapsulation header, then, aligned from
+    its end): int32 sec, uint32 nanosec, frame_id (uint32 length with the
+    NUL, bytes, NUL), zero padding to 8, three float64 (x, y, z). The bytes
+    rclpy's serialisation of the message gives (tested); ~0.01 against
+    ~0.09 ms a message.
+    """
+    if stamp_ns < 0:
+        raise ValueError(f"stamp must be non-negative, got {stamp_ns} ns")
+    sec, nanosec = divmod(int(stamp_ns), NS_PER_S)
+    value, log_std = float(estimate.value), float(estimate.log_std)
+    name = frame_id.encode()
+    head = struct.pack("<iII", sec, nanosec, len(name) + 1) + name + b"\x00"
+    return b"".join((
+        b"\x00\x01\x00\x00", head, bytes(-len(head) % 8),
+        struct.pack("<3d", value if np.isfinite(value) else float("nan"),
+                    log_std if np.isfinite(log_std) else float("inf"),
+                    float(int(estimate.state))),
+    ))  # fmt: skip
 
 
 def grey_cloud(points: np.ndarray, grey: np.ndarray, stamp_ns: int, frame_id: str

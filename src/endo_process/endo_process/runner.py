@@ -45,7 +45,7 @@ from sensor_msgs.msg import CameraInfo, Image
 
 from endo_calib.calibration import PhotometricCalibration
 from endo_calib.errors import CalibrationError
-from endo_flow.messages import grey_cloud_cdr, scale_message
+from endo_flow.messages import SCALE_TYPE, grey_cloud_cdr, scale_message_cdr
 from endo_flow.warm_up import warm_up_pipeline
 from endo_io import topics
 from endo_io.bag import BagMessage, BagReader
@@ -432,7 +432,8 @@ def _flow_frame(
     if len(result.points):
         output.write_cdr(topics.POINTS, POINTS_TYPE, grey_cloud_cdr(
             result.points, result.intensity, stamp, world_frame), stamp)  # fmt: skip
-    output.write(topics.SCALE, scale_message(result.scale, stamp, shaded.frame_id), stamp)
+    output.write_cdr(topics.SCALE, SCALE_TYPE, scale_message_cdr(
+        result.scale, stamp, shaded.frame_id), stamp)  # fmt: skip
     clock.add("flow_write", now)
 
 
