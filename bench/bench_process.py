@@ -27,7 +27,7 @@ the bytes per frame on disk.
 A configuration is ``solve_scale:jobs``, optionally ``:compression`` and
 ``:crc`` (the output's chunk compression, default none, and whether chunk
 CRCs are stored, default not: endo-process's defaults) and ``:cN``
-(``--cloud-decimation N``, default 1: full-resolution /endoscope/points),
+(``--cloud-decimation N``, default: the parameter file's, as live),
 e.g. ``--configs 0.5:2,0.5:2:lz4,0.5:2:lz4:crc,0.5:2:none:c4``.
 
 Run by hand: ``.venv/bin/python bench/bench_process.py [--rounds 2] [--bag B]``;
@@ -66,12 +66,12 @@ class Config:
     jobs: int
     compression: str = COMPRESSION
     crc: bool = False
-    cloud_decimation: int = 1
+    cloud_decimation: int | None = None  # endo-process's default: the parameter file's
 
     @classmethod
     def parse(cls, text: str) -> Config:
         parts = text.split(":")
-        cloud = 1
+        cloud = None
         if len(parts) > 2 and parts[-1][:1] == "c" and parts[-1][1:].isdigit():
             cloud = int(parts.pop()[1:])
         if len(parts) < 2 or len(parts) > 4 or (len(parts) == 4 and parts[3] != "crc"):
@@ -85,7 +85,7 @@ class Config:
         """The table's first columns: solve_scale | jobs, and the output's if not the default."""
         output = "" if (self.compression, self.crc) == (COMPRESSION, False) else (
             f" ({self.compression}{', CRC' if self.crc else ''})")
-        cloud = "" if self.cloud_decimation == 1 else f" (points every {self.cloud_decimation})"
+        cloud = "" if self.cloud_decimation is None else f" (points every {self.cloud_decimation})"
         return f"{self.scale:g} | {self.jobs}{output}{cloud}"
 
 
@@ -280,7 +280,7 @@ def main() -> None:
     parser.add_argument("--max-frames", type=int, help=argparse.SUPPRESS)
     parser.add_argument("--compression", default=COMPRESSION, help=argparse.SUPPRESS)
     parser.add_argument("--crc", action="store_true", help=argparse.SUPPRESS)
-    parser.add_argument("--cloud-decimation", type=int, default=1, help=argparse.SUPPRESS)
+    parser.add_argument("--cloud-decimation", type=int, default=None, help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.one:
         one_run(args)
@@ -334,7 +334,8 @@ def main() -> None:
                 "--photometric", str(photometric.result), "--handeye", str(handeye.result),
                 "--params", str(params), "--scale", str(scale), "--jobs", str(jobs),
                 "--compression", config.compression, *(["--crc"] if config.crc else []),
-                "--cloud-decimation", str(config.cloud_decimation),
+                *([] if config.cloud_decimation is None
+                  else ["--cloud-decimation", str(config.cloud_decimation)]),
             ], capture_output=True, text=True, check=True, env=env)  # fmt: skip
             run_s = time.perf_counter() - run_start
             figures = json.loads(done.stdout.strip().splitlines()[-1])
@@ -350,7 +351,7 @@ def main() -> None:
             results[(tree, config)].append(figures)
             print(f"round {round_index + 1} {tree} solve_scale {scale:g} jobs {jobs} "
                   f"{config.compression}{' crc' if config.crc else ''} "
-                  f"points every {config.cloud_decimation}: "
+                  f"points every {config.cloud_decimation or 'as live'}: "
                   f"{figures['fps']:.1f} frames/s, {figures['real_time']:.2f}x real time "
                   f"({figures['steady_real_time']:.2f}x after the first frame, which took "
                   f"{figures['first_frame_s']:.2f} s; whole run {figures['run_s']:.2f} s, "

@@ -64,11 +64,12 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--camera-info", type=Path,
                         help="camera YAML (camera_calibration format) instead of the topic")
     parser.add_argument("--ply", type=Path, help="write the fused map as PLY")
-    parser.add_argument("--cloud-decimation", type=int, default=1, metavar="N",
-                        help="/endoscope/points takes every N-th pixel per axis (default 1: "
-                        "full resolution, 32 B a point: the phantom's output 6.8 MB per frame "
-                        "against 3.2 with 4, the live graph's); the map is fused from every "
-                        "frame at the flow node's map_decimation (default 1) either way")
+    parser.add_argument("--cloud-decimation", type=int, default=None, metavar="N",
+                        help="/endoscope/points takes every N-th pixel per axis (default: the "
+                        "parameter file's cloud_decimation, 4, as the live topic; 1 is full "
+                        "resolution at 32 B a point: the phantom's output 6.8 MB per frame "
+                        "against 3.2); the map is fused at the flow node's map_decimation "
+                        "(1: every pixel) either way")
     parser.add_argument("--jobs", type=int, default=2,
                         help="SFS chains (default 2: correction + SFS in 2 worker processes "
                         "taking the frames in turn, flow and writing in this one; 1: all in "
@@ -124,7 +125,7 @@ def _options(args: argparse.Namespace) -> ProcessOptions:
         raise Endo3dError(f"--jobs must be >= 1, got {args.jobs}")
     if args.chunk_frames < 1:
         raise Endo3dError(f"--chunk-frames must be >= 1, got {args.chunk_frames}")
-    if args.cloud_decimation < 1:
+    if args.cloud_decimation is not None and args.cloud_decimation < 1:
         raise Endo3dError(f"--cloud-decimation must be >= 1, got {args.cloud_decimation}")
     for name in ("bag", "calibration", "handeye", "params", "camera_info"):
         path = getattr(args, name)

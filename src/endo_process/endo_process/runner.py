@@ -18,9 +18,10 @@
    order, as a live consumer sees them; frames without one are counted;
 5. the flow step (:class:`endo_process.flow_stage.FlowStage`, i.e.
    ``FlowPipeline.process``), written as ``/endoscope/depth``,
-   ``/endoscope/points`` (full resolution unless ``--cloud-decimation``) and
-   ``/endoscope/scale``, and at the end the voxel map's last state as
-   ``/endoscope/map`` (and ``--ply``), fused from every frame.
+   ``/endoscope/points`` (the live topic's decimation unless
+   ``--cloud-decimation``) and ``/endoscope/scale``, and at the end the voxel
+   map's last state as ``/endoscope/map`` (and ``--ply``), fused as the live
+   node fuses it (every pixel of every 8th frame by default).
 
 Ground truth in the input is copied through. A stop request (Ctrl-C,
 SIGTERM) ends the run after the current frame and the output is finalised.
@@ -93,7 +94,7 @@ class ProcessOptions:
     topics: InputTopics = field(default_factory=InputTopics)
     camera_info: Path | None = None
     ply: Path | None = None
-    cloud_decimation: int = 1
+    cloud_decimation: int | None = None
     jobs: int = 1
     chunk_frames: int = DEFAULT_CHUNK_FRAMES
     compression: str = "zstd"
