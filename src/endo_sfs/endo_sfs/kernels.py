@@ -23,11 +23,14 @@ sweep loops that was eight such calls around every node solve (v, node,
 reflectance, table), about a fifth of the sweeps' time. So every function a
 node solve calls is ``inline="always"``, and the loops that allocate nothing
 (:func:`_sweeps`, :func:`_ordered_pass`, :func:`_repair_steps`) are compiled
-without reference counting at all (``_nrt=False``).
+without reference counting at all (``_nrt=False``). Those loops inline the
+node solve only for the default order 2; orders 1 and 3 call it, which
+keeps the compilation of an empty kernel cache short (see :func:`_sweeps`).
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -634,6 +637,28 @@ def _near_light_node(
     return abs(new - old)
 
 
+
+@njit(cache=True, nogil=True, error_model="numpy", fastmath=_FAST, **_NO_REFCOUNTS)
+def _near_light_node_called(
+    v: np.ndarray,
+    node: np.ndarray,
+    i: int,
+    j: int,
+    hx: float,
+    hy: float,
+    reflectance: np.ndarray,
+    order: int,
+    eps: float,
+    table: np.ndarray,
+) -> float:
+    """:func:`_near_light_node` as a function of its own, for any order.
+
+    The loops of orders 1 and 3 call it (see :func:`_sweeps`): one compiled
+    node solve for all of them instead of one inlined copy per loop and
+    order. Compiled without reference counting, as its callers.
+    """
+    return _near_light_node(v, node, i, j, hx, hy, reflectance, order, eps, table)
+
 #: Visits ahead whose stencil the ordered passes prefetch (value order jumps
 #: across the grid; ~100 ns of memory latency against ~100 ns per visit).
 PREFETCH_AHEAD = 4
@@ -664,6 +689,7 @@ def _ordered_pass_body(
     tolerance: float,
     eps: float,
     table: np.ndarray,
+    solve_node: Callable[..., float],
 ) -> int:
     """Solve each unlocked node of ``ordered`` (flat indices) once, in that order.
 
@@ -685,7 +711,7 @@ def _ordered_pass_body(
         state[i, j] = LOCKED
         updates += 1
         old = v[i, j]
-        diff = _near_light_node(v, node, i, j, hx, hy, reflectance, order, eps, table)
+        diff = solve_node(v, node, i, j, hx, hy, reflectance, order, eps, table)
         if diff > tolerance:
             if causal:
                 _unlock_dependents(state, v, i, j, order, min(v[i, j], old))
@@ -695,13 +721,13 @@ def _ordered_pass_body(
 
 
 @njit(cache=True, nogil=True, error_model="numpy", fastmath=_FAST, **_NO_REFCOUNTS)
-def _ordered_pass_order1(
+def _ordered_pass_any(
     v: np.ndarray, node: np.ndarray, state: np.ndarray, ordered: np.ndarray, hx: float,
-    hy: float, reflectance: np.ndarray, tolerance: float, eps: float, table: np.ndarray,
+    hy: float, reflectance: np.ndarray, order: int, tolerance: float, eps: float, table: np.ndarray,
 ) -> int:
-    """:func:`_ordered_pass_body` for order 1."""
-    return _ordered_pass_body(v, node, state, ordered, hx, hy, reflectance, 1, tolerance, eps,
-                              table)
+    """:func:`_ordered_pass_body` for orders 1 and 3 (not inlined, see :func:`_ordered_pass`)."""
+    return _ordered_pass_body(v, node, state, ordered, hx, hy, reflectance, order, tolerance, eps,
+                              table, _near_light_node_called)
 
 
 @njit(cache=True, nogil=True, error_model="numpy", fastmath=_FAST, **_NO_REFCOUNTS)
@@ -711,17 +737,7 @@ def _ordered_pass_order2(
 ) -> int:
     """:func:`_ordered_pass_body` for order 2."""
     return _ordered_pass_body(v, node, state, ordered, hx, hy, reflectance, 2, tolerance, eps,
-                              table)
-
-
-@njit(cache=True, nogil=True, error_model="numpy", fastmath=_FAST, **_NO_REFCOUNTS)
-def _ordered_pass_order3(
-    v: np.ndarray, node: np.ndarray, state: np.ndarray, ordered: np.ndarray, hx: float,
-    hy: float, reflectance: np.ndarray, tolerance: float, eps: float, table: np.ndarray,
-) -> int:
-    """:func:`_ordered_pass_body` for order 3."""
-    return _ordered_pass_body(v, node, state, ordered, hx, hy, reflectance, 3, tolerance, eps,
-                              table)
+                              table, _near_light_node)
 
 
 @njit(cache=True, nogil=True, error_model="numpy", fastmath=_FAST, **_NO_REFCOUNTS)
@@ -738,14 +754,11 @@ def _ordered_pass(
     eps: float,
     table: np.ndarray,
 ) -> int:
-    """:func:`_ordered_pass_body`, compiled once per order (see there for the arguments)."""
-    if order == 1:
-        return _ordered_pass_order1(v, node, state, ordered, hx, hy, reflectance, tolerance,
+    """:func:`_ordered_pass_body` (see there for the arguments); see :func:`_sweeps`."""
+    if order != 2:
+        return _ordered_pass_any(v, node, state, ordered, hx, hy, reflectance, order, tolerance,
                                     eps, table)
-    if order == 2:
-        return _ordered_pass_order2(v, node, state, ordered, hx, hy, reflectance, tolerance,
-                                    eps, table)
-    return _ordered_pass_order3(v, node, state, ordered, hx, hy, reflectance, tolerance, eps,
+    return _ordered_pass_order2(v, node, state, ordered, hx, hy, reflectance, tolerance, eps,
                                 table)
 
 
@@ -815,6 +828,7 @@ def _repair_steps_body(
     tolerance: float,
     eps: float,
     table: np.ndarray,
+    solve_node: Callable[..., float],
 ) -> tuple[int, int, bool]:
     """The heap loop of :func:`_repair` until done or the heap might overflow.
 
@@ -836,7 +850,7 @@ def _repair_steps_body(
         state[i, j] = LOCKED
         solves += 1
         old = v[i, j]
-        diff = _near_light_node(v, node, i, j, hx, hy, reflectance, order, eps, table)
+        diff = solve_node(v, node, i, j, hx, hy, reflectance, order, eps, table)
         if diff <= tolerance:
             continue
         lowest = min(v[i, j], old)
@@ -849,14 +863,14 @@ def _repair_steps_body(
 
 
 @njit(cache=True, nogil=True, error_model="numpy", fastmath=_FAST, **_NO_REFCOUNTS)
-def _repair_steps_order1(
+def _repair_steps_any(
     v: np.ndarray, node: np.ndarray, state: np.ndarray, keys: np.ndarray, items: np.ndarray,
-    size: int, solves: int, budget: int, hx: float, hy: float, reflectance: np.ndarray,
+    size: int, solves: int, budget: int, hx: float, hy: float, reflectance: np.ndarray, order: int,
     tolerance: float, eps: float, table: np.ndarray,
 ) -> tuple[int, int, bool]:
-    """:func:`_repair_steps_body` for order 1."""
+    """:func:`_repair_steps_body` for orders 1 and 3 (not inlined, see :func:`_repair_steps`)."""
     return _repair_steps_body(v, node, state, keys, items, size, solves, budget, hx, hy,
-                              reflectance, 1, tolerance, eps, table)
+                              reflectance, order, tolerance, eps, table, _near_light_node_called)
 
 
 @njit(cache=True, nogil=True, error_model="numpy", fastmath=_FAST, **_NO_REFCOUNTS)
@@ -867,18 +881,7 @@ def _repair_steps_order2(
 ) -> tuple[int, int, bool]:
     """:func:`_repair_steps_body` for order 2."""
     return _repair_steps_body(v, node, state, keys, items, size, solves, budget, hx, hy,
-                              reflectance, 2, tolerance, eps, table)
-
-
-@njit(cache=True, nogil=True, error_model="numpy", fastmath=_FAST, **_NO_REFCOUNTS)
-def _repair_steps_order3(
-    v: np.ndarray, node: np.ndarray, state: np.ndarray, keys: np.ndarray, items: np.ndarray,
-    size: int, solves: int, budget: int, hx: float, hy: float, reflectance: np.ndarray,
-    tolerance: float, eps: float, table: np.ndarray,
-) -> tuple[int, int, bool]:
-    """:func:`_repair_steps_body` for order 3."""
-    return _repair_steps_body(v, node, state, keys, items, size, solves, budget, hx, hy,
-                              reflectance, 3, tolerance, eps, table)
+                              reflectance, 2, tolerance, eps, table, _near_light_node)
 
 
 @njit(cache=True, nogil=True, error_model="numpy", fastmath=_FAST, **_NO_REFCOUNTS)
@@ -899,14 +902,11 @@ def _repair_steps(
     eps: float,
     table: np.ndarray,
 ) -> tuple[int, int, bool]:
-    """:func:`_repair_steps_body`, compiled once per order (see there for the arguments)."""
-    if order == 1:
-        return _repair_steps_order1(v, node, state, keys, items, size, solves, budget, hx, hy,
-                                    reflectance, tolerance, eps, table)
-    if order == 2:
-        return _repair_steps_order2(v, node, state, keys, items, size, solves, budget, hx, hy,
-                                    reflectance, tolerance, eps, table)
-    return _repair_steps_order3(v, node, state, keys, items, size, solves, budget, hx, hy,
+    """:func:`_repair_steps_body` (see there for the arguments); see :func:`_sweeps`."""
+    if order != 2:
+        return _repair_steps_any(v, node, state, keys, items, size, solves, budget, hx, hy,
+                                 reflectance, order, tolerance, eps, table)
+    return _repair_steps_order2(v, node, state, keys, items, size, solves, budget, hx, hy,
                                 reflectance, tolerance, eps, table)
 
 
@@ -1110,12 +1110,18 @@ def _sweeps_body(
     max_iterations: int,
     eps: float,
     table: np.ndarray,
+    solve_node: Callable[..., float],
 ) -> tuple[int, float, int]:
     """Locked fast sweeping of the unlocked nodes of rows [row_begin, row_end), in place.
 
-    Inlined into one kernel per scheme order (:func:`_sweeps`), so that the
-    order is a constant there: the per-node solve of the other orders is
-    compiled out of the loop instead of sitting beside it in registers.
+    Inlined into the order-2 kernel (:func:`_sweeps`) with the order a
+    constant and ``solve_node`` :func:`_near_light_node` (inlined in turn), so
+    that the per-node solve of the other orders is compiled out of the loop
+    instead of sitting beside it in registers; the kernel of orders 1 and 3
+    passes :func:`_near_light_node_called`, which it calls. ``solve_node`` is
+    an argument, not a global, so that numba inlines the node solve only
+    where the kernel names it (each inlining of it costs seconds of
+    compilation, see :func:`_sweeps`).
 
     Four Gauss–Seidel sweeps per iteration with alternating orderings, until
     no node changed by more than ``tolerance`` (or ``max_iterations``).
@@ -1172,7 +1178,7 @@ def _sweeps_body(
                     state[i, j] = LOCKED
                     updates += 1
                     old = v[i, j]
-                    diff = _near_light_node(v, node, i, j, hx, hy, reflectance, order, eps, table)
+                    diff = solve_node(v, node, i, j, hx, hy, reflectance, order, eps, table)
                     if diff > tolerance:
                         if causal:
                             _unlock_dependents(state, v, i, j, order, min(v[i, j], old))
@@ -1190,14 +1196,14 @@ def _sweeps_body(
 
 
 @njit(cache=True, nogil=True, error_model="numpy", fastmath=_FAST, **_NO_REFCOUNTS)
-def _sweeps_order1(
+def _sweeps_any(
     v: np.ndarray, node: np.ndarray, state: np.ndarray, spans: np.ndarray, dirty: np.ndarray,
-    row_begin: int, row_end: int, hx: float, hy: float, reflectance: np.ndarray,
+    row_begin: int, row_end: int, hx: float, hy: float, reflectance: np.ndarray, order: int,
     tolerance: float, max_iterations: int, eps: float, table: np.ndarray,
 ) -> tuple[int, float, int]:
-    """:func:`_sweeps_body` for order 1."""
+    """:func:`_sweeps_body` for orders 1 and 3 (not inlined, see :func:`_sweeps`)."""
     return _sweeps_body(v, node, state, spans, dirty, row_begin, row_end, hx, hy, reflectance,
-                        1, tolerance, max_iterations, eps, table)
+                        order, tolerance, max_iterations, eps, table, _near_light_node_called)
 
 
 @njit(cache=True, nogil=True, error_model="numpy", fastmath=_FAST, **_NO_REFCOUNTS)
@@ -1208,18 +1214,7 @@ def _sweeps_order2(
 ) -> tuple[int, float, int]:
     """:func:`_sweeps_body` for order 2."""
     return _sweeps_body(v, node, state, spans, dirty, row_begin, row_end, hx, hy, reflectance,
-                        2, tolerance, max_iterations, eps, table)
-
-
-@njit(cache=True, nogil=True, error_model="numpy", fastmath=_FAST, **_NO_REFCOUNTS)
-def _sweeps_order3(
-    v: np.ndarray, node: np.ndarray, state: np.ndarray, spans: np.ndarray, dirty: np.ndarray,
-    row_begin: int, row_end: int, hx: float, hy: float, reflectance: np.ndarray,
-    tolerance: float, max_iterations: int, eps: float, table: np.ndarray,
-) -> tuple[int, float, int]:
-    """:func:`_sweeps_body` for order 3."""
-    return _sweeps_body(v, node, state, spans, dirty, row_begin, row_end, hx, hy, reflectance,
-                        3, tolerance, max_iterations, eps, table)
+                        2, tolerance, max_iterations, eps, table, _near_light_node)
 
 
 @njit(cache=True, nogil=True, error_model="numpy", fastmath=_FAST, **_NO_REFCOUNTS)
@@ -1240,14 +1235,24 @@ def _sweeps(
     eps: float,
     table: np.ndarray,
 ) -> tuple[int, float, int]:
-    """:func:`_sweeps_body`, compiled once per order (see there for the arguments)."""
-    if order == 1:
-        return _sweeps_order1(v, node, state, spans, dirty, row_begin, row_end, hx, hy,
-                              reflectance, tolerance, max_iterations, eps, table)
-    if order == 2:
-        return _sweeps_order2(v, node, state, spans, dirty, row_begin, row_end, hx, hy,
-                              reflectance, tolerance, max_iterations, eps, table)
-    return _sweeps_order3(v, node, state, spans, dirty, row_begin, row_end, hx, hy,
+    """:func:`_sweeps_body` (see there for the arguments), compiled twice.
+
+    The default order 2 has a kernel of its own with the node solve inlined
+    and the order a constant, so that the other orders' neighbour choices
+    are compiled out of the loop (:func:`_sweeps_order2`); orders 1 and 3
+    share one kernel that calls the node solve (:func:`_near_light_node_called`,
+    one compiled copy for the three loops). The same holds for
+    :func:`_ordered_pass` and :func:`_repair_steps`. Most of the compile
+    time was numba inlining ``inline="always"`` functions (it compiles the
+    callee's IR again at every call site, with the callees it inlines in
+    turn): with one kernel per order, and the node solve inlined even into
+    the kernels that then dropped it, an empty kernel cache took ~150 s of
+    CPU to fill (~75 s now, docs/sfs.md "Cost per frame", session 10).
+    """
+    if order != 2:
+        return _sweeps_any(v, node, state, spans, dirty, row_begin, row_end, hx, hy,
+                           reflectance, order, tolerance, max_iterations, eps, table)
+    return _sweeps_order2(v, node, state, spans, dirty, row_begin, row_end, hx, hy,
                           reflectance, tolerance, max_iterations, eps, table)
 
 
