@@ -1,7 +1,7 @@
 """Loading the solver's numba kernels, or compiling them on the very first run.
 
-The kernels (``cache=True``) are compiled once, in about 2.5 min (143 s of wall time on
-a fresh clone, 2026-12-02: each sweep loop is compiled per scheme order), into the
+The kernels (``cache=True``) are compiled once, in 68-82 s of CPU from an empty
+cache (2026-12-02, session 10; 139-181 s before it), into the
 kernel cache (:mod:`endo_io.kernel_cache`, ``~/.cache/endo3d/numba`` by
 default); every later process loads them from there in about a second.
 :func:`warm_up_kernels` solves tiny synthetic frames with every model and
@@ -35,7 +35,7 @@ from endo_sfs.relative_depth import solve, surface_normals
 from endo_sfs.synthetic import near_light_surface, render_near_light, scene_camera
 
 #: Said before the first compilation.
-COMPILE_NOTICE = "compiling solver kernels, ~2-3 min, once (cached in {folder})"
+COMPILE_NOTICE = "compiling solver kernels, ~1-2 min, once (cached in {folder})"
 
 _WARM_UP_SIZE = 24
 _WARM_UP_PARALLEL_SIZE = 192
