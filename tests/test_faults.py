@@ -158,6 +158,17 @@ class Graph:
     starts: dict[str, int] = field(default_factory=dict)
 
     def start(self, name: str) -> None:
+        # A process of that name still running is stopped first: replaced in
+        # ``processes`` it would escape the teardown (a looping endo-replay left
+        # publishing into later tests on this domain).
+        running = self.processes.get(name)
+        if running is not None and running.poll() is None:
+            running.send_signal(signal.SIGINT)
+            try:
+                running.wait(15)
+            except subprocess.TimeoutExpired:
+                running.kill()
+                running.wait()
         self.starts[name] = self.starts.get(name, 0) + 1
         log = (self.log_dir / f"{name}.{self.starts[name]}.log").open("w+")
         self.logs[name] = log
