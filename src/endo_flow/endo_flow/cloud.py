@@ -74,33 +74,40 @@ def binned_camera(camera: CameraModel, factor: int) -> CameraModel:
 
 
 @numba.njit(cache=True, nogil=True)
-def _grid_normals(points: np.ndarray, normals: np.ndarray) -> None:
-    """Fill ``normals`` (h, w, 3) float32 from the (h, w, 3) point grid (see surface_normals).
+def _grid_normal(points: np.ndarray, r: int, c: int) -> tuple[np.float32, np.float32, np.float32]:
+    """The unit normal at interior node (r, c) of an (h, w, 3) point grid, facing the origin.
 
     The arithmetic is the numpy version's, operation for operation: float32
     differences and cross products, the length in float32 and the division
-    by length × sign in float64.
+    by length × sign in float64, stored as float32. NaN where a neighbour is
+    missing or the cross product vanishes. The one implementation both
+    :func:`_grid_normals` and :func:`_kept_normals` call.
     """
+    dux = np.float32(points[r, c + 1, 0]) - np.float32(points[r, c - 1, 0])
+    duy = np.float32(points[r, c + 1, 1]) - np.float32(points[r, c - 1, 1])
+    duz = np.float32(points[r, c + 1, 2]) - np.float32(points[r, c - 1, 2])
+    dvx = np.float32(points[r + 1, c, 0]) - np.float32(points[r - 1, c, 0])
+    dvy = np.float32(points[r + 1, c, 1]) - np.float32(points[r - 1, c, 1])
+    dvz = np.float32(points[r + 1, c, 2]) - np.float32(points[r - 1, c, 2])
+    nx = duy * dvz - duz * dvy
+    ny = duz * dvx - dux * dvz
+    nz = dux * dvy - duy * dvx
+    facing = (nx * np.float32(points[r, c, 0]) + ny * np.float32(points[r, c, 1])
+              + nz * np.float32(points[r, c, 2]))
+    length = np.sqrt(nx * nx + ny * ny + nz * nz)
+    denom = np.float64(length) * (-1.0 if facing > 0.0 else 1.0)
+    return (np.float32(np.float64(nx) / denom), np.float32(np.float64(ny) / denom),
+            np.float32(np.float64(nz) / denom))
+
+
+@numba.njit(cache=True, nogil=True)
+def _grid_normals(points: np.ndarray, normals: np.ndarray) -> None:
+    """Fill ``normals`` (h, w, 3) float32 from the (h, w, 3) point grid (see surface_normals)."""
     h, w = points.shape[0], points.shape[1]
     normals[:] = np.nan
     for r in range(1, h - 1):
         for c in range(1, w - 1):
-            dux = np.float32(points[r, c + 1, 0]) - np.float32(points[r, c - 1, 0])
-            duy = np.float32(points[r, c + 1, 1]) - np.float32(points[r, c - 1, 1])
-            duz = np.float32(points[r, c + 1, 2]) - np.float32(points[r, c - 1, 2])
-            dvx = np.float32(points[r + 1, c, 0]) - np.float32(points[r - 1, c, 0])
-            dvy = np.float32(points[r + 1, c, 1]) - np.float32(points[r - 1, c, 1])
-            dvz = np.float32(points[r + 1, c, 2]) - np.float32(points[r - 1, c, 2])
-            nx = duy * dvz - duz * dvy
-            ny = duz * dvx - dux * dvz
-            nz = dux * dvy - duy * dvx
-            facing = (nx * np.float32(points[r, c, 0]) + ny * np.float32(points[r, c, 1])
-                      + nz * np.float32(points[r, c, 2]))
-            length = np.sqrt(nx * nx + ny * ny + nz * nz)
-            denom = np.float64(length) * (-1.0 if facing > 0.0 else 1.0)
-            normals[r, c, 0] = np.float32(np.float64(nx) / denom)
-            normals[r, c, 1] = np.float32(np.float64(ny) / denom)
-            normals[r, c, 2] = np.float32(np.float64(nz) / denom)
+            normals[r, c, 0], normals[r, c, 1], normals[r, c, 2] = _grid_normal(points, r, c)
 
 
 def surface_normals(points: np.ndarray) -> np.ndarray:
@@ -161,22 +168,8 @@ def _kept_normals(
                 normals[n, 2] = np.nan
                 n += 1
                 continue
-            dux = np.float32(points[r, c + 1, 0]) - np.float32(points[r, c - 1, 0])
-            duy = np.float32(points[r, c + 1, 1]) - np.float32(points[r, c - 1, 1])
-            duz = np.float32(points[r, c + 1, 2]) - np.float32(points[r, c - 1, 2])
-            dvx = np.float32(points[r + 1, c, 0]) - np.float32(points[r - 1, c, 0])
-            dvy = np.float32(points[r + 1, c, 1]) - np.float32(points[r - 1, c, 1])
-            dvz = np.float32(points[r + 1, c, 2]) - np.float32(points[r - 1, c, 2])
-            nx = duy * dvz - duz * dvy
-            ny = duz * dvx - dux * dvz
-            nz = dux * dvy - duy * dvx
-            facing = (nx * np.float32(points[r, c, 0]) + ny * np.float32(points[r, c, 1])
-                      + nz * np.float32(points[r, c, 2]))
-            length = np.sqrt(nx * nx + ny * ny + nz * nz)
-            denom = np.float64(length) * (-1.0 if facing > 0.0 else 1.0)
-            ax = np.float64(np.float32(np.float64(nx) / denom))
-            ay = np.float64(np.float32(np.float64(ny) / denom))
-            az = np.float64(np.float32(np.float64(nz) / denom))
+            gx, gy, gz = _grid_normal(points, r, c)
+            ax, ay, az = np.float64(gx), np.float64(gy), np.float64(gz)
             normals[n, 0] = np.float32(R[0, 0] * ax + R[0, 1] * ay + R[0, 2] * az)
             normals[n, 1] = np.float32(R[1, 0] * ax + R[1, 1] * ay + R[1, 2] * az)
             normals[n, 2] = np.float32(R[2, 0] * ax + R[2, 1] * ay + R[2, 2] * az)

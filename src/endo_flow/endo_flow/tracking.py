@@ -1,6 +1,6 @@
 """Sparse feature tracks by pyramidal Lucas–Kanade flow on the corrected image.
 
-Each frame's linear irradiance (``endo_calib`` output, 32FC1, NaN outside the
+Each frame's linear irradiance (``endo_calib`` output, decoded to float32, NaN outside the
 field of view and at saturated pixels) is averaged down by ``downsample``
 (cv2.INTER_AREA, so a NaN poisons only its own block) and mapped to 8 bits by
 :func:`endo_io.image.irradiance_to_mono8`. The white level of that mapping is

@@ -400,9 +400,11 @@ def encode_irradiance(irradiance: np.ndarray, encoding: str = "16UC1") -> Encode
     """Encode linear irradiance for ``/endoscope/image_corrected``.
 
     ``16UC1``: ``u = round(E / IRRADIANCE_PER_COUNT)`` (half up), NaN ->
-    65535, E above :data:`IRRADIANCE_MAX` -> 65534 and E < 0 -> 0, both
-    counted. The decoded value is within ``IRRADIANCE_PER_COUNT / 2`` (plus
-    float32 rounding, < 1e-6) of E for E in [0, IRRADIANCE_MAX]. ``32FC1``:
+    65535, E above :data:`IRRADIANCE_MAX` -> 65534 and E < 0 -> 0; counted
+    as saturated or negative only where that moved E by more than half a
+    count (6.55341 encodes to 65534 and -1e-5 to 0 as rounding would). The
+    decoded value is within ``IRRADIANCE_PER_COUNT / 2`` (plus float32
+    rounding, < 1e-6) of E for E in [0, IRRADIANCE_MAX]. ``32FC1``:
     the float32 irradiance as it is.
 
     Args:
@@ -425,8 +427,9 @@ def encode_irradiance(irradiance: np.ndarray, encoding: str = "16UC1") -> Encode
         return EncodedIrradiance(data, encoding)
     with np.errstate(invalid="ignore", over="ignore"):
         scaled = data * _COUNTS_PER_UNIT  # NaN stays NaN; a fresh array
-        saturated = int(np.count_nonzero(scaled > _TOP_COUNT))
-        negative = int(np.count_nonzero(scaled < 0.0))
+        # clipped beyond what rounding does anyway (half a count)
+        saturated = int(np.count_nonzero(scaled >= _TOP_COUNT + np.float32(0.5)))
+        negative = int(np.count_nonzero(scaled < np.float32(-0.5)))
         nan = np.isnan(scaled)
         np.clip(scaled, 0.0, _TOP_COUNT, out=scaled)
         scaled += np.float32(0.5)

@@ -3,8 +3,9 @@
 The tracker bridge publishes ``T_world_camera`` at tracker rate; a consumer
 needs the pose at each image's stamp. :class:`PoseBuffer` keeps the most
 recent poses (a fixed capacity, so memory is bounded when nobody asks) and
-answers a query by :func:`endo_io.pose.interpolate_transforms` (linear
-translation, SLERP rotation) between the two poses around the stamp. It
+answers a query by :func:`endo_io.pose.interpolate_rigid` (linear
+translation, SLERP rotation; the core of ``interpolate_transform``) between
+the two poses around the stamp, found by a binary search. It
 never extrapolates and never hands out a stale pose: a query it cannot
 answer raises why, so the caller can wait (:class:`PoseNotYetError`) or
 give up (:class:`PoseTooOldError`, :class:`PoseGapError`).

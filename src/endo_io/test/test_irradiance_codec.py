@@ -52,10 +52,13 @@ def test_nan_is_the_reserved_code_and_comes_back_nan() -> None:
 
 
 def test_values_out_of_range_saturate_and_are_counted() -> None:
-    irradiance = np.array([[7.0, np.inf, 6.5534, 6.55345, -0.2, -np.inf, 2.0]], np.float32)
+    irradiance = np.array([[7.0, np.inf, 6.5534, 6.5536, -0.2, -np.inf, 2.0, 6.55341, -1e-5]],
+                          np.float32)
     encoded = encode_irradiance(irradiance)
-    assert encoded.pixels.tolist() == [[65534, 65534, 65534, 65534, 0, 0, 20000]]
-    assert (encoded.saturated, encoded.negative) == (3, 2)  # 7, inf, 6.55345 > 6.5534
+    assert encoded.pixels.tolist() == [[65534, 65534, 65534, 65534, 0, 0, 20000, 65534, 0]]
+    # 7, inf, 6.5536 (1.5 counts above the top); -0.2, -inf. Not 6.55341 nor -1e-5:
+    # rounding puts them on 65534 and 0 anyway (within half a count)
+    assert (encoded.saturated, encoded.negative) == (3, 2)
     decoded = decode_irradiance(encoded.pixels, "16UC1")
     assert decoded[0, 0] == pytest.approx(IRRADIANCE_MAX) and decoded[0, 4] == 0.0
 

@@ -382,8 +382,6 @@ class SfsNode(Node):
                 "image_corrected must be linear irradiance, 16UC1 fixed point or 32FC1, got "
                 f"{image_msg.encoding!r}"
             )
-        irradiance = image_to_irradiance(image_msg)
-        camera = self._camera_model(info)
         stamp_ns = stamp_to_ns(image_msg.header.stamp)
         frame_id = image_msg.header.frame_id
         if self._frame_time.is_late(stamp_ns):
@@ -391,6 +389,8 @@ class SfsNode(Node):
             # skipped like a frame passed over for a newer one, not an error
             self.health.skip(topics.IMAGE_CORRECTED)
             return
+        irradiance = image_to_irradiance(image_msg)  # decoded once the frame is wanted
+        camera = self._camera_model(info)
         jump = self._frame_time.check(stamp_ns, time.monotonic_ns())  # raises for a wild stamp
         if jump is not None:
             self._chain.reset()
