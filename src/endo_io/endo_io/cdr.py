@@ -1,4 +1,4 @@
-"""Reading serialized (CDR) ROS 2 messages field by field, without rclpy's message objects.
+"""Reading and writing serialized (CDR) ROS 2 messages field by field, without rclpy's objects.
 
 rclpy's ``deserialize_message`` builds a Python message object, every nested
 message and array included: ~0.03–0.08 ms for a PoseStamped or a
@@ -16,6 +16,11 @@ two option bytes), then the fields in declaration order, each aligned to its
 own size counted from the end of that header; strings are a uint32 length
 (the NUL included), the bytes and a NUL; sequences a uint32 count, then the
 elements.
+
+The writers that build a message's bytes directly (``array_to_image_cdr``,
+``poses_to_cdr``, ``xyz_to_pointcloud2_cdr``, endo_flow's
+``scale_message_cdr``) start from :func:`header_cdr` and write their strings
+with :func:`cdr_string`, little endian.
 """
 
 from __future__ import annotations
@@ -27,9 +32,48 @@ from typing import Any, TypeVar
 from std_msgs.msg import Header
 
 from endo_io.errors import UndecodableMessageError
+from endo_io.stamp import NS_PER_S
 
 #: Encapsulation identifiers (first two bytes) of plain CDR, big and little endian.
 CDR_BIG_ENDIAN, CDR_LITTLE_ENDIAN = b"\x00\x00", b"\x00\x01"
+
+#: The 4-byte encapsulation header the writers put first: plain CDR, little endian.
+LITTLE_ENDIAN_ENCAPSULATION = CDR_LITTLE_ENDIAN + b"\x00\x00"
+
+
+def cdr_string(text: str, offset: int = 0) -> bytes:
+    """A little-endian CDR string at ``offset``: padding to 4, length with the NUL, bytes, NUL.
+
+    Args:
+        text: the string (UTF-8).
+        offset: where it is written, counted from the end of the
+            encapsulation header (the padding aligns its length to 4 from there).
+    """
+    data = text.encode()
+    return bytes(-offset % 4) + struct.pack("<I", len(data) + 1) + data + b"\x00"
+
+
+def header_cdr(stamp_ns: int, frame_id: str) -> bytearray:
+    """The encapsulation header and a std_msgs/Header, the start of a message with a header.
+
+    Args:
+        stamp_ns: the header's stamp, nanoseconds since the epoch (>= 0).
+        frame_id: the header's frame.
+
+    Returns:
+        :data:`LITTLE_ENDIAN_ENCAPSULATION`, int32 sec, uint32 nanosec and
+        the frame_id string, unpadded: the next field aligns itself from
+        ``len(result) - 4``.
+
+    Raises:
+        ValueError: a negative stamp.
+    """
+    if stamp_ns < 0:
+        raise ValueError(f"stamp must be non-negative, got {stamp_ns} ns")
+    head = bytearray(LITTLE_ENDIAN_ENCAPSULATION)
+    head += struct.pack("<iI", *divmod(int(stamp_ns), NS_PER_S))
+    head += cdr_string(frame_id)
+    return head
 
 _Decoded = TypeVar("_Decoded")
 

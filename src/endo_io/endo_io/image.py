@@ -55,9 +55,9 @@ import numpy as np
 from sensor_msgs.msg import Image
 from std_msgs.msg import Header
 
-from endo_io.cdr import CdrReader, decode_plain_cdr
+from endo_io.cdr import CdrReader, cdr_string, decode_plain_cdr, header_cdr
 from endo_io.errors import ImageEncodingError, ImageLayoutError
-from endo_io.stamp import NS_PER_S, ns_to_stamp
+from endo_io.stamp import ns_to_stamp
 
 
 @dataclass(frozen=True)
@@ -286,12 +286,6 @@ def array_to_image(
     return msg
 
 
-def _cdr_string(text: str) -> bytes:
-    """A CDR string at a 4-aligned offset: its length with the NUL, the bytes, the NUL."""
-    data = text.encode()
-    return struct.pack("<I", len(data) + 1) + data + b"\x00"
-
-
 def array_to_image_cdr(
     array: np.ndarray, encoding: str, stamp_ns: int = 0, frame_id: str = ""
 ) -> bytes:
@@ -306,15 +300,10 @@ def array_to_image_cdr(
     """
     packed, fmt = _packed_pixels(array, encoding)
     height, width = packed.shape[:2]
-    if stamp_ns < 0:
-        raise ValueError(f"stamp must be non-negative, got {stamp_ns} ns")
-    sec, nanosec = divmod(int(stamp_ns), NS_PER_S)
-    head = bytearray(b"\x00\x01\x00\x00")  # CDR little-endian encapsulation
-    head += struct.pack("<iI", sec, nanosec)
-    head += _cdr_string(frame_id)
+    head = header_cdr(stamp_ns, frame_id)
     head += bytes(-(len(head) - 4) % 4)
     head += struct.pack("<II", height, width)
-    head += _cdr_string(encoding)
+    head += cdr_string(encoding)
     head += struct.pack("<B", int(_NATIVE_IS_BIGENDIAN))
     head += bytes(-(len(head) - 4) % 4)
     head += struct.pack("<II", width * fmt.bytes_per_pixel, packed.nbytes)

@@ -31,8 +31,9 @@ from array import array as byte_array
 import numpy as np
 from sensor_msgs.msg import PointCloud2, PointField
 
+from endo_io.cdr import LITTLE_ENDIAN_ENCAPSULATION, cdr_string, header_cdr
 from endo_io.errors import PointCloudError
-from endo_io.stamp import NS_PER_S, ns_to_stamp
+from endo_io.stamp import ns_to_stamp
 
 XYZ_POINT_STEP = 16
 XYZRGB_POINT_STEP = 32
@@ -143,12 +144,6 @@ def _packed_points(xyz: np.ndarray, rgb: np.ndarray | None) -> np.ndarray:
     return words.view(dtype).reshape(height, width)
 
 
-def _cdr_string(text: str, offset: int) -> bytes:
-    """A CDR string (length with the NUL, bytes, NUL), aligned to 4 from ``offset``."""
-    data = text.encode()
-    return bytes(-offset % 4) + struct.pack("<I", len(data) + 1) + data + b"\x00"
-
-
 def xyz_to_pointcloud2_cdr(
     points: np.ndarray,
     stamp_ns: int,
@@ -165,18 +160,13 @@ def xyz_to_pointcloud2_cdr(
     and errors as :func:`xyz_to_pointcloud2`.
     """
     xyz, colours = _checked(points, rgb)
-    if stamp_ns < 0:
-        raise ValueError(f"stamp must be non-negative, got {stamp_ns} ns")
+    head = header_cdr(stamp_ns, frame_id)[4:]  # offsets below count from the header's end
     cloud = _packed_points(xyz, colours)
     height, width = cloud.shape
-    sec, nanosec = divmod(int(stamp_ns), NS_PER_S)
     offsets = {"x": 0, "y": 4, "z": 8} | ({} if rgb is None else {"rgb": RGB_OFFSET})
-    # offsets below count from the end of the 4-byte encapsulation header
-    head = bytearray(struct.pack("<iI", sec, nanosec))
-    head += _cdr_string(frame_id, len(head))
     head += bytes(-len(head) % 4) + struct.pack("<III", height, width, len(offsets))
     for name, offset in offsets.items():
-        head += _cdr_string(name, len(head))
+        head += cdr_string(name, len(head))
         head += bytes(-len(head) % 4) + struct.pack("<IB", offset, PointField.FLOAT32)
         head += bytes(-len(head) % 4) + struct.pack("<I", 1)
     head += struct.pack("<B", 0)  # is_bigendian
@@ -184,7 +174,8 @@ def xyz_to_pointcloud2_cdr(
     head += struct.pack("<III", cloud.dtype.itemsize, width * cloud.dtype.itemsize, cloud.nbytes)
     tail = struct.pack("<B", bool(np.isfinite(xyz).all()))
     tail += bytes(-(len(head) + cloud.nbytes + len(tail)) % 4)
-    return b"".join((b"\x00\x01\x00\x00", head, cloud.reshape(-1).view(np.uint8).data, tail))
+    return b"".join((LITTLE_ENDIAN_ENCAPSULATION, head, cloud.reshape(-1).view(np.uint8).data,
+                     tail))
 
 
 def _field(msg: PointCloud2, name: str) -> PointField | None:

@@ -30,15 +30,13 @@ from geometry_msgs.msg import PoseStamped
 from numpy.typing import ArrayLike
 from std_msgs.msg import Header
 
-from endo_io.cdr import CdrReader, decode_plain_cdr
+from endo_io.cdr import LITTLE_ENDIAN_ENCAPSULATION, CdrReader, cdr_string, decode_plain_cdr
 from endo_io.errors import PoseError
 from endo_io.stamp import NS_PER_S, ns_to_stamp, stamp_to_ns
 
 #: Default allowed deviation of a quaternion's norm from 1, and of a rotation
 #: matrix's ``R.T @ R`` from the identity (max abs element).
 DEFAULT_TOLERANCE = 1e-3
-#: The 4-byte encapsulation header of little-endian CDR.
-_CDR_LITTLE_ENDIAN = b"\x00\x01\x00\x00"
 
 # Below this angle between two quaternions SLERP's sin(theta) denominator loses
 # precision; linear interpolation is then exact to O(theta^2) ~ 1e-18.
@@ -346,12 +344,11 @@ def transforms_to_pose_stamped_cdr(
     read_back[:, :3, :3] = quaternion_to_matrix(q, tolerance=tolerance)
     read_back[:, :3, 3] = position
     read_back[:, 3, 3] = 1.0
-    name = frame_id.encode()
-    head = struct.pack("<I", len(name) + 1) + name + b"\x00"
+    head = cdr_string(frame_id, 8)  # after the stamp: 4-aligned already
     head += bytes(-(8 + len(head)) % 8)
     values = np.concatenate([position, q], axis=1).tolist()
     data = [
-        b"".join((_CDR_LITTLE_ENDIAN, struct.pack("<iI", *divmod(stamp, NS_PER_S)), head,
+        b"".join((LITTLE_ENDIAN_ENCAPSULATION, struct.pack("<iI", *divmod(stamp, NS_PER_S)), head,
                   struct.pack("<7d", *row)))
         for stamp, row in zip(stamps, values, strict=True)
     ]  # fmt: skip
