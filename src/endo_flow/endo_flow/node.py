@@ -473,6 +473,12 @@ class FlowNode(Node):
             return
         self.health.ok()
         self._publish(pending, out)
+        # the map's full-resolution cloud and insert after the frame's outputs are out
+        try:
+            self.pipeline.fuse_deferred_map()
+        except Exception as error:  # the frame is out; a map failure must not stop the node
+            self.health.drop(type(error).__name__, f"map fusion of frame {pending.stamp_ns} ns: "
+                             f"{error}")
 
     def _step(self, pending: _Pending, pose: np.ndarray | None) -> FlowOutput:
         if pending.image.encoding not in IRRADIANCE_ENCODINGS:
@@ -489,7 +495,7 @@ class FlowNode(Node):
             self.health.clock_jump(
                 f"{jump.describe('frame time')}; tracks, scale filter and map reset"
             )
-        return self.pipeline.process(frame)
+        return self.pipeline.process(frame, defer_map=True)
 
     def _publish(self, pending: _Pending, out: FlowOutput) -> None:
         header = pending.image.header

@@ -586,6 +586,8 @@ class FlowPipeline:
         self._shape: ShapeCorrector | None = None
         self._camera: CameraModel | None = None
         self._map_turn = 0  # frames with world points so far: the map takes every map_every-th
+        # a frame whose map fusion process(defer_map=True) left for fuse_deferred_map()
+        self._deferred_map: tuple[FlowFrame, np.ndarray, np.ndarray] | None = None
         self._last_stamp_ns: int | None = None
         self._observed_version = -1  # the window's version at the last keyframes-only fit
         self.frames = 0
@@ -614,6 +616,7 @@ class FlowPipeline:
         if self.voxel_map is not None:
             self.voxel_map.reset()
         self._map_turn = 0
+        self._deferred_map = None
         self._last_stamp_ns = None
         self.resets += 1
 
@@ -670,8 +673,15 @@ class FlowPipeline:
         self._shape = ShapeCorrector(camera.width, camera.height, (camera.cx, camera.cy), radius,
                                      self.options.shape)
 
-    def process(self, frame: FlowFrame) -> FlowOutput:
+    def process(self, frame: FlowFrame, *, defer_map: bool = False) -> FlowOutput:
         """Run the per-frame step on one frame (frames in stamp order).
+
+        With ``defer_map`` a frame the map takes (every ``map_every``-th with
+        world points) is not fused here: :meth:`fuse_deferred_map` does it,
+        after the caller has published the output (the live node: the
+        full-resolution cloud and its insert, ~15-30 ms, then no longer delay
+        that frame's cloud). The map is the same either way (tested); a frame
+        left unfused is fused first by the next call.
 
         Raises:
             FlowInputError: image or depth_relative of another size than the
@@ -684,6 +694,7 @@ class FlowPipeline:
         """
         opts = self.options
         T = self._check(frame)
+        self.fuse_deferred_map()  # a caller that forgot: the map keeps its frame order
         if self._last_stamp_ns is not None and frame.stamp_ns <= self._last_stamp_ns:
             if frame.stamp_ns == self._last_stamp_ns:
                 raise FlowInputError(f"frame stamp {frame.stamp_ns} ns repeats the previous one")
@@ -827,7 +838,13 @@ class FlowPipeline:
             if T is not None:
                 t0 = time.perf_counter()
                 fuse = self.voxel_map is not None and self._map_turn % opts.map_every == 0
-                (points, intensity, normals), fused = self._cloud(frame, depth, T, fuse)
+                (points, intensity, normals), fused = self._cloud(
+                    frame, depth, T, fuse and not defer_map)
+                if fuse and defer_map:
+                    if len(points):  # the turn is taken; the map's cloud comes later
+                        self._deferred_map = (frame, depth, T)
+                    else:  # whether the turn is taken depends on the map's own cloud
+                        fused = self._cloud(frame, depth, T, True)[1]
                 timings["cloud"] = 1e3 * (time.perf_counter() - t0)
                 if len(points) or (fused is not None and len(fused[0])):
                     self._map_turn += 1
@@ -898,6 +915,29 @@ class FlowPipeline:
         std = float(np.sqrt(fit.std**2 + opts.observation_floor**2 + shared**2))
         return ScaleObservation(fit.log_scale, std, triangulated.spread, fit.tracks,
                                 triangulated.inliers)
+
+    def fuse_deferred_map(self) -> int:
+        """Fuse the frame ``process(defer_map=True)`` left for the map; returns its points.
+
+        The map's cloud (``map_decimation``) of that frame's metric depth and
+        pose, inserted into the voxel map; 0 when no frame waits.
+        """
+        if self._deferred_map is None or self.voxel_map is None:
+            self._deferred_map = None
+            return 0
+        frame, depth, T = self._deferred_map
+        self._deferred_map = None
+        opts = self.options
+        assert self._camera is not None
+        fused = world_clouds(depth, frame.image, binned_camera(self._camera, opts.map_decimation),
+                             T, decimations=(opts.map_decimation,),
+                             min_depth_m=opts.cloud_min_depth_m,
+                             max_depth_m=opts.cloud_max_depth_m,
+                             white=self.tracker.white_level or 1.0,
+                             gamma=opts.tracking.gamma)[0]
+        if len(fused[0]):
+            self.voxel_map.insert(*fused)
+        return len(fused[0])
 
     def _cloud(
         self, frame: FlowFrame, depth: np.ndarray, T: np.ndarray, fuse: bool

@@ -164,6 +164,30 @@ def test_live_cloud_decimated_map_at_full_resolution(moving, kit):
     assert len(taken) > 0.8 * len(total)
 
 
+def test_a_deferred_map_fusion_gives_the_same_map_and_outputs(moving, kit):
+    """The live node fuses the map after publishing (process(defer_map=True)): same map."""
+    at_once = FlowPipeline(kit.options(map_every=3))
+    deferred = FlowPipeline(kit.options(map_every=3))
+    fused_points = 0
+    for k, frame in enumerate(moving.frames(moving.poses)):
+        a = at_once.process(frame)
+        b = deferred.process(frame, defer_map=True)
+        assert b.diagnostics.map_points == 0  # nothing fused inside process
+        np.testing.assert_array_equal(a.points, b.points)
+        np.testing.assert_array_equal(a.scale.value, b.scale.value)
+        fused_points += a.diagnostics.map_points
+        if k % 2:  # the odd frames fused right away, the even ones by the next process()
+            deferred.fuse_deferred_map()
+    deferred.fuse_deferred_map()
+    one, other = at_once.voxel_map, deferred.voxel_map
+    assert one is not None and other is not None and len(one) == len(other)
+    assert fused_points > 0 and int(other.points().count.sum()) == fused_points
+    np.testing.assert_array_equal(one.voxel_keys(), other.voxel_keys())
+    np.testing.assert_array_equal(one.points().count, other.points().count)
+    np.testing.assert_allclose(one.points().points, other.points().points, rtol=0, atol=0)
+    assert deferred.fuse_deferred_map() == 0  # nothing left
+
+
 def test_cloud_options_change_on_the_fly(moving, kit):
     pipe = FlowPipeline(kit.options())
     frames = moving.frames(moving.poses)
