@@ -154,7 +154,9 @@ def accumulate_bag(
     first frame. Images before the first level, and the first
     ``settle_frames`` after each change, are skipped.
     """
-    from endo_io.bag import BagReader, deserialize
+    from sensor_msgs.msg import CameraInfo, Image
+
+    from endo_io.bag import BagReader, deserialize, msgtype_of
     from endo_io.image import image_to_array
 
     camera: CameraModel | None = None
@@ -163,6 +165,7 @@ def accumulate_bag(
             raise ManifestError(f"bag {path} has no topic {image_topic}")
         if level_topic not in bag.topics:
             raise InsufficientLevelsError(f"bag {path} has no gray-level topic {level_topic}")
+        bag.check_types({image_topic: msgtype_of(Image), info_topic: msgtype_of(CameraInfo)})
         # First pass: the (small) gray-level stream.
         level_times: list[int] = []
         level_values: list[float] = []

@@ -365,3 +365,19 @@ def test_message_class_and_writer_misuse(tmp_path):
         BagWriter(path)
     with pytest.raises(BagError, match="compression"):
         BagWriter(tmp_path / "other.mcap", compression="bz2")
+
+
+def test_check_types_names_the_topic_and_both_types(tmp_path):
+    from std_msgs.msg import String
+
+    from endo_io.bag import TopicTypeError
+
+    path = tmp_path / "typed.mcap"
+    with BagWriter(path) as writer:
+        writer.write_message("/image", String(data="x"), 5)
+    with BagReader(path) as reader:
+        reader.check_types({"/image": "std_msgs/msg/String", "/absent": "sensor_msgs/msg/Image"})
+        with pytest.raises(TopicTypeError) as raised:
+            reader.check_types({"/image": "sensor_msgs/msg/Image"})
+    expected = f"{path}: /image holds std_msgs/msg/String, not sensor_msgs/msg/Image"
+    assert str(raised.value) == expected

@@ -32,7 +32,7 @@ from geometry_msgs.msg import PoseStamped
 from sensor_msgs.msg import CameraInfo, Image
 
 from endo_io import topics
-from endo_io.bag import BagCorruptError, BagMessage, BagReader, deserialize
+from endo_io.bag import BagCorruptError, BagMessage, BagReader, deserialize, msgtype_of
 from endo_io.camera import CameraInfoCache, CameraModel
 from endo_io.errors import CameraModelError
 from endo_io.stamp import stamp_to_ns
@@ -95,6 +95,8 @@ def open_recording(
             and listing the bag's topics).
         MissingCameraInfoError: no camera_info message and no ``--camera-info``.
         ProcessInputError: the ``--camera-info`` file cannot be read.
+        TopicTypeError: the image, camera_info or tracker topic holds another
+            type than Image, CameraInfo or PoseStamped.
         BagError: the bag cannot be opened at all.
     """
     fixed: CameraModel | None = None
@@ -104,6 +106,10 @@ def open_recording(
         except (OSError, CameraModelError, ValueError, KeyError) as error:
             raise ProcessInputError(f"--camera-info {camera_info_yaml}: {error}") from None
     with BagReader(path) as reader:
+        expected = {names.image: msgtype_of(Image), names.tracker: msgtype_of(PoseStamped)}
+        if fixed is None:
+            expected[names.camera_info] = msgtype_of(CameraInfo)
+        reader.check_types(expected)
         available = {name: info.message_count for name, info in reader.topics.items()}
         listed = ", ".join(sorted(available)) or "none"
         for topic in (names.image, names.tracker):

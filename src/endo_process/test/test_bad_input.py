@@ -65,6 +65,36 @@ def test_a_missing_topic_is_one_line_naming_it_and_exit_2(
     assert not out.exists()
 
 
+def _retyped(path: Path, topic: str) -> Path:
+    """The phantom's first 2 frames with ``topic`` recorded as std_msgs/String."""
+    from std_msgs.msg import String
+
+    from endo_io.bag import serialize
+
+    source = _subset(path.with_suffix(".src.mcap"), ALL, images=2)
+    with BagReader(source) as reader, BagWriter(path) as writer:
+        for name, info in reader.topics.items():
+            writer.add_topic(name, "std_msgs/msg/String" if name == topic else info.msgtype)
+        for message in reader.messages():
+            data = serialize(String(data="x")) if message.topic == topic else message.data
+            writer.write(message.topic, data, message.log_time_ns)
+    return path
+
+
+@pytest.mark.parametrize("topic", [topics.TRACKER_POSE, topics.IMAGE_RAW, topics.CAMERA_INFO])
+def test_a_topic_of_another_type_is_one_line_naming_it_and_exit_2(
+    topic: str, calibrations: tuple[Path, Path], tmp_path: Path, capsys: pytest.CaptureFixture
+) -> None:
+    # It used to end in an AttributeError traceback ('String' object has no attribute 'header').
+    bag = _retyped(tmp_path / "retyped.mcap", topic)
+    out = tmp_path / "out.mcap"
+    assert main(_argv(bag, out, calibrations)) == EXIT_INPUT
+    error = capsys.readouterr().err.strip()
+    assert len(error.splitlines()) == 1, error
+    assert f"TopicTypeError: {bag}: {topic} holds std_msgs/msg/String, not " in error, error
+    assert not out.exists()
+
+
 def test_camera_info_from_a_yaml_replaces_the_topic(
     calibrations: tuple[Path, Path], tmp_path: Path, capsys: pytest.CaptureFixture
 ) -> None:

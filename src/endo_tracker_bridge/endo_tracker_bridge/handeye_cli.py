@@ -27,8 +27,10 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
+from geometry_msgs.msg import PoseStamped
+from sensor_msgs.msg import CameraInfo, Image
 
-from endo_io.bag import BagReader, deserialize
+from endo_io.bag import BagReader, deserialize, msgtype_of
 from endo_io.bag.streams import PoseStreamCollector
 from endo_io.camera import CameraModel
 from endo_io.cli import exit_on_error
@@ -97,6 +99,8 @@ def read_observations(
         for name in (topics.image, topics.camera_info, topics.pose):
             if name not in bag.topics:
                 raise HandEyeError(f"bag {path} has no topic {name}")
+        bag.check_types({topics.image: msgtype_of(Image), topics.camera_info:
+                         msgtype_of(CameraInfo), topics.pose: msgtype_of(PoseStamped)})  # fmt: skip
         info = next(bag.messages(topics=[topics.camera_info]))
         camera = CameraModel.from_camera_info(deserialize(info))
         image_count = bag.topics[topics.image].message_count
@@ -150,6 +154,7 @@ def sample_images(
     with BagReader(path) as bag:
         if topic not in bag.topics:
             raise HandEyeError(f"bag {path} has no topic {topic}")
+        bag.check_types({topic: msgtype_of(Image)})
         total = bag.topics[topic].message_count
         wanted = set(np.linspace(0, max(total - 1, 0), min(count, total)).round().astype(int))
         images = []

@@ -64,3 +64,29 @@ def test_handeye_on_the_simulated_bag(tmp_path, capsys):
     assert math.isfinite(residuals["reprojection_rms_px"])
     assert set(calibration.details["closed_form"]) == {"tsai", "park", "daniilidis"}
     assert calibration.views_used >= 20
+
+
+@pytest.mark.skipif(not BAG.exists(), reason=f"{BAG} not found (endo-sim render handeye writes it)")
+def test_an_image_topic_of_another_type_is_one_line_and_exit_2(tmp_path, capsys):
+    # It used to end in an AttributeError traceback ('PoseStamped' object has no attribute
+    # 'encoding'): a bag whose image topic is a driver's pose topic, say.
+    from endo_io.bag import BagReader, BagWriter
+
+    retyped = tmp_path / "retyped.mcap"
+    with BagReader(BAG) as reader, BagWriter(retyped) as writer:
+        pose_type = reader.topics["/tracker/pose"].msgtype
+        for name, info in reader.topics.items():
+            writer.add_topic(name, pose_type if name == "/endoscope/image_raw" else info.msgtype)
+        poses = [m.data for m in reader.messages(topics=["/tracker/pose"])][:3]
+        for message in reader.messages(topics=["/endoscope/camera_info", "/tracker/pose"]):
+            writer.write(message.topic, message.data, message.log_time_ns)
+            if len(poses) and message.topic == "/endoscope/camera_info":
+                writer.write("/endoscope/image_raw", poses.pop(), message.log_time_ns)
+    output = tmp_path / "handeye.yaml"
+    assert main([str(retyped), "-o", str(output)]) == 2
+    error = capsys.readouterr().err.strip()
+    assert error == (
+        f"endo-handeye: TopicTypeError: {retyped}: /endoscope/image_raw holds "
+        "geometry_msgs/msg/PoseStamped, not sensor_msgs/msg/Image"
+    )
+    assert not output.exists()

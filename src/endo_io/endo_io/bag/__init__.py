@@ -17,6 +17,7 @@ from endo_io.bag.errors import (
     BagError,
     BagNotFoundError,
     MessageDeserializationError,
+    TopicTypeError,
     UnknownMessageTypeError,
 )
 from endo_io.bag.interfaces import BagMessage, TopicInfo
@@ -37,6 +38,7 @@ __all__ = [
     "MessageDeserializationError",
     "QosYamlError",
     "TopicInfo",
+    "TopicTypeError",
     "UnknownMessageTypeError",
     "deserialize",
     "message_class",

@@ -14,6 +14,7 @@ __all__ = [
     "BagError",
     "BagNotFoundError",
     "MessageDeserializationError",
+    "TopicTypeError",
     "UnknownMessageTypeError",
 ]
 
@@ -28,3 +29,7 @@ class UnknownMessageTypeError(BagError):
 
 class MessageDeserializationError(BagError):
     """A message's CDR bytes do not decode as the installed definition of its type."""
+
+
+class TopicTypeError(BagError):
+    """A topic holds another message type than the one a tool reads from it."""

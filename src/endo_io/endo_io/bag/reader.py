@@ -29,7 +29,7 @@ from collections.abc import Iterable, Iterator
 from pathlib import Path
 from typing import Any
 
-from endo_io.bag.errors import BagCorruptError, BagError, BagNotFoundError
+from endo_io.bag.errors import BagCorruptError, BagError, BagNotFoundError, TopicTypeError
 from endo_io.bag.interfaces import BagMessage, ChunkStats, TopicInfo
 from endo_io.bag.mcap_file import McapFile
 from endo_io.bag.mcap_records import DEFAULT_MAX_CHUNK_BYTES
@@ -208,6 +208,26 @@ class BagReader:
             for name, n in stats.compression.items():
                 compression[name] = compression.get(name, 0) + n
         return ChunkStats(count, compression, compressed, uncompressed)
+
+    def check_types(self, expected: dict[str, str]) -> None:
+        """Check that each recorded topic of ``expected`` holds the type a tool reads from it.
+
+        Args:
+            expected: topic name -> ROS 2 type (``sensor_msgs/msg/Image``);
+                topics the bag does not have are not checked (the caller says
+                what a missing one means).
+
+        Raises:
+            TopicTypeError: one line naming the topic, the type it holds and
+                the type expected.
+        """
+        for name, msgtype in expected.items():
+            info = self.topics.get(name)
+            if info is not None and info.msgtype != msgtype:
+                raise TopicTypeError(
+                    f"{self.path}: {name} holds {info.msgtype or 'messages without a type'}, "
+                    f"not {msgtype}"
+                )
 
     def definitions(self) -> dict[str, MessageDefinition]:
         """Topic -> message definition as the bag's schemas store it (first file wins)."""
