@@ -3,8 +3,12 @@
 Exit status:
 
 * 0: every frame of the recording was processed;
-* 1: the recording is truncated or damaged: everything up to the damage was
-  processed and written, and one line on stderr says where the cut is;
+* 1: the recording is truncated or damaged (a cut, or messages whose bytes
+  do not decode as their topic's type: those are skipped and counted), or no
+  frame gave a relative depth: what could be processed was, and was written;
+  one line on stderr says what was wrong. Any run prints one line per cause
+  of dropped frames and rejected tracker samples, with the first one's
+  message (the table counts them);
 * 2: an input or option is unusable (missing file or topic, no camera_info,
   a bad parameter file, an existing output): one line on stderr, nothing
   written;
@@ -127,10 +131,13 @@ def _options(args: argparse.Namespace) -> ProcessOptions:
         raise Endo3dError(f"--chunk-frames must be >= 1, got {args.chunk_frames}")
     if args.cloud_decimation is not None and args.cloud_decimation < 1:
         raise Endo3dError(f"--cloud-decimation must be >= 1, got {args.cloud_decimation}")
+    if args.max_frames is not None and args.max_frames < 1:
+        raise Endo3dError(f"--max-frames must be >= 1, got {args.max_frames}")
     for name in ("bag", "calibration", "handeye", "params", "camera_info"):
         path = getattr(args, name)
         if path is not None and not path.exists():
-            raise Endo3dError(f"{path}: no such file (--{name.replace('_', '-')})")
+            option = "the recording" if name == "bag" else f"--{name.replace('_', '-')}"
+            raise Endo3dError(f"{path}: no such file ({option})")
     if args.output.exists():
         if not args.overwrite:
             raise Endo3dError(f"{args.output} exists (use --overwrite to replace it)")
@@ -150,7 +157,8 @@ def exit_status(report: ProcessReport) -> int:
     """The documented exit status of a finished run."""
     if report.interrupted:
         return EXIT_INTERRUPTED
-    return EXIT_DAMAGED if report.damage else EXIT_OK
+    nothing = report.frames_in > 0 and report.frames_shaded == 0
+    return EXIT_DAMAGED if report.damage or report.undecodable or nothing else EXIT_OK
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -173,7 +181,7 @@ def _run(args: argparse.Namespace, workers: StartedWorkers | None) -> int:
     from endo_process.runner import process_bag
     from endo_process.settings import load_settings
     from endo_process.simulated import registration_mismatch
-    from endo_process.summary import format_report, summary_document
+    from endo_process.summary import drop_lines, format_report, summary_document
 
     try:
         options = _options(args)
@@ -198,9 +206,18 @@ def _run(args: argparse.Namespace, workers: StartedWorkers | None) -> int:
     if args.summary_json is not None:
         document = summary_document(report, accuracy)
         args.summary_json.write_text(json.dumps(document, indent=1, allow_nan=False) + "\n")
+    for line in drop_lines(report):
+        print(f"{PROGRAM}: warning: {line}", file=sys.stderr)
     if report.damage:
         print(f"{PROGRAM}: input cut short, processed up to the damage: {report.damage}",
               file=sys.stderr)  # fmt: skip
+    if report.undecodable:
+        skipped = ", ".join(f"{n} on {topic}" for topic, n in report.undecodable.most_common())
+        print(f"{PROGRAM}: error: skipped {skipped}, undecodable; the first: "
+              f"{report.first_undecodable}", file=sys.stderr)  # fmt: skip
+    if report.frames_in > 0 and report.frames_shaded == 0 and not report.interrupted:
+        print(f"{PROGRAM}: error: none of the {report.frames_in} frames read gave a relative "
+              "depth (the causes above)", file=sys.stderr)  # fmt: skip
     if report.interrupted:
         print(f"{PROGRAM}: interrupted; {options.output} holds the "
               f"{report.frames_shaded} frames processed", file=sys.stderr)  # fmt: skip

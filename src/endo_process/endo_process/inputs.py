@@ -22,9 +22,10 @@ the run processes everything up to the cut and says so.
 
 from __future__ import annotations
 
-from collections import deque
+import dataclasses
+from collections import Counter, deque
 from collections.abc import Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -32,7 +33,14 @@ from geometry_msgs.msg import PoseStamped
 from sensor_msgs.msg import CameraInfo, Image
 
 from endo_io import topics
-from endo_io.bag import BagCorruptError, BagMessage, BagReader, deserialize, msgtype_of
+from endo_io.bag import (
+    BagCorruptError,
+    BagMessage,
+    BagReader,
+    MessageDeserializationError,
+    deserialize,
+    msgtype_of,
+)
 from endo_io.camera import CameraInfoCache, CameraModel
 from endo_io.errors import CameraModelError
 from endo_io.stamp import stamp_to_ns
@@ -63,6 +71,9 @@ class RecordingInputs:
         ground_truth: the ``/ground_truth/*`` topics (name -> type).
         time_range_ns: (first, last) log time of the bag.
         damage: one-line description of the first damage met, or None.
+        undecodable: messages skipped because their bytes do not decode as
+            their topic's type, per topic.
+        first_undecodable: the first such message's one-line error, or None.
     """
 
     path: Path
@@ -72,6 +83,8 @@ class RecordingInputs:
     ground_truth: dict[str, str]
     time_range_ns: tuple[int, int]
     damage: str | None = None
+    undecodable: Counter[str] = field(default_factory=Counter)
+    first_undecodable: str | None = None
 
 
 def _read(
@@ -204,6 +217,11 @@ class RecordingStreams:
         self._queued_messages -= 1
         return message
 
+    @property
+    def inputs(self) -> RecordingInputs:
+        """The recording these streams read."""
+        return self._inputs
+
     def __contains__(self, name: object) -> bool:
         return name in self._topics
 
@@ -233,10 +251,22 @@ class _DetachedError(Exception):
     """A stream leaves the shared pass (internal to RecordingStreams)."""
 
 
+def _decoded(inputs: RecordingInputs, messages: Iterator[BagMessage]) -> Iterator[Any]:
+    """Each message decoded; one that does not decode is counted in ``inputs`` and skipped."""
+    for message in messages:
+        try:
+            yield deserialize(message)
+        except MessageDeserializationError as error:
+            inputs.undecodable[message.topic] += 1
+            if inputs.first_undecodable is None:
+                inputs.first_undecodable = str(error)
+
+
 def _iter_decoded(inputs: RecordingInputs, topic: str) -> Iterator[Any]:
     with BagReader(inputs.path) as reader:
-        for message in _read(reader, [topic], inputs):
-            yield deserialize(message)
+        # Counted where the stream is read for the run (CameraInfoPairing), not here too.
+        uncounted = dataclasses.replace(inputs, undecodable=Counter())
+        yield from _decoded(uncounted, _read(reader, [topic], inputs))
 
 
 def recording_streams(inputs: RecordingInputs) -> RecordingStreams:
@@ -250,8 +280,11 @@ def recording_streams(inputs: RecordingInputs) -> RecordingStreams:
 
 
 def iter_tracker_poses(streams: RecordingStreams) -> Iterator[PoseStamped]:
-    """The tracker topic's PoseStamped messages in log (arrival) order, one at a time."""
-    return (deserialize(message) for message in streams.messages("tracker"))
+    """The tracker topic's PoseStamped messages in log (arrival) order, one at a time.
+
+    An undecodable message is skipped and counted (:attr:`RecordingInputs.undecodable`).
+    """
+    return _decoded(streams.inputs, streams.messages("tracker"))
 
 
 class CameraInfoPairing:
@@ -274,7 +307,7 @@ class CameraInfoPairing:
         self._fixed = inputs.fixed_camera
         self._stream: Iterator[CameraInfo] = (
             iter(()) if self._fixed is not None
-            else (deserialize(message) for message in streams.messages("camera_info"))
+            else _decoded(inputs, streams.messages("camera_info"))
         )  # fmt: skip
         self._next: CameraInfo | None = None
         self._current: CameraInfo | None = None
@@ -324,8 +357,8 @@ def first_camera(inputs: RecordingInputs) -> CameraModel | None:
 
 
 def iter_images(streams: RecordingStreams) -> Iterator[Image]:
-    """The image topic's messages in log order, decoded one at a time."""
-    return (deserialize(message) for message in streams.messages("image"))
+    """The image topic's messages in log order, decoded one at a time (undecodable: skipped)."""
+    return _decoded(streams.inputs, streams.messages("image"))
 
 
 def iter_ground_truth(streams: RecordingStreams) -> Iterator[BagMessage]:

@@ -126,7 +126,10 @@ class ProcessReport:
     start-up: loading kernels, warming up); the rest of the loop is the
     steady state (:attr:`steady_real_time_factor`). ``saturated_pixels``:
     pixels of the corrected images above the 16-bit fixed point's range
-    (6.5534), written as its top.
+    (6.5534), written as its top. ``undecodable``: messages skipped because their bytes
+    do not decode as their topic's type, per topic (``first_undecodable``:
+    the first one's error); ``reasons``: the first one-line message of each
+    cause counted in ``dropped``, ``tracker_rejected`` and ``flow_dropped``.
     """
 
     frames_in: int = 0
@@ -157,8 +160,16 @@ class ProcessReport:
     stage_cpu_seconds: defaultdict[str, float] = field(default_factory=lambda: defaultdict(float))
     shading_seconds: defaultdict[str, float] = field(default_factory=lambda: defaultdict(float))
     damage: str | None = None
+    undecodable: Counter[str] = field(default_factory=Counter)
+    first_undecodable: str | None = None
+    reasons: dict[str, str] = field(default_factory=dict)
     interrupted: bool = False
     output: Path | None = None
+
+    def count(self, counter: Counter[str], cause: str, reason: str) -> None:
+        """Count one dropped item under ``cause``; keep the first ``reason`` given for it."""
+        counter[cause] += 1
+        self.reasons.setdefault(cause, reason)
 
     @property
     def frames_per_second(self) -> float:
@@ -248,7 +259,7 @@ def iter_camera_poses(
             )  # fmt: skip
             pose = chain.accept(sample)
         except Endo3dError as error:
-            report.tracker_rejected[type(error).__name__] += 1
+            report.count(report.tracker_rejected, type(error).__name__, str(error))
             continue
         yield pose
 
@@ -355,11 +366,12 @@ def _raw_frames(
         try:
             paired = pairing.at(stamp_ns)
             if paired is None:
-                report.dropped["NoCameraInfoError"] += 1
+                report.count(report.dropped, "NoCameraInfoError",
+                             f"no camera_info at or before the image stamped {stamp_ns} ns")
                 continue
             raw = image_to_array(msg)
         except Endo3dError as error:
-            report.dropped[type(error).__name__] += 1
+            report.count(report.dropped, type(error).__name__, str(error))
             continue
         camera, infos[index] = paired
         clock.add("read", start)
@@ -398,7 +410,7 @@ def _write_frame(
                            shaded.frame_id)  # fmt: skip
         report.frames_shaded += 1
     if shaded.dropped is not None:
-        report.dropped[shaded.dropped[0]] += 1
+        report.count(report.dropped, *shaded.dropped)
     if shaded.solve_ms > 0.0:
         report.solve_ms.append(shaded.solve_ms)
     for name, seconds in shaded.timings.items():
@@ -422,7 +434,7 @@ def _flow_frame(
     try:
         result = flow.process(shaded, T_world_camera)
     except Endo3dError as error:
-        report.flow_dropped[type(error).__name__] += 1
+        report.count(report.flow_dropped, type(error).__name__, str(error))
         return
     finally:
         now = clock.add("flow", start)
@@ -642,6 +654,8 @@ def process_bag(
     report.written = Counter(output.counts)
     report.poses_written = report.written[topics.CAMERA_POSE]
     report.damage = inputs.damage
+    report.undecodable = inputs.undecodable
+    report.first_undecodable = inputs.first_undecodable
     if first_stamp is not None and last_stamp is not None:
         frame_period = 0 if report.frames_in < 2 else (last_stamp - first_stamp) / max(
             report.frames_in - 1, 1

@@ -186,7 +186,7 @@ def load_settings(path: Path | None, *, solve_scale: float | None = None) -> Pro
             T_world_tracker / ros_unit the bridge would refuse.
     """
     nodes = read_parameter_file(path) if path is not None else {}
-    where = str(path)
+    where = str(path) if path is not None else "the nodes' defaults"
     correction = _node_values(nodes, CORRECTION_NODE, CORRECTION_DEFAULTS, where)
     settings = ProcessSettings(
         channel=str(correction["channel"]),
@@ -206,5 +206,6 @@ def load_settings(path: Path | None, *, solve_scale: float | None = None) -> Pro
     try:
         settings.sfs_options  # noqa: B018
     except SfsError as error:
-        raise ParameterFileError(f"{where}: {SFS_NODE}: {error}") from None
+        given = f" with --solve-scale {solve_scale:g}" if solve_scale is not None else ""
+        raise ParameterFileError(f"{where}{given}: {SFS_NODE}: {error}") from None
     return settings

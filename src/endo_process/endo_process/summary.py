@@ -16,6 +16,21 @@ def _causes(counter: Counter[str]) -> str:
     return ", ".join(f"{n} {cause}" for cause, n in counter.most_common()) or "none"
 
 
+def drop_lines(report: ProcessReport) -> list[str]:
+    """One line per cause of dropped frames, rejected tracker samples and frames flow refused.
+
+    Each names the count, the cause and the first such item's message, e.g.
+    ``20 frames dropped, CalibrationMismatchError: image 640x480 bgr8 ...``.
+    """
+    lines = []
+    for what, counter in (("frames dropped", report.dropped),
+                          ("tracker samples rejected", report.tracker_rejected),
+                          ("frames refused by flow", report.flow_dropped)):  # fmt: skip
+        for cause, n in counter.most_common():
+            lines.append(f"{n} {what}, {cause}: {report.reasons.get(cause, '')}".rstrip(": "))
+    return lines
+
+
 def _rows(report: ProcessReport) -> list[tuple[str, str]]:
     rows = [
         ("images in the recording", f"{report.frames_total}"),
@@ -44,6 +59,8 @@ def _rows(report: ProcessReport) -> list[tuple[str, str]]:
     ]
     if report.damage:
         rows.append(("input damage", report.damage))
+    if report.undecodable:
+        rows.append(("undecodable messages skipped", _causes(report.undecodable)))
     if report.interrupted:
         rows.append(("interrupted", "yes (output finalised)"))
     if report.ply_vertices:
@@ -171,6 +188,7 @@ def summary_document(report: ProcessReport, accuracy: Accuracy | None) -> dict[s
             "median_solve_ms": report.median_solve_ms,
         },
         "damage": report.damage,
+        "undecodable": dict(report.undecodable),
         "interrupted": report.interrupted,
         "written": dict(report.written),
         "accuracy": None,

@@ -200,3 +200,94 @@ def test_the_progress_bar_shows_on_a_terminal_only(
     shown = b"".join(chunks).decode(errors="replace")
     assert "endo-process" in shown and "3/3" in shown and "frame/s" in shown, shown
     # Not a terminal (a pipe): no bar at all (test_a_signal_finalises_the_output).
+
+
+def _with_garbage(path: Path, topic: str, every: int) -> tuple[Path, int]:
+    """The phantom's first 6 frames with every ``every``-th message of ``topic`` undecodable.
+
+    Returns the bag and how many messages were made undecodable.
+    """
+    source = _subset(path.with_suffix(".src.mcap"), ALL, images=6)
+    with BagReader(source) as reader, BagWriter(path) as writer:
+        for name, info in reader.topics.items():
+            writer.add_topic(name, info.msgtype)
+        seen = spoilt = 0
+        for message in reader.messages():
+            data = message.data
+            if message.topic == topic:
+                seen += 1
+                if seen % every == 0:
+                    data, spoilt = b"\x00\x01\x00\x00garbage", spoilt + 1
+            writer.write(message.topic, data, message.log_time_ns)
+    return path, spoilt
+
+
+@pytest.mark.parametrize(("topic", "every"), [(topics.IMAGE_RAW, 3), (topics.TRACKER_POSE, 1)])
+def test_undecodable_messages_are_skipped_counted_and_named(
+    topic: str, every: int, calibrations: tuple[Path, Path], tmp_path: Path,
+    capsys: pytest.CaptureFixture,
+) -> None:
+    # One undecodable message used to end the run with exit 2 (and, on the tracker topic,
+    # a 40-byte output without a footer that no reader opens).
+    bag, skipped = _with_garbage(tmp_path / "garbage.mcap", topic, every)
+    assert skipped == (2 if topic == topics.IMAGE_RAW else 11)
+    out = tmp_path / "out.mcap"
+    assert main(_argv(bag, out, calibrations)) == EXIT_DAMAGED
+    errors = [line for line in capsys.readouterr().err.splitlines() if "error:" in line]
+    assert len(errors) == 1, errors
+    assert f"skipped {skipped} on {topic}, undecodable; the first: " in errors[0], errors
+    with BagReader(out) as reader:
+        assert reader.damage is None
+        depth = sum(1 for _ in reader.messages([topics.DEPTH_RELATIVE]))
+    assert depth == (6 - skipped if topic == topics.IMAGE_RAW else 6)
+
+
+def test_each_cause_of_dropped_frames_is_one_line_with_its_message(
+    calibrations: tuple[Path, Path], tmp_path: Path, capsys: pytest.CaptureFixture
+) -> None:
+    # A 3-channel recording against the sample's mono calibration: every frame dropped. The
+    # table counted "3 CalibrationMismatchError" and the run exited 0 without saying why.
+    import numpy as np
+
+    from endo_io.bag import deserialize, serialize
+
+    source = _subset(tmp_path / "mono.mcap", ALL, images=3)
+    bag = tmp_path / "bgr.mcap"
+    with BagReader(source) as reader, BagWriter(bag) as writer:
+        for name, info in reader.topics.items():
+            writer.add_topic(name, info.msgtype)
+        for message in reader.messages():
+            data = message.data
+            if message.topic == topics.IMAGE_RAW:
+                image = deserialize(message)
+                mono = np.frombuffer(bytes(image.data), np.uint8)
+                image.encoding, image.step = "bgr8", image.width * 3
+                image.data = np.repeat(mono, 3).tobytes()
+                data = serialize(image)
+            writer.write(message.topic, data, message.log_time_ns)
+    out = tmp_path / "out.mcap"
+    assert main(_argv(bag, out, calibrations)) == EXIT_DAMAGED
+    lines = capsys.readouterr().err.splitlines()
+    dropped = [line for line in lines if "frames dropped" in line]
+    assert len(dropped) == 1, lines
+    warning = "endo-process: warning: 3 frames dropped, CalibrationMismatchError: "
+    assert dropped[0].startswith(warning), dropped
+    assert dropped[0].endswith(", 3) does not fit a mono calibration"), dropped
+    assert lines[-1] == ("endo-process: error: none of the 3 frames read gave a relative depth "
+                         "(the causes above)")  # fmt: skip
+
+
+@pytest.mark.parametrize(("extra", "error"), [
+    (("--max-frames", "-3"), "Endo3dError: --max-frames must be >= 1, got -3"),
+    (("--solve-scale", "0"), "ParameterFileError: the nodes' defaults with --solve-scale 0: sfs: "
+     "solve_scale must be in (0, 1], got 0.0"),
+])  # fmt: skip
+def test_options_out_of_range_are_one_line_and_exit_2(
+    extra: tuple[str, ...], error: str, calibrations: tuple[Path, Path], tmp_path: Path,
+    capsys: pytest.CaptureFixture,
+) -> None:
+    # --max-frames -3 used to run nothing and exit 0; --solve-scale 0 named the file "None".
+    out = tmp_path / "out.mcap"
+    assert main(_argv(PHANTOM, out, calibrations, *extra)) == EXIT_INPUT
+    assert capsys.readouterr().err.strip() == f"endo-process: {error}"
+    assert not out.exists()
