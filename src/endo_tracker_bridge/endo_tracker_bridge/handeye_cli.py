@@ -30,10 +30,11 @@ import numpy as np
 from geometry_msgs.msg import PoseStamped
 from sensor_msgs.msg import CameraInfo, Image
 
-from endo_io.bag import BagReader, deserialize, msgtype_of
+from endo_io.bag import BagReader, MessageDeserializationError, deserialize, msgtype_of
 from endo_io.bag.streams import PoseStreamCollector
 from endo_io.camera import CameraModel
 from endo_io.cli import exit_on_error
+from endo_io.errors import PoseError
 from endo_io.image import image_to_array
 from endo_io.provenance import camera_record, file_record, tool_record
 from endo_io.stamp import stamp_to_ns
@@ -71,13 +72,20 @@ class BagTopics:
 
 @dataclass(frozen=True)
 class BagObservations:
-    """What the bag gives the solver: board views, tracker stream, camera."""
+    """What the bag gives the solver: board views, tracker stream, camera.
+
+    ``skipped_poses`` tracker samples gave no pose (NaN: the tool out of
+    view; a non-unit quaternion; undecodable bytes) and were left out;
+    ``first_skipped`` is the first one's cause and message.
+    """
 
     views: list[BoardView]
     images: int
     tracker_stamps_ns: np.ndarray
     tracker_poses: np.ndarray
     camera: CameraModel
+    skipped_poses: int = 0
+    first_skipped: str | None = None
 
 
 def read_observations(
@@ -92,7 +100,9 @@ def read_observations(
 
     ``max_views`` > 0 uses at most that many images, evenly spread over the
     recording; ``workers`` threads run the corner detection (OpenCV releases
-    the GIL). Raises HandEyeError when the bag lacks a topic.
+    the GIL). A tracker sample that gives no pose is left out and counted
+    (``BagObservations.skipped_poses``). Raises HandEyeError when the bag
+    lacks a topic, TopicTypeError when one holds another type.
     """
     topics = topics or BagTopics()
     with BagReader(path) as bag:
@@ -108,10 +118,15 @@ def read_observations(
 
         poses = PoseStreamCollector(metres_per_unit=pose_unit.metres_per_unit)
         images: list[tuple[int, np.ndarray]] = []
-        image_index = 0
+        image_index = skipped = 0
+        first_skipped: str | None = None
         for message in bag.messages(topics=[topics.image, topics.pose]):
             if message.topic == topics.pose:
-                poses.add(message)
+                try:
+                    poses.add(message)
+                except (PoseError, MessageDeserializationError) as error:
+                    skipped += 1
+                    first_skipped = first_skipped or f"{type(error).__name__}: {error}"
                 continue
             if image_index % stride == 0:
                 msg = deserialize(message)
@@ -138,6 +153,8 @@ def read_observations(
         tracker_stamps_ns=tracker.stamps_ns,
         tracker_poses=tracker.poses,
         camera=camera,
+        skipped_poses=skipped,
+        first_skipped=first_skipped,
     )
 
 
@@ -387,6 +404,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         board = resolve_board(options.bag, topics.image, None, nominal_mm)
         print(f"board: {board.columns}x{board.rows} inner corners (detected)")
         observations = read_observations(options.bag, board, topics, unit, options.max_views)
+    if observations.skipped_poses:
+        print(f"endo-handeye: warning: left out {observations.skipped_poses} tracker samples "
+              f"that give no pose; the first: {observations.first_skipped}",
+              file=sys.stderr)  # fmt: skip
     low, high = (round(v * MS) for v in options.offset_range_ms)
     search = OffsetSearch(low, high, round(options.offset_step_ms * MS))
     max_gap_ns = round(options.max_gap_ms * MS)

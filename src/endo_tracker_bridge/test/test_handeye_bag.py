@@ -90,3 +90,44 @@ def test_an_image_topic_of_another_type_is_one_line_and_exit_2(tmp_path, capsys)
         "geometry_msgs/msg/PoseStamped, not sensor_msgs/msg/Image"
     )
     assert not output.exists()
+
+
+@pytest.mark.skipif(not BAG.exists(), reason=f"{BAG} not found (endo-sim render handeye writes it)")
+def test_tracker_samples_without_a_pose_are_left_out_and_counted(tmp_path, capsys):
+    # A tracker reports NaN while the tool is out of view: one such sample used to end the
+    # calibration with "PoseError: pose position is not finite" and exit 2.
+    from endo_io.bag import BagReader, BagWriter, deserialize, serialize
+
+    spoilt_bag = tmp_path / "nan_poses.mcap"
+    spoilt = 0
+    with BagReader(BAG) as reader, BagWriter(spoilt_bag) as writer:
+        for name, info in reader.topics.items():
+            writer.add_topic(name, info.msgtype)
+        seen = 0
+        for message in reader.messages():
+            data = message.data
+            if message.topic == "/tracker/pose":
+                seen += 1
+                if seen % 50 == 0:
+                    pose = deserialize(message)
+                    pose.pose.position.x = pose.pose.orientation.w = math.nan
+                    data, spoilt = serialize(pose), spoilt + 1
+            writer.write(message.topic, data, message.log_time_ns)
+    truth = yaml.safe_load(TRUTH.read_text())
+    board = truth["scene"]["checkerboard"]
+    output = tmp_path / "handeye.yaml"
+    arguments = [str(spoilt_bag), "-o", str(output), "--board", "x".join(
+        str(n) for n in board["inner_corners"]), "--square-mm", str(board["square_m"] * 1e3),
+        "--pose-unit", truth["tracker"]["units"], "--max-views", "300"]  # fmt: skip
+    assert main(arguments) == 0
+    error = capsys.readouterr().err.strip()
+    assert error.startswith(
+        f"endo-handeye: warning: left out {spoilt} tracker samples that give no pose; the "
+        "first: PoseError: "
+    ), error
+    assert len(error.splitlines()) == 1 and spoilt >= 30
+    delta = np.linalg.inv(np.asarray(truth["tracker"]["T_marker_camera"])) @ (
+        HandEyeCalibration.load(output).T_marker_camera
+    )
+    assert 1e3 * float(np.linalg.norm(delta[:3, 3])) <= 1.0
+    assert math.degrees(Rotation.from_matrix(delta[:3, :3]).magnitude()) <= 0.5
