@@ -138,10 +138,17 @@ def _options(args: argparse.Namespace) -> ProcessOptions:
         if path is not None and not path.exists():
             option = "the recording" if name == "bag" else f"--{name.replace('_', '-')}"
             raise Endo3dError(f"{path}: no such file ({option})")
-    if args.output.exists():
-        if not args.overwrite:
-            raise Endo3dError(f"{args.output} exists (use --overwrite to replace it)")
-        args.output.unlink()
+    if args.output.is_dir():
+        raise Endo3dError(f"{args.output} is a directory (-o names the output .mcap)")
+    if args.output.exists() and not args.overwrite:
+        raise Endo3dError(f"{args.output} exists (use --overwrite to replace it)")
+    for name in ("report", "summary_json", "ply"):  # refused now, not after the run
+        path = getattr(args, name)
+        option = f"--{name.replace('_', '-')}"
+        if path is not None and path.is_dir():
+            raise Endo3dError(f"{path} is a directory ({option} names a file)")
+        if path is not None and not path.parent.is_dir():
+            raise Endo3dError(f"{path}: parent directory does not exist ({option})")
     return ProcessOptions(
         bag=args.bag, output=args.output, calibration=args.calibration, handeye=args.handeye,
         params=args.params, solve_scale=args.solve_scale,
@@ -150,6 +157,7 @@ def _options(args: argparse.Namespace) -> ProcessOptions:
         jobs=args.jobs,
         chunk_frames=args.chunk_frames, compression=args.compression,
         chunk_crcs=args.chunk_crc, progress=not args.quiet, max_frames=args.max_frames,
+        overwrite=args.overwrite,
     )  # fmt: skip
 
 

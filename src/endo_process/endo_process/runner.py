@@ -102,6 +102,7 @@ class ProcessOptions:
     progress: bool = True
     flush_every: int = DEFAULT_FLUSH_EVERY
     max_frames: int | None = None
+    overwrite: bool = False
 
 
 @dataclass
@@ -458,13 +459,17 @@ def _write_map(
     world_frame: str,
     report: ProcessReport,
 ) -> None:
-    """The voxel map's last state on /endoscope/map, and --ply."""
+    """The voxel map's last state on /endoscope/map (--ply: :func:`_export_ply`, after)."""
     cloud = flow.map_cloud(stamp_ns, world_frame)
     if cloud is None:
         return
     report.map_points = cloud.width * cloud.height
     output.write(topics.MAP, cloud, stamp_ns)
-    if options.ply is not None and flow.pipeline.voxel_map is not None:
+
+
+def _export_ply(flow: FlowStage, options: ProcessOptions, report: ProcessReport) -> None:
+    """--ply, once the output is finalised: a PLY that cannot be written costs only itself."""
+    if options.ply is not None and report.map_points and flow.pipeline.voxel_map is not None:
         report.ply_vertices = flow.pipeline.voxel_map.export_ply(options.ply)
 
 
@@ -526,6 +531,8 @@ def process_bag(
         shaded_frames = enumerate(pool.map(frames), start=1)
         with BagReader(options.bag) as reader:
             copied = {name: reader.topics[name] for name in inputs.ground_truth}
+        if options.overwrite:  # only now: every input has been checked
+            options.output.unlink(missing_ok=True)
         output = OutputBag(options.output, options.compression, copied,
                            threaded=pool.worker_count == 0, crcs=options.chunk_crcs)  # fmt: skip
         world_frame = str(settings.flow["world_frame"])
@@ -650,6 +657,7 @@ def process_bag(
             streams.close()
         finally:
             pool.close()
+    _export_ply(flow, options, report)
     report.interrupted = report.interrupted or stop.is_set()
     report.written = Counter(output.counts)
     report.poses_written = report.written[topics.CAMERA_POSE]

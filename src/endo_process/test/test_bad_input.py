@@ -291,3 +291,46 @@ def test_options_out_of_range_are_one_line_and_exit_2(
     assert main(_argv(PHANTOM, out, calibrations, *extra)) == EXIT_INPUT
     assert capsys.readouterr().err.strip() == f"endo-process: {error}"
     assert not out.exists()
+
+
+def test_overwrite_keeps_the_old_output_when_an_input_is_bad(
+    calibrations: tuple[Path, Path], tmp_path: Path, capsys: pytest.CaptureFixture
+) -> None:
+    # --overwrite used to delete the old output before the inputs were read: a wrong
+    # --calibration (here the hand-eye file) cost the previous run's result.
+    out = tmp_path / "out.mcap"
+    out.write_bytes(b"the previous run")
+    argv = _argv(PHANTOM, out, (calibrations[1], calibrations[1]), "--overwrite")
+    assert main(argv) == EXIT_INPUT
+    assert "is not an endo3d photometric calibration" in capsys.readouterr().err
+    assert out.read_bytes() == b"the previous run"
+
+
+@pytest.mark.parametrize("option", ["--report", "--summary-json", "--ply", "-o"])
+def test_an_output_path_in_a_missing_directory_is_refused_before_the_run(
+    option: str, calibrations: tuple[Path, Path], tmp_path: Path, capsys: pytest.CaptureFixture
+) -> None:
+    # --report there ended the run in a FileNotFoundError traceback after every frame; --ply
+    # there ended it with exit 2 after every frame, the output MCAP left without its footer
+    # (the PLY is now also written after the output is finalised).
+    bag = _subset(tmp_path / "short.mcap", ALL, images=2)
+    out, missing = tmp_path / "out.mcap", tmp_path / "nowhere" / "file.mcap"
+    argv = _argv(bag, missing if option == "-o" else out, calibrations)
+    if option != "-o":
+        argv += [option, str(missing)]
+    assert main(argv) == EXIT_INPUT
+    error = capsys.readouterr().err.strip()
+    assert len(error.splitlines()) == 1 and f"{missing}: parent directory does not exist" in error
+    assert not out.exists()
+
+
+def test_a_directory_as_output_is_one_line_and_exit_2(
+    calibrations: tuple[Path, Path], tmp_path: Path, capsys: pytest.CaptureFixture
+) -> None:
+    # With --overwrite it was an IsADirectoryError traceback.
+    argv = _argv(PHANTOM, tmp_path, calibrations, "--overwrite")
+    assert main(argv) == EXIT_INPUT
+    error = capsys.readouterr().err.strip()
+    assert error == (
+        f"endo-process: Endo3dError: {tmp_path} is a directory (-o names the output .mcap)"
+    )
