@@ -100,6 +100,8 @@ class Configuration:
     node_parameters: dict[str, dict[str, str]] = field(default_factory=dict)
     #: endo-sfs processes sharing the frames (GraphSettings.sfs_workers).
     sfs_workers: int = 1
+    #: the recorder's niceness (GraphSettings.recorder_nice; None: the default).
+    recorder_nice: int | None = None
 
 
 def configurations(scales: list[float]) -> list[Configuration]:
@@ -107,7 +109,9 @@ def configurations(scales: list[float]) -> list[Configuration]:
 
     "all on" runs one endo-sfs with its default threads (2), the corrected
     image in 16UC1 fixed point (the default); "corrected 32FC1" publishes it
-    as float, as before 2026-12-02; "sfs threads 1"
+    as float, as before 2026-12-02; "recorder nice 0" runs the recorder at
+    the nodes' priority, as before the recorder was niced; "map off" runs flow
+    without its voxel map; "sfs threads 1"
     one endo-sfs on one thread; "sfs 2 workers x 1 thread" two endo-sfs
     processes (worker_count 2) of one thread each.
     """
@@ -123,7 +127,9 @@ def configurations(scales: list[float]) -> list[Configuration]:
                                    {CORRECTION: {"output_encoding": "32FC1"}}))
         found += [Configuration("sfs threads 1", scale, {SFS: {"threads": "1"}}),
                   Configuration("sfs 2 workers x 1 thread", scale, {SFS: {"threads": "1"}},
-                                sfs_workers=2)]
+                                sfs_workers=2),
+                  Configuration("recorder nice 0", scale, recorder_nice=0),
+                  Configuration("map off", scale, {FLOW: {"map_enabled": "false"}})]
     return found
 
 
@@ -217,6 +223,8 @@ def run_once(bag: Path, configuration: Configuration, rate: float, work: Path,
     settings = replace(graph_settings_for(bag, rate, configuration.solve_scale),
                        node_parameters=configuration.node_parameters,
                        sfs_workers=configuration.sfs_workers)
+    if configuration.recorder_nice is not None:
+        settings = replace(settings, recorder_nice=configuration.recorder_nice)
     processes = planned_graph(bag, photometric, handeye, out, settings)
     settings = replace(settings, listeners=GraphMonitor.played_listeners(processes, listen))
     before = _cpu_ms()

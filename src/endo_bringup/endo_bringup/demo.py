@@ -272,7 +272,7 @@ def run_round_trip(
         expected = {t: reader.topics[t].message_count for t in topics}
     with ProcessGroup(env, output.parent / "logs" / "round_trip") as group:
         recorder = recorder_process(topics, output)
-        group.start(recorder.name, recorder.command())
+        group.start(recorder.name, recorder.command(), nice=recorder.nice)
         play_and_record(
             group,
             replay_process(bag, topics, rate),

@@ -61,6 +61,13 @@ PLAYED_TOPICS = [IMAGE_RAW, CAMERA_INFO, TRACKER_POSE, TRUE_DEPTH, TRUE_CAMERA_P
 #: Names of the recorder and player processes (their logs, their exit codes).
 RECORDER, PLAYER = "endo-record", "endo-replay"
 
+#: The recorder's niceness in a graph run. It needs no latency, only to keep up
+#: on average (its subscriptions queue what it has not yet taken), so on a
+#: loaded machine the CPU goes to the frames' path first; at nice 0 its chunk
+#: writes and copies (~10 CPU-ms per frame) competed with SFS and flow
+#: (docs/benchmarks.md, "The live graph at video rate: reading").
+RECORDER_NICENESS = 10
+
 
 class GraphError(RuntimeError):
     """A process of the graph failed to start or to finish its part."""
@@ -149,6 +156,8 @@ class GraphProcess:
     node_name: the ROS package of the executable and the ROS node it runs
     (the key of its section in a parameter file; empty for the tools);
     params_file: a ROS parameter file given before the ``-p`` overrides.
+    nice: added to the process's niceness when it starts (0: as its parent;
+    the recorder's :data:`RECORDER_NICENESS`).
     """
 
     name: str
@@ -162,6 +171,7 @@ class GraphProcess:
     package: str = ""
     node_name: str = ""
     params_file: str = ""
+    nice: int = 0
 
     @property
     def per_frame_outputs(self) -> tuple[str, ...]:
@@ -254,12 +264,15 @@ def graph_nodes(
     ]
 
 
-def recorder_process(topics: Sequence[str], output: Path) -> GraphProcess:
+def recorder_process(
+    topics: Sequence[str], output: Path, nice: int = RECORDER_NICENESS
+) -> GraphProcess:
     """``endo-record`` of ``topics`` into ``output``, flushed every 0.2 s (readable meanwhile).
 
     Chunks in lz4, not zstd: the recorder compresses ~5 MB of float images per
     frame, and zstd (level 3, mcap's) cost 2.0 ms of CPU per MB against lz4's
     0.5 ms, for files 1.16x bigger (a graph recording, docs/benchmarks.md).
+    It runs at ``nice`` (:data:`RECORDER_NICENESS` by default).
     """
     return GraphProcess(
         RECORDER,
@@ -267,6 +280,7 @@ def recorder_process(topics: Sequence[str], output: Path) -> GraphProcess:
         arguments=("--topics", *topics, "-o", str(output), "--flush-period", "0.2",
                    "--compression", "lz4"),
         subscribes=tuple(topics),
+        nice=nice,
     )
 
 
@@ -337,6 +351,7 @@ class GraphSettings:
     ``worker_count``; :func:`sfs_worker_rows`). 1 by default: on 2 cores
     two one-thread workers let more depths out but doubled the latency
     (docs/benchmarks.md, session graphrate); more workers are for more cores.
+    recorder_nice: the recorder's niceness (:data:`RECORDER_NICENESS`).
     """
 
     rate: float = 0.25
@@ -349,6 +364,7 @@ class GraphSettings:
     node_parameters: Mapping[str, Mapping[str, str]] = field(default_factory=dict)
     listeners: Mapping[str, int] = field(default_factory=dict)
     sfs_workers: int = 1
+    recorder_nice: int = RECORDER_NICENESS
 
 
 #: The SFS row's process name (worker 0's when there are several).
@@ -437,7 +453,7 @@ def graph_processes(
         for name in {*rows, *settings.node_parameters}
     }), settings.sfs_workers)
     recorded = [*node_outputs(nodes), CAMERA_INFO, TRUE_DEPTH, TRUE_CAMERA_POSE]
-    recorder = recorder_process(recorded, recording)
+    recorder = recorder_process(recorded, recording, settings.recorder_nice)
     subscribers = subscriber_counts([recorder, *nodes], played, settings.listeners)
     return [recorder, *nodes, replay_process(bag, played, settings.rate, subscribers)]
 
@@ -647,7 +663,7 @@ def play_and_record(
     stopped with SIGINT, which finalises the recording. A player still running
     after ``play_timeout_s`` is stopped and reported by its exit status.
     """
-    replay = group.start(player.name, player.command())
+    replay = group.start(player.name, player.command(), nice=player.nice)
     with contextlib.suppress(subprocess.TimeoutExpired):
         replay.wait(play_timeout_s)
     group.stop([player.name])
@@ -686,7 +702,7 @@ def run_live_graph(
         if CAMERA_INFO in played:
             write_camera_file(bag, camera_file_path(recording))
         for process in (_process(processes, RECORDER), *nodes):
-            group.start(process.name, process.command())
+            group.start(process.name, process.command(), nice=process.nice)
         _wait_for_recorder(group, node_outputs(processes), settings.startup_timeout_s)
         wait_for_nodes(group, [node.name for node in nodes], settings.startup_timeout_s)
         play_and_record(

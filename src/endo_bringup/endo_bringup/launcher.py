@@ -48,6 +48,7 @@ from endo_bringup.graph import (
     NODE_UP,
     PLAYED_TOPICS,
     PLAYER,
+    RECORDER_NICENESS,
     REPLAY_WAIT_TIMEOUT_S,
     GraphProcess,
     GraphRun,
@@ -266,7 +267,7 @@ def plan_launch(options: argparse.Namespace) -> LaunchPlan:
         recorded = [*node_outputs(nodes), rules.get(CAMERA_INFO, CAMERA_INFO), *recorded_extra]
         recorder = GraphProcess(RECORDER, "endo-record", arguments=(
             "--topics", *recorded, "-o", str(options.record), "--flush-period", "0.5"),
-            subscribes=tuple(recorded))  # fmt: skip
+            subscribes=tuple(recorded), nice=RECORDER_NICENESS)  # fmt: skip
     ends = False
     if options.preset == "replay":
         # Play once every subscription of each played topic has matched (not /clock, not a
@@ -408,7 +409,8 @@ class Launch:
 
     def start(self, process: GraphProcess) -> None:
         """Start one process of the plan, its output echoed."""
-        self.group.start(process.name, process.command(), echo=self.echo, new_session=True)
+        self.group.start(process.name, process.command(), echo=self.echo, new_session=True,
+                         nice=process.nice)
         if process.name in self.state:
             self.state[process.name].started = time.monotonic()
 

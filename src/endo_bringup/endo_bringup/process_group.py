@@ -32,15 +32,22 @@ Echo = Callable[[str, str], None]
 PR_SET_PDEATHSIG = 1
 
 
-def _die_with_parent() -> Callable[[], None] | None:
+def _die_with_parent(nice: int = 0) -> Callable[[], None] | None:
     """A ``preexec_fn`` giving the child SIGKILL when its parent dies (Linux; None elsewhere).
 
     libc is loaded here, in the parent, so the child only makes the call.
     The parent may die between the fork and the prctl: the child then
-    already has another parent and exits at once.
+    already has another parent and exits at once. ``nice`` (> 0) is added
+    to the child's niceness (``os.nice``) before it runs its program.
     """
     if not sys.platform.startswith("linux"):
-        return None
+        if nice <= 0:
+            return None
+
+        def renice() -> None:
+            os.nice(nice)
+
+        return renice
     libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6", use_errno=True)
     parent = os.getpid()
 
@@ -48,6 +55,8 @@ def _die_with_parent() -> Callable[[], None] | None:
         libc.prctl(PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0)
         if os.getppid() != parent:
             os._exit(1)
+        if nice > 0:
+            os.nice(nice)
 
     return preexec
 
@@ -84,6 +93,7 @@ class ProcessGroup:
         *,
         echo: Echo | None = None,
         new_session: bool = False,
+        nice: int = 0,
     ) -> subprocess.Popen[bytes]:
         """Start ``argv`` as child ``name`` (again, when a child of that name has exited).
 
@@ -95,7 +105,12 @@ class ProcessGroup:
                 appends to the log.
             new_session: start it in a session of its own, so that a terminal's
                 Ctrl-C reaches only this process, which forwards it.
+            nice: added to the child's niceness (0..19; lower CPU priority),
+                for a process that must not take the CPU from the frames'
+                path (the graph's recorder).
         """
+        if not 0 <= nice <= 19:
+            raise ValueError(f"nice must be in 0..19, got {nice}")
         previous = self.processes.get(name)
         if previous is not None and previous.poll() is None:
             raise RuntimeError(f"{name} is still running")
@@ -106,7 +121,7 @@ class ProcessGroup:
         log.flush()
         # The death signal follows the forking *thread*: children are started
         # from the thread that owns the group (the launcher's main thread).
-        preexec = _die_with_parent()
+        preexec = _die_with_parent(nice)
         if echo is None:
             with log:
                 process = subprocess.Popen(

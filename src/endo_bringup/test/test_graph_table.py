@@ -13,6 +13,7 @@ from endo_bringup.demo import compare_bags, playable_topics, run_round_trip, wri
 from endo_bringup.graph import (
     PLAYER,
     RECORDER,
+    RECORDER_NICENESS,
     GraphRun,
     GraphSettings,
     describe_graph,
@@ -81,6 +82,9 @@ def test_command_lines_come_from_the_table(tmp_path: Path) -> None:
         "-o", str(tmp_path / "graph.mcap"),
         "--flush-period", "0.2", "--compression", "lz4",
     ]  # fmt: skip
+    # the recorder yields the CPU to the frames' path; every other process runs as its parent
+    assert {p.name: p.nice for p in processes} == {
+        RECORDER: RECORDER_NICENESS, **{name: 0 for name in [*nodes, PLAYER]}}
     text = describe_graph(processes)
     assert len(text.splitlines()) == 1 + len(processes)
     bridge_row = rf"^endo-tracker-bridge +{topics.TRACKER_POSE} +{topics.CAMERA_POSE}, "

@@ -55,3 +55,18 @@ def test_leaving_on_an_exception_stops_every_child(tmp_path: Path):
         raise RuntimeError("the demo failed half-way")
     assert all(p.poll() is not None for p in group.processes.values())
     assert group.log("a").startswith("$ ")  # the command line heads the log
+
+
+def test_a_child_runs_at_the_niceness_asked(tmp_path: Path):
+    script = "import os, time\nprint('re' + 'ady', os.nice(0), flush=True)\ntime.sleep(60)\n"
+    own = os.nice(0)
+    with ProcessGroup(dict(os.environ), tmp_path, grace_s=1.0) as group:
+        niced = group.start("niced", [sys.executable, "-c", script], nice=7)
+        plain = group.start("plain", [sys.executable, "-c", script])
+        _wait_ready(group, "niced")
+        _wait_ready(group, "plain")
+        assert os.getpriority(os.PRIO_PROCESS, niced.pid) == min(own + 7, 19)
+        assert os.getpriority(os.PRIO_PROCESS, plain.pid) == own
+        with pytest.raises(ValueError, match=r"nice must be in 0\.\.19"):
+            group.start("negative", [sys.executable, "-c", script], nice=-1)
+    assert f"ready {min(own + 7, 19)}" in group.log("niced")
