@@ -213,10 +213,13 @@ def _offsets(monitor: GraphMonitor, processes: list[GraphProcess], recording: Pa
 
 
 def run_once(bag: Path, configuration: Configuration, rate: float, work: Path,
-             env: dict[str, str], listen: str = "recording") -> Result:
+             env: dict[str, str], listen: str = "recording", *,
+             keep_recording: bool = False) -> Result:
     """The graph on ``bag`` in ``configuration`` at ``rate``, watched as ``listen`` says.
 
-    The result's run number and load are the caller's to set.
+    The result's run number and load are the caller's to set. The run's
+    recording (~2 GB per 60 s at 0.5, 4 GB at full resolution) is deleted
+    once its figures are read, unless ``keep_recording``; the logs stay.
     """
     out = Path(tempfile.mkdtemp(prefix=f"{bag.stem}_", dir=work))
     photometric, handeye, _ = true_calibrations(out, configuration.solve_scale, bag)
@@ -247,6 +250,8 @@ def run_once(bag: Path, configuration: Configuration, rate: float, work: Path,
     bad = {name: code for name, code in run.return_codes.items() if code != 0}
     if bad:
         print(f"  exit codes {bad}; logs in {run.log_dir}", flush=True)
+    if not keep_recording:
+        run.recording.unlink(missing_ok=True)
     return result
 
 
@@ -540,6 +545,8 @@ def main() -> int:
                         help="configuration names to run, in this order")
     parser.add_argument("--quick", action="store_true", help="one pass, phantom only, all on")
     parser.add_argument("--no-write", action="store_true", help="do not edit docs/benchmarks.md")
+    parser.add_argument("--keep-recordings", action="store_true",
+                        help="keep each run's graph.mcap (deleted once read: ~2 GB per minute)")
     parser.add_argument("--report-from", type=Path, nargs="+", default=None,
                         help="only write the report of saved results.pkl files (concatenated)")
     parser.add_argument("--exclude", nargs="+", default=[], metavar="BAG:PASS",
@@ -601,7 +608,8 @@ def main() -> int:
                     print(f"== pass {run}: {bag.name}, {variant.name}, solve_scale "
                           f"{variant.solve_scale:g}, rate {args.rate:g}, listener {listen} "
                           f"(load {load:.1f})", flush=True)
-                    result = run_once(bag, variant, args.rate, work, environment, listen)
+                    result = run_once(bag, variant, args.rate, work, environment, listen,
+                                      keep_recording=args.keep_recordings)
                     result.run, result.load_before = run, load
                     _print_result(result)
                     results.append(result)
@@ -611,7 +619,7 @@ def main() -> int:
                 load = os.getloadavg()[0]
                 print(f"== sweep pass {run}: phantom at {rate:g}x (load {load:.1f})", flush=True)
                 result = run_once(PHANTOM, Configuration("all on", args.sweep_scale), rate,
-                                  work, env, listens[0][1])
+                                  work, env, listens[0][1], keep_recording=args.keep_recordings)
                 result.run, result.load_before = run, load
                 _print_result(result)
                 sweep.append(result)
