@@ -111,7 +111,8 @@ def configurations(scales: list[float]) -> list[Configuration]:
     image in 16UC1 fixed point (the default); "corrected 32FC1" publishes it
     as float, as before 2026-12-02; "recorder nice 0" runs the recorder at
     the nodes' priority, as before the recorder was niced; "map off" runs flow
-    without its voxel map; "sfs threads 1"
+    without its voxel map, "map unpublished" fuses it but does not publish it
+    in the run (map_period_s 3600); "sfs threads 1"
     one endo-sfs on one thread; "sfs 2 workers x 1 thread" two endo-sfs
     processes (worker_count 2) of one thread each.
     """
@@ -129,7 +130,8 @@ def configurations(scales: list[float]) -> list[Configuration]:
                   Configuration("sfs 2 workers x 1 thread", scale, {SFS: {"threads": "1"}},
                                 sfs_workers=2),
                   Configuration("recorder nice 0", scale, recorder_nice=0),
-                  Configuration("map off", scale, {FLOW: {"map_enabled": "false"}})]
+                  Configuration("map off", scale, {FLOW: {"map_enabled": "false"}}),
+                  Configuration("map unpublished", scale, {FLOW: {"map_period_s": "3600.0"}})]
     return found
 
 

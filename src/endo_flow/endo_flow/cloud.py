@@ -134,10 +134,15 @@ def surface_normals(points: np.ndarray) -> np.ndarray:
 def _kept_normals(
     points: np.ndarray, depth: np.ndarray, lo: float, hi: float, R: np.ndarray,
     t: np.ndarray, index: np.ndarray, world: np.ndarray, normals: np.ndarray,
+    row_start: int, row_stop: int,
 ) -> int:
     """The grid nodes kept, their world points and normals, in one pass; returns how many.
 
-    A node is kept when its depth is in [lo, hi] and its point is finite;
+    Only rows ``row_start`` to ``row_stop`` (excluded) of the grid are
+    visited; a node's normal still reads its neighbours in the rows around
+    (the grid's border is the whole grid's), so bands of rows give, end to
+    end, what the whole grid gives. A node is kept when its depth is in
+    [lo, hi] and its point is finite;
     ``index[:n]`` receives the kept nodes' flat indices (row-major),
     ``world[:n]`` their points moved by (R, t) as
     :func:`endo_io.pose.transform_points` moves them (R @ p + t in float64,
@@ -151,7 +156,7 @@ def _kept_normals(
     """
     h, w = depth.shape
     n = 0
-    for r in range(h):
+    for r in range(row_start, row_stop):
         for c in range(w):
             z = depth[r, c]
             if not (z >= lo and z <= hi and np.isfinite(points[r, c, 0])
@@ -221,13 +226,8 @@ def world_clouds(
     if not decimations or min(decimations) < 1:
         raise ValueError(f"decimations must be >= 1, got {list(decimations)}")
     step = math.gcd(*(int(k) for k in decimations))
-    rows, cols = slice(0, camera.height * step, step), slice(0, camera.width * step, step)
-    sub = np.asarray(depth)[rows, cols]
-    if sub.shape != (camera.height, camera.width):
-        raise ValueError(f"depth {np.shape(depth)} has no {camera.width}x{camera.height} grid "
-                         f"at step {step}")
+    sub, grey_grid = _grid(depth, image, camera, step)
     local = camera.depth_to_points(sub)
-    grey_grid = np.asarray(image)[rows, cols]
     clouds: dict[int, Cloud] = {}
     for k in decimations:
         if int(k) in clouds:
@@ -244,25 +244,101 @@ def world_clouds(
     return [clouds[int(k)] for k in decimations]
 
 
+def _grid(
+    depth: np.ndarray, image: np.ndarray, camera: CameraModel, step: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """The depth and image nodes of the ``camera`` grid: every ``step``-th pixel (views)."""
+    rows, cols = slice(0, camera.height * step, step), slice(0, camera.width * step, step)
+    sub = np.asarray(depth)[rows, cols]
+    if sub.shape != (camera.height, camera.width):
+        raise ValueError(f"depth {np.shape(depth)} has no {camera.width}x{camera.height} grid "
+                         f"at step {step}")
+    return sub, np.asarray(image)[rows, cols]
+
+
 def _grid_cloud(
     local: np.ndarray, depth: np.ndarray, image: np.ndarray, T_world_camera: np.ndarray,
     min_depth_m: float, max_depth_m: float, white: float, gamma: float,
+    rows: tuple[int, int] | None = None,
 ) -> Cloud:
-    """The world cloud of an organised (h, w, 3) camera-frame grid (see :func:`world_clouds`)."""
+    """The world cloud of an organised (h, w, 3) camera-frame grid (see :func:`world_clouds`).
+
+    ``rows``: only the grid rows from the first to the second (excluded); None: all.
+    """
     h, w = depth.shape
     T = np.asarray(T_world_camera, np.float64)
     if T.shape != (4, 4):
         raise ValueError(f"T_world_camera must be (4, 4), got {T.shape}")
-    index = np.empty(h * w, np.int64)
-    world = np.empty((h * w, 3), np.float32)
-    normals = np.empty((h * w, 3), np.float32)
+    start, stop = (0, h) if rows is None else rows
+    size = max(stop - start, 0) * w
+    index = np.empty(size, np.int64)
+    world = np.empty((size, 3), np.float32)
+    normals = np.empty((size, 3), np.float32)
     n = _kept_normals(np.ascontiguousarray(local), np.ascontiguousarray(depth),
                       float(min_depth_m), float(max_depth_m), np.ascontiguousarray(T[:3, :3]),
-                      np.ascontiguousarray(T[:3, 3]), index, world, normals)
+                      np.ascontiguousarray(T[:3, 3]), index, world, normals, start, stop)
     index, world, normals = index[:n], world[:n], normals[:n]
     grey = irradiance_to_mono8(np.asarray(image).reshape(1, -1).take(index, axis=1),
                                white=white, gamma=gamma)[0]
     return world, grey, normals
+
+
+class BandedCloud:
+    """One frame's world cloud at one decimation, built a band of grid rows at a time.
+
+    The bands, concatenated in the order taken, are :func:`world_cloud`'s
+    cloud (same points, grey levels and normals, same order; tested): a
+    node's normal reads the rows around its band. The live flow node fuses
+    a frame's full-resolution map cloud this way over the frames that
+    follow, so that no one frame carries the whole cloud and its insert.
+    The grid is back-projected when the first band is taken.
+
+    Args:
+        depth, image, camera, T_world_camera, decimation, min_depth_m,
+        max_depth_m, white, gamma: as :func:`world_cloud`'s. The arrays
+        are held (not copied) until the last band is taken.
+    """
+
+    def __init__(
+        self,
+        depth: np.ndarray,
+        image: np.ndarray,
+        camera: CameraModel,
+        T_world_camera: np.ndarray,
+        *,
+        decimation: int,
+        min_depth_m: float,
+        max_depth_m: float,
+        white: float,
+        gamma: float,
+    ) -> None:
+        if decimation < 1:
+            raise ValueError(f"decimation must be >= 1, got {decimation}")
+        self._depth, self._image = _grid(depth, image, camera, int(decimation))
+        self._camera = camera
+        self._T = np.asarray(T_world_camera, np.float64)
+        self._range = (float(min_depth_m), float(max_depth_m))
+        self._grey = (float(white), float(gamma))
+        self._local: np.ndarray | None = None
+        #: grid rows of the decimated grid, and the first not yet taken
+        self.rows = camera.height
+        self.next_row = 0
+
+    @property
+    def done(self) -> bool:
+        """Whether every row has been taken."""
+        return self.next_row >= self.rows
+
+    def take(self, rows: int) -> Cloud:
+        """The cloud of the next ``rows`` grid rows (fewer at the end; empty when done)."""
+        if rows < 1:
+            raise ValueError(f"rows must be >= 1, got {rows}")
+        if self._local is None:
+            self._local = self._camera.depth_to_points(self._depth)
+        start = self.next_row
+        self.next_row = min(start + int(rows), self.rows)
+        return _grid_cloud(self._local, self._depth, self._image, self._T, *self._range,
+                           *self._grey, rows=(start, self.next_row))
 
 
 def world_cloud(

@@ -473,11 +473,12 @@ class FlowNode(Node):
             return
         self.health.ok()
         self._publish(pending, out)
-        # the map's full-resolution cloud and insert after the frame's outputs are out
+        # the map's full-resolution cloud and insert after the frame's outputs are out, a
+        # band of rows after each frame: map_every frames share each fused frame's work
         try:
-            self.pipeline.fuse_deferred_map()
+            self.pipeline.fuse_deferred_map(parts=self.pipeline.options.map_every)
         except Exception as error:  # the frame is out; a map failure must not stop the node
-            self.health.drop(type(error).__name__, f"map fusion of frame {pending.stamp_ns} ns: "
+            self.health.drop(type(error).__name__, f"map fusion after frame {pending.stamp_ns} ns: "
                              f"{error}")
 
     def _step(self, pending: _Pending, pose: np.ndarray | None) -> FlowOutput:
@@ -544,8 +545,7 @@ class FlowNode(Node):
         if self.pipeline.voxel_map is None:
             response.success, response.message = False, "the map is disabled (map_enabled)"
             return response
-        dropped = len(self.pipeline.voxel_map)
-        self.pipeline.voxel_map.reset()
+        dropped = self.pipeline.reset_map()
         self._map_dirty = True
         response.success, response.message = True, f"map reset ({dropped} voxels dropped)"
         self.get_logger().info(response.message)

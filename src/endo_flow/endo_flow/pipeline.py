@@ -40,7 +40,7 @@ from typing import Any
 
 import numpy as np
 
-from endo_flow.cloud import Cloud, binned_camera, world_clouds
+from endo_flow.cloud import BandedCloud, Cloud, binned_camera, world_clouds
 from endo_flow.errors import FlowInputError, NoFeaturesError
 from endo_flow.keyframes import Keyframe, KeyframeWindow, TrackViews
 from endo_flow.pose_smoothing import PoseSmoother
@@ -586,8 +586,10 @@ class FlowPipeline:
         self._shape: ShapeCorrector | None = None
         self._camera: CameraModel | None = None
         self._map_turn = 0  # frames with world points so far: the map takes every map_every-th
-        # a frame whose map fusion process(defer_map=True) left for fuse_deferred_map()
-        self._deferred_map: tuple[FlowFrame, np.ndarray, np.ndarray] | None = None
+        # the map cloud of a frame process(defer_map=True) left for fuse_deferred_map(), and
+        # whether a band of it is in the map (the next bands continue that insert)
+        self._deferred_map: BandedCloud | None = None
+        self._deferred_started = False
         self._last_stamp_ns: int | None = None
         self._observed_version = -1  # the window's version at the last keyframes-only fit
         self.frames = 0
@@ -619,6 +621,15 @@ class FlowPipeline:
         self._deferred_map = None
         self._last_stamp_ns = None
         self.resets += 1
+
+    def reset_map(self) -> int:
+        """Empty the map and drop a frame waiting for it; returns the voxels dropped."""
+        self._deferred_map = None
+        if self.voxel_map is None:
+            return 0
+        dropped = len(self.voxel_map)
+        self.voxel_map.reset()
+        return dropped
 
     def set_cloud_options(self, **changes: int) -> None:
         """Change ``cloud_decimation``, ``map_decimation`` or ``map_every``; state is kept.
@@ -678,10 +689,11 @@ class FlowPipeline:
 
         With ``defer_map`` a frame the map takes (every ``map_every``-th with
         world points) is not fused here: :meth:`fuse_deferred_map` does it,
-        after the caller has published the output (the live node: the
-        full-resolution cloud and its insert, ~15-30 ms, then no longer delay
-        that frame's cloud). The map is the same either way (tested); a frame
-        left unfused is fused first by the next call.
+        after the caller has published the output, whole or in bands over the
+        next frames (the live node: the full-resolution cloud and its insert,
+        ~15-30 ms, then no longer delay that frame's cloud nor any one
+        frame). The map is the same either way (tested); what is left of a
+        frame when the next frame the map takes comes is fused first.
 
         Raises:
             FlowInputError: image or depth_relative of another size than the
@@ -694,7 +706,6 @@ class FlowPipeline:
         """
         opts = self.options
         T = self._check(frame)
-        self.fuse_deferred_map()  # a caller that forgot: the map keeps its frame order
         if self._last_stamp_ns is not None and frame.stamp_ns <= self._last_stamp_ns:
             if frame.stamp_ns == self._last_stamp_ns:
                 raise FlowInputError(f"frame stamp {frame.stamp_ns} ns repeats the previous one")
@@ -838,11 +849,20 @@ class FlowPipeline:
             if T is not None:
                 t0 = time.perf_counter()
                 fuse = self.voxel_map is not None and self._map_turn % opts.map_every == 0
+                if fuse:  # the map keeps its frame order: the rest of a deferred frame first
+                    self.fuse_deferred_map()
                 (points, intensity, normals), fused = self._cloud(
                     frame, depth, T, fuse and not defer_map)
                 if fuse and defer_map:
                     if len(points):  # the turn is taken; the map's cloud comes later
-                        self._deferred_map = (frame, depth, T)
+                        assert self._camera is not None
+                        self._deferred_map = BandedCloud(
+                            depth, frame.image,
+                            binned_camera(self._camera, opts.map_decimation), T,
+                            decimation=opts.map_decimation, min_depth_m=opts.cloud_min_depth_m,
+                            max_depth_m=opts.cloud_max_depth_m,
+                            white=self.tracker.white_level or 1.0, gamma=opts.tracking.gamma)
+                        self._deferred_started = False
                     else:  # whether the turn is taken depends on the map's own cloud
                         fused = self._cloud(frame, depth, T, True)[1]
                 timings["cloud"] = 1e3 * (time.perf_counter() - t0)
@@ -916,28 +936,33 @@ class FlowPipeline:
         return ScaleObservation(fit.log_scale, std, triangulated.spread, fit.tracks,
                                 triangulated.inliers)
 
-    def fuse_deferred_map(self) -> int:
-        """Fuse the frame ``process(defer_map=True)`` left for the map; returns its points.
+    def fuse_deferred_map(self, *, parts: int = 1) -> int:
+        """Fuse (part of) the frame ``process(defer_map=True)`` left for the map.
 
         The map's cloud (``map_decimation``) of that frame's metric depth and
-        pose, inserted into the voxel map; 0 when no frame waits.
+        pose, inserted into the voxel map in row-major bands: each call takes
+        the next 1/``parts`` of its grid rows (rounded up), so ``parts``
+        calls fuse it whole, with the map one call with ``parts=1`` gives
+        (the bands continue one insert: :meth:`VoxelMap.insert`). The live
+        node calls it after publishing each frame with ``parts=map_every``:
+        the frame is fused by the time the map takes the next one.
+
+        Returns:
+            The points inserted by this call; 0 when no frame waits.
         """
-        if self._deferred_map is None or self.voxel_map is None:
+        if parts < 1:
+            raise ValueError(f"parts must be >= 1, got {parts}")
+        pending = self._deferred_map
+        if pending is None or self.voxel_map is None:
             self._deferred_map = None
             return 0
-        frame, depth, T = self._deferred_map
-        self._deferred_map = None
-        opts = self.options
-        assert self._camera is not None
-        fused = world_clouds(depth, frame.image, binned_camera(self._camera, opts.map_decimation),
-                             T, decimations=(opts.map_decimation,),
-                             min_depth_m=opts.cloud_min_depth_m,
-                             max_depth_m=opts.cloud_max_depth_m,
-                             white=self.tracker.white_level or 1.0,
-                             gamma=opts.tracking.gamma)[0]
-        if len(fused[0]):
-            self.voxel_map.insert(*fused)
-        return len(fused[0])
+        band = pending.take(-(-pending.rows // parts))
+        if len(band[0]):
+            self.voxel_map.insert(*band, continues=self._deferred_started)
+            self._deferred_started = True
+        if pending.done:
+            self._deferred_map = None
+        return len(band[0])
 
     def _cloud(
         self, frame: FlowFrame, depth: np.ndarray, T: np.ndarray, fuse: bool

@@ -265,6 +265,8 @@ class VoxelMap:
         points: np.ndarray,
         grey: np.ndarray | None = None,
         normals: np.ndarray | None = None,
+        *,
+        continues: bool = False,
     ) -> None:
         """Fuse one frame's points.
 
@@ -273,6 +275,10 @@ class VoxelMap:
                 ignored.
             grey: (N,) grey levels 0–255, or None (0).
             normals: (N, 3) unit normals in world, or None.
+            continues: the points are more of the previous insert's frame (a
+                frame fused in bands): a voxel that insert moved to the
+                recency list's tail is not moved again, so the bands give
+                the map one insert of all their points gives.
         """
         xyz = np.ascontiguousarray(points, np.float64)
         if xyz.ndim != 2 or xyz.shape[1] != 3:
@@ -285,7 +291,8 @@ class VoxelMap:
             raise ValueError("grey and normals must have one row per point")
         # a voxel hit several times in one insert moves to the list's tail once;
         # the stamp wraps after 2**31 inserts (2 years at 30 Hz), only equality matters
-        self._frame = (self._frame + 1) & 0x7FFFFFFF
+        if not continues:
+            self._frame = (self._frame + 1) & 0x7FFFFFFF
         self._n, skipped = _insert(
             xyz, level, nrm, has_normals, 1.0 / self.voxel_size_m, self._table, self._keys,
             self._mean, self._grey, self._normal, self._count, self._last, self._frame,

@@ -4,7 +4,13 @@ from __future__ import annotations
 
 import numpy as np
 
-from endo_flow.cloud import binned_camera, surface_normals, world_cloud, world_clouds
+from endo_flow.cloud import (
+    BandedCloud,
+    binned_camera,
+    surface_normals,
+    world_cloud,
+    world_clouds,
+)
 from endo_io.camera import CameraModel
 from endo_io.pose import rigid_transform, transform_points
 
@@ -96,6 +102,29 @@ def test_one_back_projection_gives_the_live_and_the_full_resolution_clouds():
     np.testing.assert_allclose(
         three[0], world_cloud(depth, image, binned_camera(camera, 3), T, decimation=3, **kw)[0],
         rtol=0, atol=1e-9)
+
+
+def test_a_cloud_taken_in_bands_is_the_whole_cloud():
+    """BandedCloud's bands, end to end: world_cloud's points, grey levels and normals, exactly."""
+    camera = _camera()
+    T = rigid_transform(np.array([0.2, -0.1, 0.05]), np.array([0.02, -0.01, 0.04]))
+    v, u = np.mgrid[0:480, 0:640]
+    depth = (0.05 + 0.01 * np.sin(u / 50.0) + 0.005 * np.cos(v / 30.0)).astype(np.float32)
+    depth[100:140, 200:260] = np.nan  # normals next to a hole, across band edges
+    depth[300:, :100] = 0.5  # beyond the range
+    image = np.random.default_rng(4).random(depth.shape).astype(np.float32)
+    kw = {"min_depth_m": 1e-3, "max_depth_m": 0.3, "white": 1.0, "gamma": 1.0}
+    for decimation, band_rows in ((1, 1), (1, 37), (1, 60), (2, 13), (3, 500)):
+        model = binned_camera(camera, decimation)
+        whole = world_cloud(depth, image, model, T, decimation=decimation, **kw)
+        cloud = BandedCloud(depth, image, model, T, decimation=decimation, **kw)
+        bands = []
+        while not cloud.done:
+            bands.append(cloud.take(band_rows))
+        assert len(bands) == -(-model.height // band_rows)
+        assert cloud.take(band_rows)[0].shape == (0, 3)  # nothing after the last band
+        for part, expected in zip(zip(*bands, strict=True), whole, strict=True):
+            np.testing.assert_array_equal(np.concatenate(part), expected)
 
 
 def test_binned_models_are_shared_by_cameras_of_one_geometry():

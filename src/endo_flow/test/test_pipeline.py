@@ -188,6 +188,48 @@ def test_a_deferred_map_fusion_gives_the_same_map_and_outputs(moving, kit):
     assert deferred.fuse_deferred_map() == 0  # nothing left
 
 
+def test_a_deferred_frame_fused_in_bands_gives_the_same_map(moving, kit):
+    """The live node: a band of the deferred frame after each frame (parts=map_every)."""
+    at_once = FlowPipeline(kit.options(map_every=3))
+    banded = FlowPipeline(kit.options(map_every=3))
+    bands = 0
+    last_fused = 0  # points of the last frame the map took
+    for frame in moving.frames(moving.poses):
+        a = at_once.process(frame)
+        b = banded.process(frame, defer_map=True)
+        np.testing.assert_array_equal(a.points, b.points)
+        np.testing.assert_array_equal(a.scale.value, b.scale.value)
+        last_fused = a.diagnostics.map_points or last_fused
+        inserted = banded.fuse_deferred_map(parts=3)
+        if inserted:  # a third of the frame's rows: never the whole frame in one call
+            bands += 1
+            assert inserted < 0.6 * last_fused
+    while banded.fuse_deferred_map(parts=3):
+        bands += 1
+    one, other = at_once.voxel_map, banded.voxel_map
+    assert one is not None and other is not None and len(one) > 0
+    assert bands > 10
+    np.testing.assert_array_equal(one.voxel_keys(), other.voxel_keys())
+    np.testing.assert_array_equal(one.recency_order(), other.recency_order())
+    np.testing.assert_array_equal(one.points().count, other.points().count)
+    np.testing.assert_array_equal(one.points().points, other.points().points)
+    np.testing.assert_array_equal(one.points().normals, other.points().normals)
+
+
+def test_a_map_reset_drops_the_frame_waiting_for_it(moving, kit):
+    pipe = FlowPipeline(kit.options(map_every=3))
+    for frame in moving.frames(moving.poses):
+        pipe.process(frame, defer_map=True)
+        if pipe.fuse_deferred_map(parts=3):  # a band in, two still waiting
+            break
+    else:
+        raise AssertionError("no frame was fused")
+    voxels = pipe.voxel_map
+    assert voxels is not None and len(voxels) > 0
+    assert pipe.reset_map() > 0 and len(voxels) == 0
+    assert pipe.fuse_deferred_map(parts=3) == 0 and len(voxels) == 0
+
+
 def test_cloud_options_change_on_the_fly(moving, kit):
     pipe = FlowPipeline(kit.options())
     frames = moving.frames(moving.poses)

@@ -43,6 +43,35 @@ def test_capacity_is_bounded_and_old_voxels_go_first():
     assert len(m) == 0
 
 
+def test_a_frame_inserted_in_bands_gives_the_map_one_insert_gives():
+    """insert(continues=True): the same voxels, means, counts and recency, evictions included."""
+    rng = np.random.default_rng(5)
+    frames = [rng.uniform(0.0, 0.04, (3000, 3)) for _ in range(6)]  # overlapping voxels
+    whole, banded = VoxelMap(2e-3, max_voxels=4000), VoxelMap(2e-3, max_voxels=4000)
+    for points in frames:
+        grey = rng.uniform(0, 255, len(points))
+        normals = rng.normal(size=points.shape)
+        whole.insert(points, grey, normals)
+        for k, band in enumerate(np.array_split(np.arange(len(points)), 7)):
+            banded.insert(points[band], grey[band], normals[band], continues=k > 0)
+    assert whole.evicted > 0 and whole.evicted == banded.evicted
+    np.testing.assert_array_equal(whole.voxel_keys(), banded.voxel_keys())
+    np.testing.assert_array_equal(whole.recency_order(), banded.recency_order())
+    a, b = whole.points(), banded.points()
+    np.testing.assert_array_equal(a.count, b.count)
+    for x, y in ((a.points, b.points), (a.grey, b.grey), (a.normals, b.normals)):
+        np.testing.assert_array_equal(x, y)
+    # without continues each band is a frame of its own: the recency list differs
+    separate = VoxelMap(2e-3, max_voxels=4000)
+    for points in frames[:2]:
+        for band in np.array_split(np.arange(len(points)), 7):
+            separate.insert(points[band])
+    first_two = VoxelMap(2e-3, max_voxels=4000)
+    for points in frames[:2]:
+        first_two.insert(points)
+    assert not np.array_equal(first_two.recency_order(), separate.recency_order())
+
+
 def test_ply_binary_round_trip(tmp_path):
     rng = np.random.default_rng(1)
     pts = rng.normal(0.0, 0.05, (37, 3)).astype(np.float32)
