@@ -135,6 +135,7 @@ from endo_io.image import (
     image_to_irradiance,
 )
 from endo_io.parameters import NodeParameters, ParameterSpec
+from endo_io.pointcloud import records_to_pointcloud2_cdr
 from endo_io.pose import PoseView, pose_stamped_from_cdr, pose_to_matrix
 from endo_io.pose_buffer import PoseBuffer
 from endo_io.process import describing_only, run_node
@@ -534,10 +535,10 @@ class FlowNode(Node):
         voxel_map = self.pipeline.voxel_map
         if voxel_map is None or not self._map_dirty:
             return
-        cloud = voxel_map.points(self.parameters["map_min_count"])
+        records, finite = voxel_map.published_records(self.parameters["map_min_count"])
         stamp = self.get_clock().now().nanoseconds
-        self.map_pub.publish(grey_cloud_cdr(cloud.points, cloud.grey, stamp,
-                                            self.parameters["world_frame"]))
+        self.map_pub.publish(records_to_pointcloud2_cdr(
+            records, stamp, self.parameters["world_frame"], is_dense=finite))
         self._map_dirty = False
 
     def _reset_map(self, _request: Trigger.Request, response: Trigger.Response

@@ -33,6 +33,7 @@ import numba
 import numpy as np
 
 from endo_flow.errors import MapExportError
+from endo_io.pointcloud import XYZRGB_RECORD
 
 _OFFSET = 1 << 20
 _MASK = (1 << 21) - 1
@@ -190,6 +191,33 @@ def _walk(nxt: np.ndarray, head: int, n: int) -> np.ndarray:
     return order
 
 
+@numba.njit(cache=True, nogil=True)
+def _published(
+    mean: np.ndarray, grey: np.ndarray, count: np.ndarray, n: int, min_count: int,
+    words: np.ndarray, bits: np.ndarray,
+) -> tuple[int, bool]:
+    """Write the kept voxels' records; returns (how many, all finite).
+
+    ``words`` (rows, 8) float32 and ``bits`` (rows, 8) uint32 are two views
+    of the same zeroed buffer of ``XYZRGB_RECORD``s: x, y, z the voxel's
+    mean, rgb its grey level rounded (half to even) and clipped to 0-255 in
+    each channel, as ``endo_flow.messages.grey_cloud`` packs a grey level.
+    """
+    m = 0
+    finite = True
+    for i in range(n):
+        if count[i] < min_count:
+            continue
+        for k in range(3):
+            words[m, k] = mean[i, k]
+            finite = finite and np.isfinite(mean[i, k])
+        level = min(max(np.rint(np.float64(grey[i])), 0.0), 255.0)
+        g = np.uint32(level)
+        bits[m, 4] = (g << np.uint32(16)) | (g << np.uint32(8)) | g
+        m += 1
+    return m, finite
+
+
 @dataclass(frozen=True)
 class MapPoints:
     """The map's voxels as arrays.
@@ -323,6 +351,23 @@ class VoxelMap:
         normal[~(length > 0.0)] = 0.0
         return MapPoints(self._mean[:n][keep], normal, self._grey[:n][keep],
                          self._count[:n][keep])
+
+    def published_records(self, min_count: int = 1) -> tuple[np.ndarray, bool]:
+        """The voxels fused from at least ``min_count`` points as point records, in row order.
+
+        What the map topic carries: ((M,) ``endo_io.pointcloud.XYZRGB_RECORD``
+        records, the mean position and the grey level packed as rgb; whether
+        every position is finite), written by one pass over the map, for
+        :func:`endo_io.pointcloud.records_to_pointcloud2_cdr`. The same
+        bytes as ``grey_cloud_cdr`` of :meth:`points`' positions and grey
+        levels (tested), without its normals and copies: 24 MB of map took
+        ~50 ms of the flow node's thread that way, every map period.
+        """
+        n = self._n
+        words = np.zeros((n, XYZRGB_RECORD.itemsize // 4), np.float32)
+        m, finite = _published(self._mean, self._grey, self._count, n, int(min_count), words,
+                               words.view(np.uint32))
+        return words[:m].view(XYZRGB_RECORD).reshape(-1), bool(finite)
 
     def export_ply(self, path: str | Path, min_count: int = 1) -> int:
         """Write the map to binary PLY (see :func:`write_ply`); returns the vertex count."""

@@ -6,7 +6,9 @@ import numpy as np
 import pytest
 
 from endo_flow.errors import MapExportError
+from endo_flow.messages import grey_cloud_cdr
 from endo_flow.voxel_map import VoxelMap, write_ply
+from endo_io.pointcloud import records_to_pointcloud2_cdr
 
 
 def test_running_means_per_voxel():
@@ -70,6 +72,24 @@ def test_a_frame_inserted_in_bands_gives_the_map_one_insert_gives():
     for points in frames[:2]:
         first_two.insert(points)
     assert not np.array_equal(first_two.recency_order(), separate.recency_order())
+
+
+@pytest.mark.parametrize("min_count", [1, 3])
+def test_published_records_are_the_grey_cloud_of_the_map_bytes_for_bytes(min_count):
+    """The map topic's message: grey_cloud_cdr of points()'s positions and grey, byte for byte."""
+    rng = np.random.default_rng(8)
+    m = VoxelMap(1e-3, max_voxels=50_000)
+    for _ in range(4):
+        points = rng.uniform(0.0, 0.03, (20_000, 3))
+        m.insert(points, rng.uniform(-20.0, 280.0, len(points)))  # clipped at both ends
+    m.insert(np.full((3, 3), 0.5), np.array([0.5, 1.5, 2.5]))  # ties round half to even
+    records, finite = m.published_records(min_count)
+    expected = m.points(min_count)
+    assert finite and len(records) == len(expected.points) > 1000
+    assert (m.points().count < 3).any() and (m.points().count >= 3).any()
+    np.testing.assert_array_equal(records["rgb"] >> 16, np.clip(np.rint(expected.grey), 0, 255))
+    assert records_to_pointcloud2_cdr(records, 123, "world", is_dense=finite) == (
+        grey_cloud_cdr(expected.points, expected.grey, 123, "world"))
 
 
 def test_ply_binary_round_trip(tmp_path):

@@ -39,11 +39,12 @@ XYZ_POINT_STEP = 16
 XYZRGB_POINT_STEP = 32
 RGB_OFFSET = 16
 
-_XYZ_DTYPE = np.dtype(
+#: The point records of a cloud without and with colour (depth_image_proc's layout).
+XYZ_RECORD = np.dtype(
     {"names": ["x", "y", "z"], "formats": ["<f4"] * 3, "offsets": [0, 4, 8],
      "itemsize": XYZ_POINT_STEP}
 )
-_XYZRGB_DTYPE = np.dtype(
+XYZRGB_RECORD = np.dtype(
     {"names": ["x", "y", "z", "rgb"], "formats": ["<f4", "<f4", "<f4", "<u4"],
      "offsets": [0, 4, 8, RGB_OFFSET], "itemsize": XYZRGB_POINT_STEP}
 )
@@ -136,7 +137,7 @@ def _packed_points(xyz: np.ndarray, rgb: np.ndarray | None) -> np.ndarray:
     column instead of the structured fields' strided assignments).
     """
     height, width = xyz.shape[:2] if xyz.ndim == 3 else (1, xyz.shape[0])
-    dtype = _XYZ_DTYPE if rgb is None else _XYZRGB_DTYPE
+    dtype = XYZ_RECORD if rgb is None else XYZRGB_RECORD
     words = np.zeros((height * width, dtype.itemsize // 4), np.float32)
     words[:, :3] = xyz.reshape(-1, 3)
     if rgb is not None:
@@ -160,10 +161,35 @@ def xyz_to_pointcloud2_cdr(
     and errors as :func:`xyz_to_pointcloud2`.
     """
     xyz, colours = _checked(points, rgb)
+    return records_to_pointcloud2_cdr(_packed_points(xyz, colours), stamp_ns, frame_id,
+                                      is_dense=bool(np.isfinite(xyz).all()))
+
+
+def records_to_pointcloud2_cdr(
+    cloud: np.ndarray, stamp_ns: int, frame_id: str, *, is_dense: bool
+) -> bytes:
+    """The CDR bytes of a PointCloud2 of point records already in this module's layout.
+
+    Args:
+        cloud: (H, W) or (N,) array of :data:`XYZ_RECORD` or
+            :data:`XYZRGB_RECORD` (padding bytes zero); (N,) is a 1 x N cloud.
+            A producer that writes the records itself (the voxel map's
+            published cloud) skips :func:`xyz_to_pointcloud2_cdr`'s packing.
+        stamp_ns, frame_id: the header.
+        is_dense: the message's ``is_dense`` (no NaN point).
+
+    Raises:
+        PointCloudError: another dtype or shape.
+    """
+    if cloud.dtype not in (XYZ_RECORD, XYZRGB_RECORD) or cloud.ndim not in (1, 2):
+        raise PointCloudError(f"records must be (N,) or (H, W) of XYZ_RECORD or XYZRGB_RECORD, "
+                              f"got {cloud.dtype} {cloud.shape}")
+    if cloud.ndim == 1:
+        cloud = cloud.reshape(1, -1)
     head = header_cdr(stamp_ns, frame_id)[4:]  # offsets below count from the header's end
-    cloud = _packed_points(xyz, colours)
     height, width = cloud.shape
-    offsets = {"x": 0, "y": 4, "z": 8} | ({} if rgb is None else {"rgb": RGB_OFFSET})
+    colour = cloud.dtype == XYZRGB_RECORD
+    offsets = {"x": 0, "y": 4, "z": 8} | ({"rgb": RGB_OFFSET} if colour else {})
     head += bytes(-len(head) % 4) + struct.pack("<III", height, width, len(offsets))
     for name, offset in offsets.items():
         head += cdr_string(name, len(head))
@@ -172,10 +198,10 @@ def xyz_to_pointcloud2_cdr(
     head += struct.pack("<B", 0)  # is_bigendian
     head += bytes(-len(head) % 4)
     head += struct.pack("<III", cloud.dtype.itemsize, width * cloud.dtype.itemsize, cloud.nbytes)
-    tail = struct.pack("<B", bool(np.isfinite(xyz).all()))
+    tail = struct.pack("<B", bool(is_dense))
     tail += bytes(-(len(head) + cloud.nbytes + len(tail)) % 4)
-    return b"".join((LITTLE_ENDIAN_ENCAPSULATION, head, cloud.reshape(-1).view(np.uint8).data,
-                     tail))
+    return b"".join((LITTLE_ENDIAN_ENCAPSULATION, head,
+                     np.ascontiguousarray(cloud).reshape(-1).view(np.uint8).data, tail))
 
 
 def _field(msg: PointCloud2, name: str) -> PointField | None:
