@@ -30,7 +30,7 @@ per-frame scale at every frame (every 8th pixel traced), against s*.
 
 Usage: ``bench/scale_excursion.py BAG --calibration photometric.yaml --cache DIR
 [--handeye handeye.yaml] [--sources bag clean true] [--draws N] [--noise-window A B]
-[--set OPTION=VALUE] [--json OUT]``.
+[--set OPTION=VALUE] [--relative-from OUT.mcap] [--json OUT]``.
 """
 
 from __future__ import annotations
@@ -57,10 +57,11 @@ from endo_flow.errors import FlowError
 from endo_flow.pipeline import FlowFrame, FlowOptions, FlowPipeline, sample_bilinear
 from endo_io.bag import BagReader, deserialize
 from endo_io.errors import Endo3dError
+from endo_io.image import image_to_array
 from endo_io.pose import invert_transform, motion_onset, pose_to_matrix, transform_points
 from endo_io.pose_buffer import PoseBuffer
 from endo_io.stamp import stamp_to_ns
-from endo_io.topics import TRACKER_POSE
+from endo_io.topics import DEPTH_RELATIVE, TRACKER_POSE
 from endo_process.accuracy import Accuracy, ScaleTrack
 from endo_sim.sequences import SimulationConfig, build_sequence
 from endo_sim.tracker import TrackerModel
@@ -144,6 +145,21 @@ def pose_sources(path: Path, seq: Sequence, handeye: Path | None, draws: int,
     return sources
 
 
+def relative_from(path: Path, seq: Sequence) -> None:
+    """Replace ``seq``'s depth_relative by an endo-process output's, frame by frame.
+
+    ``make demo``'s SFS differs from ``eval_flow.read_bag``'s in a few frames
+    (its validity mask); with the demo's own depth the trace is the demo's.
+    """
+    wanted = set(seq.stamps)
+    with BagReader(path) as reader:
+        for message in reader.messages([DEPTH_RELATIVE]):
+            msg = deserialize(message)
+            stamp = stamp_to_ns(msg.header.stamp)
+            if stamp in wanted:
+                seq.relative[stamp] = image_to_array(msg).astype(np.float32)
+
+
 def sfs_frame_scales(seq: Sequence, truth_at: Any, s_oracle: float,
                      step: int = 8) -> np.ndarray:
     """(N,) SFS's own scale at every frame over s*: exp(median ln(z_true / d_rel)) / s*."""
@@ -219,11 +235,16 @@ def main(argv: list[str] | None = None) -> int:
                         help="redrawn noise only on the samples taken in this span")
     parser.add_argument("--no-split", action="store_true", help="skip the traced truth")
     parser.add_argument("--set", nargs="*", default=[], metavar="OPTION=VALUE")
+    parser.add_argument("--relative-from", type=Path, default=None, metavar="OUT.mcap",
+                        help="depth_relative from an endo-process output (make demo's "
+                        "out/offline.mcap) instead of eval_flow's SFS")
     parser.add_argument("--json", type=Path, default=None)
     args = parser.parse_args(argv)
     calibration = PhotometricCalibration.load(args.calibration)
     seq = read_bag(args.bag, calibration, 0.0, args.cache, 1.0, handeye_error=False,
                    handeye=args.handeye)
+    if args.relative_from is not None:
+        relative_from(args.relative_from, seq)
     s_oracle = oracle_scale(seq)
     truth_at = None if args.no_split else scene_depth(args.bag, seq)
     overrides: dict[str, Any] = {}
