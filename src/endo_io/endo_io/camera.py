@@ -32,7 +32,7 @@ from sensor_msgs.msg import CameraInfo
 from std_msgs.msg import Header
 
 from endo_io.cdr import decode_plain_cdr, deserialize_with_rclpy
-from endo_io.errors import CameraModelError
+from endo_io.errors import CameraModelError, yaml_error_line
 from endo_io.stamp import ns_to_stamp
 
 #: Number of distortion coefficients of each supported ``distortion_model``
@@ -277,7 +277,7 @@ class CameraModel:
         try:
             doc = yaml.safe_load(Path(path).read_text())
         except yaml.YAMLError as exc:
-            raise CameraModelError(f"{path}: not valid YAML ({exc})") from None
+            raise CameraModelError(f"{path}: not valid YAML ({yaml_error_line(exc)})") from None
         if not isinstance(doc, dict):
             raise CameraModelError(f"{path}: expected a YAML mapping of calibration keys")
 

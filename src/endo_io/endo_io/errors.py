@@ -97,3 +97,27 @@ class ParameterValidationError(Endo3dError, ValueError):
     line on stderr and exit code 2) and given as the reason when a run-time
     change is refused.
     """
+
+
+def yaml_error_line(error: Exception) -> str:
+    """One line naming where and why PyYAML refused a document.
+
+    ``str()`` of a ``yaml.YAMLError`` spans several lines (the context, the
+    offending line, a caret); error messages here are one line.
+
+    Args:
+        error: a ``yaml.YAMLError`` (a ``MarkedYAMLError`` gives its position);
+            any other exception gives the first line of its text.
+
+    Returns:
+        e.g. ``line 2, column 1: expected ',' or ']', but got '<stream end>'
+        (while parsing a flow sequence)``.
+    """
+    problem = getattr(error, "problem", None)
+    if problem is None:
+        lines = str(error).splitlines()
+        return lines[0] if lines else type(error).__name__
+    mark = getattr(error, "problem_mark", None)
+    where = f"line {mark.line + 1}, column {mark.column + 1}: " if mark is not None else ""
+    context = getattr(error, "context", None)
+    return f"{where}{problem}" + (f" ({context})" if context else "")

@@ -48,3 +48,14 @@ def test_named_classes_are_bad_input_too_and_the_label_can_be_argparses(
     err = capsys.readouterr().err
     assert err.startswith("endo-files: error: ") and "missing.bin" in err
     assert len(err.splitlines()) == 1
+
+
+def test_yaml_error_line_names_the_position_in_one_line() -> None:
+    import yaml
+
+    from endo_io.errors import yaml_error_line
+
+    with pytest.raises(yaml.YAMLError) as raised:
+        yaml.safe_load("a: b: c\n")
+    assert yaml_error_line(raised.value) == "line 1, column 5: mapping values are not allowed here"
+    assert yaml_error_line(OSError(21, "Is a directory")) == "[Errno 21] Is a directory"

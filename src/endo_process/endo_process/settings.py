@@ -33,6 +33,7 @@ import yaml
 
 from endo_calib.node import PARAMETERS as CORRECTION_PARAMETERS
 from endo_flow.node import PARAMETERS as FLOW_PARAMETERS
+from endo_io.errors import yaml_error_line
 from endo_process.errors import ParameterFileError
 from endo_sfs.errors import SfsError
 from endo_sfs.node import PARAMETERS as SFS_PARAMETERS
@@ -92,7 +93,7 @@ def read_parameter_file(path: Path) -> dict[str, dict[str, Any]]:
     except OSError as error:
         raise ParameterFileError(f"{path}: cannot read ({error.strerror})") from None
     except yaml.YAMLError as error:
-        raise ParameterFileError(f"{path}: not YAML ({error})") from None
+        raise ParameterFileError(f"{path}: not YAML ({yaml_error_line(error)})") from None
     if document is None:
         return {}
     if not isinstance(document, Mapping):

@@ -334,3 +334,23 @@ def test_a_directory_as_output_is_one_line_and_exit_2(
     assert error == (
         f"endo-process: Endo3dError: {tmp_path} is a directory (-o names the output .mcap)"
     )
+
+
+@pytest.mark.parametrize("option", ["--params", "--handeye", "--camera-info"])
+def test_a_file_that_is_not_yaml_is_one_line_naming_where(
+    option: str, calibrations: tuple[Path, Path], tmp_path: Path, capsys: pytest.CaptureFixture
+) -> None:
+    # PyYAML's error text spans five lines (context, the line, a caret); it was printed whole.
+    broken = tmp_path / "broken.yaml"
+    broken.write_text("a: [1, 2\n")
+    handeye = broken if option == "--handeye" else calibrations[1]
+    argv = _argv(PHANTOM, tmp_path / "out.mcap", (calibrations[0], handeye))
+    if option != "--handeye":
+        argv += [option, str(broken)]
+    assert main(argv) == EXIT_INPUT
+    error = capsys.readouterr().err.strip()
+    assert len(error.splitlines()) == 1, error
+    assert error.endswith(
+        "line 2, column 1: expected ',' or ']', but got '<stream end>' (while parsing a flow "
+        "sequence)" + (")" if option != "--handeye" else "")
+    ), error

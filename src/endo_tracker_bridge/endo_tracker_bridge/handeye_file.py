@@ -36,6 +36,7 @@ from typing import Any
 import numpy as np
 import yaml
 
+from endo_io.errors import yaml_error_line
 from endo_io.provenance import provenance_summary
 from endo_tracker_bridge.errors import HandEyeFileError
 from endo_tracker_bridge.validation import check_rotation_matrix
@@ -110,7 +111,9 @@ class HandEyeCalibration:
         try:
             document = yaml.safe_load(Path(path).read_text())
         except (OSError, yaml.YAMLError) as error:
-            raise HandEyeFileError(f"cannot read hand-eye file {path}: {error}") from error
+            raise HandEyeFileError(
+                f"cannot read hand-eye file {path}: {yaml_error_line(error)}"
+            ) from error
         if not isinstance(document, dict) or "T_marker_camera" not in document:
             raise HandEyeFileError(f"{path}: no T_marker_camera")
         T = _rows_to_matrix(document["T_marker_camera"], path, "T_marker_camera")
