@@ -25,6 +25,7 @@ from __future__ import annotations
 import contextlib
 import contextvars
 import os
+import re
 import signal
 import sys
 import threading
@@ -35,6 +36,7 @@ from types import FrameType
 
 import rclpy
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.node import Node
 from rclpy.signals import (
     SignalHandlerOptions,
@@ -283,8 +285,10 @@ def run_node(factory: Callable[[], Node], args: Sequence[str] | None = None) -> 
     cannot start on its configuration (an :class:`Endo3dError` from
     ``factory``: a parameter out of range, a calibration file that does not
     load) gives one line on stderr naming the cause and exit code 2, never a
-    traceback. SIGINT raises no KeyboardInterrupt in the node (see the module
-    docstring): the callback it lands in finishes and ``close()`` runs.
+    traceback; so do ROS arguments that rcl refuses (a ``--params-file`` that
+    does not parse, a malformed remap; rcl also logs its own ``[ERROR]``
+    line before it). SIGINT raises no KeyboardInterrupt in the node (see the
+    module docstring): the callback it lands in finishes and ``close()`` runs.
     """
     argv = list(sys.argv if args is None else args)
     ours, _ = split_ros_args(argv)
@@ -300,7 +304,12 @@ def _run_node(factory: Callable[[], Node], argv: list[str],
     # rclpy's default signal handlers cover SIGINT and SIGTERM: both shut the
     # context down, spin() returns, and the node's close() still runs below.
     prepare_transport()
-    rclpy.init(args=argv)
+    try:
+        rclpy.init(args=argv)
+    except _rclpy.RCLError as error:  # ROS arguments rcl refuses: a --params-file, a remap
+        reason = re.split(r", at /", str(error).splitlines()[0])[0]
+        print(f"{program}: cannot start with these ROS arguments: {reason}", file=sys.stderr)
+        return 2
     node: Node | None = None
     try:
         try:

@@ -168,3 +168,25 @@ def test_run_node_takes_a_shutdown_inside_spin_for_the_shutdown_it_is(monkeypatc
     with pytest.raises(RuntimeError, match="a bug"):
         process.run_node(ClosingNode, ["closing-node"])
     assert closed == [True, True] and not rclpy.ok()
+
+
+@pytest.mark.parametrize(("arguments", "reason"), [
+    (["--params-file", "{broken}"], "Couldn't parse params file: '--params-file {broken}'. "
+     "Error: Sequences can only be values and not keys in params. Error at line 1"),
+    (["-r", "bad remap"], "Couldn't parse remap rule: '-r bad remap'. Error: Expected lexeme "
+     "type (19) not found, search ended at index 3"),
+])  # fmt: skip
+def test_ros_arguments_rcl_refuses_are_one_line_and_exit_2(arguments, reason, tmp_path, capsys):
+    # `endo-sfs --ros-args --params-file bad.yaml` was an RCLError traceback from rclpy.init.
+    from endo_io.process import run_node
+
+    broken = tmp_path / "broken.yaml"
+    broken.write_text("a: [1, 2\n")
+    argv = [a.format(broken=broken) for a in arguments]
+    assert run_node(Node, ["some-node", "--ros-args", *argv]) == 2
+    error = capsys.readouterr().err.strip().splitlines()[-1]
+    assert error == (
+        "some-node: cannot start with these ROS arguments: failed to initialize rcl: "
+        + reason.format(broken=broken)
+    )
+    assert not rclpy.ok()
