@@ -10,7 +10,7 @@ and a best-effort subscriber, as correction → SFS:
 * ``LARGE_DATA``: ``FASTDDS_BUILTIN_TRANSPORTS=LARGE_DATA`` (Jazzy's builtin
   large-data mode: shared memory and TCP for data, UDP for discovery);
 * ``endo3d profile``: no variable set, so the processes get what
-  ``endo_io.dds_transport`` gives by default (the 16 MB shared-memory profile).
+  ``endo_io.dds_transport`` gives by default (the 64 MB shared-memory profile).
 
 Each transport runs ``ROUNDS`` times interleaved (so load changes hit all
 alike); the table gives frames received of sent, latency median and 95th

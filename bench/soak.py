@@ -14,7 +14,7 @@ seconds the script samples
   how much of it is private (``RssAnon``: the heap, Python's and the
   libraries') and shared memory (``RssShmem``: the pages of Fast DDS's
   shared-memory segments this process has touched, its own and its peers'
-  16 MB segments; they fill as frames cycle through the segments and stop at
+  64 MB segments; they fill as frames cycle through the segments and stop at
   their size);
 * the output rate of each stage as this process receives it:
   ``/endoscope/depth_relative`` (sfs), ``/endoscope/scale`` (flow, one per

@@ -1,7 +1,7 @@
 """The large-frame Fast DDS profile for a group of child processes (``endo-demo``, benches).
 
 The profile and the rule (keep what the user chose, else shared memory with
-16 MB segments) live in :mod:`endo_io.dds_transport`, where every node process
+64 MB segments) live in :mod:`endo_io.dds_transport`, where every node process
 applies them to itself before ``rclpy.init``. This module gives a parent the
 same environment for its children, with the profile written where the parent
 wants it (the demo's output directory), and a line saying what was done.

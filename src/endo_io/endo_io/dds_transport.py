@@ -13,7 +13,7 @@ So every node process (:func:`endo_io.process.run_node`) calls
 transport (``FASTRTPS_DEFAULT_PROFILES_FILE``, ``FASTDDS_DEFAULT_PROFILES_FILE``
 or ``FASTDDS_BUILTIN_TRANSPORTS`` set) or another RMW than Fast DDS, the
 process gets :data:`LARGE_FRAMES_PROFILE`: UDPv4 for discovery and a
-shared-memory transport with 16 MB segments, so a frame travels in one piece.
+shared-memory transport with 64 MB segments, so a frame travels in one piece.
 The profile measured better than Fast DDS's own ``LARGE_DATA`` builtin
 transports (``bench/bench_dds_transport.py``, ``docs/benchmarks.md``).
 
@@ -37,8 +37,13 @@ BUILTIN_TRANSPORTS_VARIABLE = "FASTDDS_BUILTIN_TRANSPORTS"
 #: RMW implementations that read Fast DDS profiles.
 FASTDDS_RMWS = ("rmw_fastrtps_cpp", "rmw_fastrtps_dynamic_cpp")
 
-#: Shared-memory segment size, bytes: a few full-resolution float frames.
-SEGMENT_BYTES = 16 * 1024 * 1024
+#: Shared-memory segment size, bytes: a few full-resolution float frames, and the
+#: flow node's map message in one piece for a while (it grows ~0.4 MB per second of
+#: a colon sweep: 24 MB after 60 s; 64 MB, too big for it, at the map's 2 M-voxel
+#: capacity). With 16 MB the map went as UDP fragments from ~40 s on and the graph
+#: skipped more frames (docs/benchmarks.md, session 11); the price is the segments'
+#: pages, up to this much per process.
+SEGMENT_BYTES = 64 * 1024 * 1024
 
 LARGE_FRAMES_PROFILE = f"""<?xml version="1.0" encoding="UTF-8" ?>
 <!-- endo3d: shared memory with {SEGMENT_BYTES // (1024 * 1024)} MB segments (full-size float
