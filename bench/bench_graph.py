@@ -221,7 +221,8 @@ def run_once(bag: Path, configuration: Configuration, rate: float, work: Path,
 
     The result's run number and load are the caller's to set. The run's
     recording (~2 GB per 60 s at 0.5, 4 GB at full resolution) is deleted
-    once its figures are read, unless ``keep_recording``; the logs stay.
+    once its figures are read, unless ``keep_recording`` or a process failed;
+    the logs stay.
     """
     out = Path(tempfile.mkdtemp(prefix=f"{bag.stem}_", dir=work))
     photometric, handeye, _ = true_calibrations(out, configuration.solve_scale, bag)
@@ -252,7 +253,7 @@ def run_once(bag: Path, configuration: Configuration, rate: float, work: Path,
     bad = {name: code for name, code in run.return_codes.items() if code != 0}
     if bad:
         print(f"  exit codes {bad}; logs in {run.log_dir}", flush=True)
-    if not keep_recording:
+    if not keep_recording and not bad:  # a failed run's recording is kept, with its logs
         run.recording.unlink(missing_ok=True)
     return result
 

@@ -59,3 +59,13 @@ def test_a_ros_free_module_does_not_load_rclpy():
         [sys.executable, "-c", code], capture_output=True, text=True, timeout=60, check=True
     )
     assert result.stdout.strip() == "False"
+
+
+def test_the_voxel_map_loads_no_ros_message_package():
+    """An algorithm module: it writes the map's point records without sensor_msgs."""
+    code = ("import sys\nimport endo_flow.voxel_map\n"
+            "print(sorted(m for m in ('rclpy', 'sensor_msgs') if m in sys.modules))\n")
+    result = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, timeout=120, check=True
+    )
+    assert result.stdout.strip() == "[]", result.stdout

@@ -61,11 +61,14 @@ PLAYED_TOPICS = [IMAGE_RAW, CAMERA_INFO, TRACKER_POSE, TRUE_DEPTH, TRUE_CAMERA_P
 #: Names of the recorder and player processes (their logs, their exit codes).
 RECORDER, PLAYER = "endo-record", "endo-replay"
 
-#: The recorder's niceness in a graph run. It needs no latency, only to keep up
-#: on average (its subscriptions queue what it has not yet taken), so on a
-#: loaded machine the CPU goes to the frames' path first; at nice 0 its chunk
-#: writes and copies (~10 CPU-ms per frame) competed with SFS and flow
-#: (docs/benchmarks.md, "The live graph at video rate: reading").
+#: The recorder's niceness in a graph run (the demo's, the benches'). It needs no
+#: latency, only to keep up on average (its subscriptions queue what it has not
+#: yet taken), so on a loaded machine the CPU goes to the frames' path first; at
+#: nice 0 its chunk writes and copies (~10 CPU-ms per frame) competed with SFS and
+#: flow (docs/benchmarks.md, "The live graph at video rate: reading"). A run
+#: checks that the recording holds every message (wait_for_recording). Under
+#: sustained overload a niced recorder falls behind and its queues overflow, so
+#: endo-launch's --record, a user's recording of a live session, stays at nice 0.
 RECORDER_NICENESS = 10
 
 

@@ -48,7 +48,6 @@ from endo_bringup.graph import (
     NODE_UP,
     PLAYED_TOPICS,
     PLAYER,
-    RECORDER_NICENESS,
     REPLAY_WAIT_TIMEOUT_S,
     GraphProcess,
     GraphRun,
@@ -267,7 +266,7 @@ def plan_launch(options: argparse.Namespace) -> LaunchPlan:
         recorded = [*node_outputs(nodes), rules.get(CAMERA_INFO, CAMERA_INFO), *recorded_extra]
         recorder = GraphProcess(RECORDER, "endo-record", arguments=(
             "--topics", *recorded, "-o", str(options.record), "--flush-period", "0.5"),
-            subscribes=tuple(recorded), nice=RECORDER_NICENESS)  # fmt: skip
+            subscribes=tuple(recorded))  # fmt: skip
     ends = False
     if options.preset == "replay":
         # Play once every subscription of each played topic has matched (not /clock, not a

@@ -150,6 +150,10 @@ from endo_io.qos import (
 from endo_io.stamp import NS_PER_S, stamp_to_ns
 from endo_io.stamp_matching import StampMatcher
 
+#: After this long without a frame, the rest of a deferred map frame is fused at once
+#: (seconds; the node otherwise fuses it a band per frame).
+MAP_FINISH_AFTER_S = 0.5
+
 #: The camera warmed up on when ``warm_up_camera_file`` is empty (small: only
 #: the map's kernels matter then).
 WARM_UP_DEFAULT_CAMERA = CameraModel.pinhole(160, 120, 140.0, 140.0, 79.5, 59.5)
@@ -320,6 +324,7 @@ class FlowNode(Node):
         self.create_timer(PASSIVE_POSE_TAKE_PERIOD_S, self._tick)
         self.create_timer(values["map_period_s"], self._publish_map)
         self._map_dirty = False
+        self._last_frame_s = time.monotonic()
         self.get_logger().info(
             f"flow: {topics.IMAGE_CORRECTED} + {topics.DEPTH_RELATIVE} + {topics.CAMERA_INFO} "
             f"+ {topics.CAMERA_POSE} -> {topics.DEPTH}, {topics.POINTS}, {topics.MAP}, "
@@ -371,10 +376,18 @@ class FlowNode(Node):
         self._drain()
 
     def _tick(self) -> None:
-        """The periodic take: poses (and what can go), and the end of a wait for inputs."""
+        """The periodic take: poses (and what can go), and the end of a wait for inputs.
+
+        When the frames have stopped (a bag's end, a paused camera) for
+        :data:`MAP_FINISH_AFTER_S`, the rest of a deferred map frame is fused,
+        so the map and its export hold what endo-process's would.
+        """
         if self._inputs_due and time.monotonic() >= self._inputs_due:
             self._wait_for_inputs(False)
         self._take_poses()
+        if (self.pipeline.map_pending
+                and time.monotonic() - self._last_frame_s > MAP_FINISH_AFTER_S):
+            self._fuse_map(1, 0)
 
     def _wait_for_inputs(self, wait: bool) -> None:
         """Whether the image and camera_info wake the node at their arrival (a depth waits)."""
@@ -476,10 +489,16 @@ class FlowNode(Node):
         self._publish(pending, out)
         # the map's full-resolution cloud and insert after the frame's outputs are out, a
         # band of rows after each frame: map_every frames share each fused frame's work
+        self._fuse_map(self.pipeline.options.map_every, pending.stamp_ns)
+        self._last_frame_s = time.monotonic()
+
+    def _fuse_map(self, parts: int, stamp_ns: int) -> None:
+        """The next 1/parts of a deferred map frame; a failure is counted, never raised."""
         try:
-            self.pipeline.fuse_deferred_map(parts=self.pipeline.options.map_every)
+            if self.pipeline.fuse_deferred_map(parts=parts):
+                self._map_dirty = True
         except Exception as error:  # the frame is out; a map failure must not stop the node
-            self.health.drop(type(error).__name__, f"map fusion after frame {pending.stamp_ns} ns: "
+            self.health.drop(type(error).__name__, f"map fusion after frame {stamp_ns} ns: "
                              f"{error}")
 
     def _step(self, pending: _Pending, pose: np.ndarray | None) -> FlowOutput:
@@ -559,6 +578,7 @@ class FlowNode(Node):
         if voxel_map is None:
             response.success, response.message = False, "the map is disabled (map_enabled)"
             return response
+        self._fuse_map(1, 0)  # the rows of a deferred frame still waiting
         try:
             count = voxel_map.export_ply(path, self.parameters["map_min_count"])
         except FlowError as error:

@@ -622,6 +622,11 @@ class FlowPipeline:
         self._last_stamp_ns = None
         self.resets += 1
 
+    @property
+    def map_pending(self) -> bool:
+        """Whether rows of a deferred map frame wait for :meth:`fuse_deferred_map`."""
+        return self._deferred_map is not None
+
     def reset_map(self) -> int:
         """Empty the map and drop a frame waiting for it; returns the voxels dropped."""
         self._deferred_map = None
@@ -956,7 +961,11 @@ class FlowPipeline:
         if pending is None or self.voxel_map is None:
             self._deferred_map = None
             return 0
-        band = pending.take(-(-pending.rows // parts))
+        try:
+            band = pending.take(-(-pending.rows // parts))
+        except Exception:
+            self._deferred_map = None  # one failed frame, not every later map frame
+            raise
         if len(band[0]):
             self.voxel_map.insert(*band, continues=self._deferred_started)
             self._deferred_started = True

@@ -33,7 +33,7 @@ import numba
 import numpy as np
 
 from endo_flow.errors import MapExportError
-from endo_io.pointcloud import XYZRGB_RECORD
+from endo_io.point_records import XYZRGB_RECORD
 
 _OFFSET = 1 << 20
 _MASK = (1 << 21) - 1
@@ -211,7 +211,8 @@ def _published(
         for k in range(3):
             words[m, k] = mean[i, k]
             finite = finite and np.isfinite(mean[i, k])
-        level = min(max(np.rint(np.float64(grey[i])), 0.0), 255.0)
+        level = np.rint(np.float64(grey[i]))
+        level = min(level, 255.0) if level >= 0.0 else 0.0  # NaN: 0, as astype(uint8) gives
         g = np.uint32(level)
         bits[m, 4] = (g << np.uint32(16)) | (g << np.uint32(8)) | g
         m += 1
@@ -355,7 +356,7 @@ class VoxelMap:
     def published_records(self, min_count: int = 1) -> tuple[np.ndarray, bool]:
         """The voxels fused from at least ``min_count`` points as point records, in row order.
 
-        What the map topic carries: ((M,) ``endo_io.pointcloud.XYZRGB_RECORD``
+        What the map topic carries: ((M,) ``endo_io.point_records.XYZRGB_RECORD``
         records, the mean position and the grey level packed as rgb; whether
         every position is finite), written by one pass over the map, for
         :func:`endo_io.pointcloud.records_to_pointcloud2_cdr`. The same

@@ -82,12 +82,16 @@ def test_published_records_are_the_grey_cloud_of_the_map_bytes_for_bytes(min_cou
     for _ in range(4):
         points = rng.uniform(0.0, 0.03, (20_000, 3))
         m.insert(points, rng.uniform(-20.0, 280.0, len(points)))  # clipped at both ends
-    m.insert(np.full((3, 3), 0.5), np.array([0.5, 1.5, 2.5]))  # ties round half to even
+    m.insert(np.full((1, 3), 0.5), np.array([2.5]))  # a tie rounds half to even: 2
     records, finite = m.published_records(min_count)
     expected = m.points(min_count)
     assert finite and len(records) == len(expected.points) > 1000
     assert (m.points().count < 3).any() and (m.points().count >= 3).any()
     np.testing.assert_array_equal(records["rgb"] >> 16, np.clip(np.rint(expected.grey), 0, 255))
+    assert min_count > 1 or records["rgb"][-1] == 0x020202  # the tie, fused from one point
+    nan_grey = VoxelMap(1e-3, max_voxels=10)
+    nan_grey.insert(np.full((1, 3), 0.7), np.array([np.nan]))  # no grey level: black
+    assert nan_grey.published_records()[0]["rgb"].tolist() == [0]
     assert records_to_pointcloud2_cdr(records, 123, "world", is_dense=finite) == (
         grey_cloud_cdr(expected.points, expected.grey, 123, "world"))
 

@@ -19,11 +19,11 @@ def test_the_warm_up_loads_the_cloud_and_map_kernels_in_this_process() -> None:
     code = (
         "from endo_flow.cloud import _kept_normals\n"
         "from endo_flow.triangulation import _triangulate\n"
-        "from endo_flow.voxel_map import _insert\n"
+        "from endo_flow.voxel_map import _insert, _published\n"
         "from endo_flow.pipeline import FlowOptions\n"
         "from endo_flow.warm_up import warm_up_pipeline\n"
         "from endo_io.camera import CameraModel\n"
-        "kernels = (_triangulate, _kept_normals, _insert)\n"
+        "kernels = (_triangulate, _kept_normals, _insert, _published)\n"
         "print(*(len(k.signatures) for k in kernels))\n"
         "camera = CameraModel.pinhole(160, 120, 140.0, 140.0, 79.5, 59.5)\n"
         "warm_up_pipeline(FlowOptions(), camera)\n"
@@ -33,8 +33,9 @@ def test_the_warm_up_loads_the_cloud_and_map_kernels_in_this_process() -> None:
                             timeout=300, check=False)  # fmt: skip
     assert result.returncode == 0, result.stderr
     before, after = (line.split() for line in result.stdout.splitlines())
-    # triangulation's, the world cloud's and the map's kernels: none loaded before, each after
-    assert before == ["0"] * 3 and after == ["1"] * 3
+    # triangulation's, the world cloud's and the map's kernels (insert, message): none loaded
+    # before, each after
+    assert before == ["0"] * 4 and after == ["1"] * 4
 
 
 def test_the_warm_up_runs_at_odd_sizes_and_tracking_resolutions() -> None:

@@ -21,6 +21,10 @@ three).
 The reader accepts any layout that has float32 ``x``, ``y``, ``z`` (and
 optionally ``rgb`` or ``rgba``, float32 or uint32), in any order, with any
 padding, row padding or byte order.
+
+The records' layout itself (:data:`XYZ_RECORD`, :data:`XYZRGB_RECORD`,
+:func:`pack_rgb`) is :mod:`endo_io.point_records`, which needs no ROS, so
+that an algorithm module can write records (the flow node's voxel map).
 """
 
 from __future__ import annotations
@@ -33,38 +37,19 @@ from sensor_msgs.msg import PointCloud2, PointField
 
 from endo_io.cdr import LITTLE_ENDIAN_ENCAPSULATION, cdr_string, header_cdr
 from endo_io.errors import PointCloudError
+from endo_io.point_records import (
+    RGB_OFFSET,
+    XYZ_RECORD,
+    XYZRGB_RECORD,
+    pack_rgb,
+    unpack_rgb,
+)
 from endo_io.stamp import ns_to_stamp
-
-XYZ_POINT_STEP = 16
-XYZRGB_POINT_STEP = 32
-RGB_OFFSET = 16
-
-#: The point records of a cloud without and with colour (depth_image_proc's layout).
-XYZ_RECORD = np.dtype(
-    {"names": ["x", "y", "z"], "formats": ["<f4"] * 3, "offsets": [0, 4, 8],
-     "itemsize": XYZ_POINT_STEP}
-)
-XYZRGB_RECORD = np.dtype(
-    {"names": ["x", "y", "z", "rgb"], "formats": ["<f4", "<f4", "<f4", "<u4"],
-     "offsets": [0, 4, 8, RGB_OFFSET], "itemsize": XYZRGB_POINT_STEP}
-)
 
 _FIELD_SIZES = {
     PointField.INT8: 1, PointField.UINT8: 1, PointField.INT16: 2, PointField.UINT16: 2,
     PointField.INT32: 4, PointField.UINT32: 4, PointField.FLOAT32: 4, PointField.FLOAT64: 8,
 }
-
-
-def pack_rgb(rgb: np.ndarray) -> np.ndarray:
-    """Pack (..., 3) uint8 R, G, B into (...,) uint32 ``0x00RRGGBB``."""
-    channels = rgb.astype(np.uint32)
-    return (channels[..., 0] << 16) | (channels[..., 1] << 8) | channels[..., 2]
-
-
-def unpack_rgb(packed: np.ndarray) -> np.ndarray:
-    """Unpack (...,) uint32 ``0x??RRGGBB`` into (..., 3) uint8 R, G, B."""
-    shifts = np.array([16, 8, 0], dtype=np.uint32)
-    return ((packed[..., None] >> shifts) & 0xFF).astype(np.uint8)
 
 
 def xyz_to_pointcloud2(
