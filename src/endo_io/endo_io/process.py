@@ -310,6 +310,10 @@ def _run_node(factory: Callable[[], Node], argv: list[str],
         reason = re.split(r", at /", str(error).splitlines()[0])[0]
         print(f"{program}: cannot start with these ROS arguments: {reason}", file=sys.stderr)
         return 2
+    if sigint is not None and sigint.received:
+        # A SIGINT before rclpy.init found no context to shut down: the stop asked for.
+        _try_shutdown_quietly()
+        return 0
     node: Node | None = None
     try:
         try:

@@ -190,3 +190,24 @@ def test_ros_arguments_rcl_refuses_are_one_line_and_exit_2(arguments, reason, tm
         + reason.format(broken=broken)
     )
     assert not rclpy.ok()
+
+
+@pytest.mark.timeout(30)
+def test_a_sigint_before_rclpy_init_stops_the_node(monkeypatch):
+    # `endo-record --all -o x.mcap & sleep 0.15; kill -INT $!`: the SIGINT came while the
+    # process set up its transport, before rclpy.init; the shutdown it asked for found no
+    # context, and the recorder then ran until a second SIGINT.
+    import os
+    import signal
+    import time
+
+    import endo_io.process as process
+
+    def interrupted_set_up() -> None:
+        os.kill(os.getpid(), signal.SIGINT)
+        time.sleep(0.5)  # the watcher thread tries its shutdown now, before rclpy.init
+
+    monkeypatch.setattr(process, "prepare_transport", interrupted_set_up)
+    # Before, the node was created and spun until the timeout.
+    assert process.run_node(lambda: Node("sigint_under_test"), ["some-node"]) == 0
+    assert not rclpy.ok()
