@@ -37,6 +37,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import math
 import os
 import signal
 import sys
@@ -698,6 +699,26 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+#: The SFS node's solve_scale range (its parameter's).
+SOLVE_SCALE_RANGE = (0.1, 1.0)
+
+
+def check_options(options: argparse.Namespace) -> None:
+    """Refuse values no run can use, before anything starts.
+
+    Raises:
+        Endo3dError: a playback rate that is not > 0 (a finite number), or a
+            solve scale outside the SFS node's range.
+    """
+    for flag, value in (("--rate", options.rate), ("--graph-rate", options.graph_rate)):
+        if not (math.isfinite(value) and value > 0.0):
+            raise Endo3dError(f"{flag} must be a playback speed > 0, got {value:g}")
+    low, high = SOLVE_SCALE_RANGE
+    if not low <= options.solve_scale <= high:
+        raise Endo3dError(f"--solve-scale must be in [{low:g}, {high:g}], got "
+                          f"{options.solve_scale:g}")
+
+
 def run_round_trip_stage(bag: Path | None, out_dir: Path, rate: float, env: dict[str, str]) -> bool:
     """Part 1: replay ``bag`` (or the default one), record it, compare; print the table."""
     bag = bag or find_bag(list(dict.fromkeys([Path.cwd() / "bags", REPO_ROOT / "bags"])))
@@ -753,6 +774,7 @@ def run_round_trip_stage(bag: Path | None, out_dir: Path, rate: float, env: dict
 def main(argv: list[str] | None = None) -> int:
     """Run the demo; returns the exit status (1: a check failed, 2: bad input)."""
     options = build_parser().parse_args(argv)
+    check_options(options)
     # SIGTERM ends the demo like Ctrl-C: unwinding stops every child process.
     signal.signal(signal.SIGTERM, lambda *_: sys.exit(128 + signal.SIGTERM))
     env = dict(os.environ)
