@@ -183,7 +183,10 @@ def build_parser() -> argparse.ArgumentParser:
         "each node its own process, on a live camera, a recording or the simulator.",
     )
     parser.add_argument("--write-params", type=Path, metavar="PATH",
-                        help="write the parameter file with every node's defaults and exit")
+                        help="write the parameter file with every node's defaults and exit "
+                             "(an existing PATH only with --overwrite)")
+    parser.add_argument("--overwrite", action="store_true",
+                        help="let --write-params replace an existing file")
     sub = parser.add_subparsers(dest="preset", metavar="{live,replay,sim}")
     sub.add_parser("live", parents=[common],
                    help="your camera driver and tracker publish the inputs")
@@ -651,6 +654,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     options = parser.parse_args(sys.argv[1:] if argv is None else argv)
     if options.write_params is not None:
+        if options.write_params.exists() and not options.overwrite:
+            # it may be the user's edited file (or, misnamed, another calibration)
+            return report_error(PROGRAM, LaunchError(
+                f"{options.write_params} exists; --overwrite replaces it"))
         print(write_params(options.write_params))
         return 0
     if options.preset is None:
