@@ -731,6 +731,9 @@ def run_round_trip_stage(bag: Path | None, out_dir: Path, rate: float, env: dict
         print(f"endo-demo: error: {output} exists", file=sys.stderr)
         return False
     topics, skipped = playable_topics(bag)
+    if not topics:
+        raise Endo3dError(f"{bag}: no topic to play here (an empty bag, one cut before its "
+                          f"first chunk, or only types not installed: `endo-bag info` says)")
     print(
         f"endo-demo: [1/4] round trip: playing {bag} at {rate:g}x over DDS "
         f"(domain {env['ROS_DOMAIN_ID']}, discovery {env['ROS_AUTOMATIC_DISCOVERY_RANGE']}), "

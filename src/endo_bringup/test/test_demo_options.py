@@ -7,6 +7,7 @@ from pathlib import Path
 import pytest
 
 from endo_bringup.demo import main
+from endo_io.bag import BagWriter
 
 
 @pytest.mark.parametrize(
@@ -27,3 +28,16 @@ def test_bad_options_are_one_line_and_exit_2(
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and message in err[0], err
     assert not out.exists()  # nothing started, nothing written
+
+
+def test_a_bag_with_nothing_to_play_is_one_line_and_exit_2(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    empty = tmp_path / "empty.mcap"
+    with BagWriter(empty):
+        pass
+    out = tmp_path / "out"
+    assert main(["--bag", str(empty), "--round-trip-only", "--output-dir", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and f"{empty}: no topic to play here" in err[0], err
+    assert not (out / "round_trip.mcap").exists()  # no recorder started
