@@ -325,6 +325,7 @@ class FlowNode(Node):
         self.create_timer(values["map_period_s"], self._publish_map)
         self._map_dirty = False
         self._last_frame_s = time.monotonic()
+        self._last_frame_ns = 0  # the stamp of the last frame published (map errors name it)
         self.get_logger().info(
             f"flow: {topics.IMAGE_CORRECTED} + {topics.DEPTH_RELATIVE} + {topics.CAMERA_INFO} "
             f"+ {topics.CAMERA_POSE} -> {topics.DEPTH}, {topics.POINTS}, {topics.MAP}, "
@@ -387,7 +388,7 @@ class FlowNode(Node):
         self._take_poses()
         if (self.pipeline.map_pending
                 and time.monotonic() - self._last_frame_s > MAP_FINISH_AFTER_S):
-            self._fuse_map(1, 0)
+            self._fuse_map(1)
 
     def _wait_for_inputs(self, wait: bool) -> None:
         """Whether the image and camera_info wake the node at their arrival (a depth waits)."""
@@ -489,17 +490,18 @@ class FlowNode(Node):
         self._publish(pending, out)
         # the map's full-resolution cloud and insert after the frame's outputs are out, a
         # band of rows after each frame: map_every frames share each fused frame's work
-        self._fuse_map(self.pipeline.options.map_every, pending.stamp_ns)
         self._last_frame_s = time.monotonic()
+        self._last_frame_ns = pending.stamp_ns
+        self._fuse_map(self.pipeline.options.map_every)
 
-    def _fuse_map(self, parts: int, stamp_ns: int) -> None:
+    def _fuse_map(self, parts: int) -> None:
         """The next 1/parts of a deferred map frame; a failure is counted, never raised."""
         try:
             if self.pipeline.fuse_deferred_map(parts=parts):
                 self._map_dirty = True
         except Exception as error:  # the frame is out; a map failure must not stop the node
-            self.health.drop(type(error).__name__, f"map fusion after frame {stamp_ns} ns: "
-                             f"{error}")
+            self.health.drop(type(error).__name__,
+                             f"map fusion after frame {self._last_frame_ns} ns: {error}")
 
     def _step(self, pending: _Pending, pose: np.ndarray | None) -> FlowOutput:
         if pending.image.encoding not in IRRADIANCE_ENCODINGS:
@@ -578,7 +580,7 @@ class FlowNode(Node):
         if voxel_map is None:
             response.success, response.message = False, "the map is disabled (map_enabled)"
             return response
-        self._fuse_map(1, 0)  # the rows of a deferred frame still waiting
+        self._fuse_map(1)  # the rows of a deferred frame still waiting
         try:
             count = voxel_map.export_ply(path, self.parameters["map_min_count"])
         except FlowError as error:
