@@ -114,6 +114,8 @@ def main() -> None:
     args = parser.parse_args()
     out: Path = args.out
     out.mkdir(parents=True, exist_ok=True)
+    for name in ("photometric.yaml", "handeye.yaml"):  # this script's own, replaced each run
+        (out / name).unlink(missing_ok=True)
     photometric, handeye = run_offline_calibrations(
         BAGS / "graycard.mcap", BAGS / "handeye.mcap", out, dict(os.environ)
     )

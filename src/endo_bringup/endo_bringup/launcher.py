@@ -61,7 +61,7 @@ from endo_bringup.params_file import write as write_params
 from endo_bringup.process_group import ProcessGroup
 from endo_io.bag import BagReader
 from endo_io.bag.streams import count_messages
-from endo_io.cli import report_error
+from endo_io.cli import refuse_existing, report_error
 from endo_io.dds_transport import configure_large_frames
 from endo_io.errors import Endo3dError
 from endo_io.topics import CAMERA_INFO, IMAGE_RAW, TRACKER_POSE, TRUE_CAMERA_POSE, TRUE_DEPTH
@@ -654,10 +654,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     options = parser.parse_args(sys.argv[1:] if argv is None else argv)
     if options.write_params is not None:
-        if options.write_params.exists() and not options.overwrite:
-            # it may be the user's edited file (or, misnamed, another calibration)
-            return report_error(PROGRAM, LaunchError(
-                f"{options.write_params} exists; --overwrite replaces it"))
+        try:  # it may be the user's edited file (or, misnamed, another calibration)
+            refuse_existing(options.write_params, overwrite=options.overwrite)
+        except Endo3dError as error:
+            return report_error(PROGRAM, error)
         print(write_params(options.write_params))
         return 0
     if options.preset is None:

@@ -41,7 +41,7 @@ from endo_calib.gray_levels import GrayCardAccumulator
 from endo_calib.raw_image import to_raw_frame
 from endo_io import topics
 from endo_io.camera import CameraModel
-from endo_io.cli import exit_on_error
+from endo_io.cli import exit_on_error, refuse_existing
 from endo_io.provenance import camera_record, file_record, tool_record
 
 #: A level message logged this long after an image still applies to it (ns).
@@ -271,7 +271,11 @@ def build_parser() -> argparse.ArgumentParser:
         default="model",
         help="divide by the smooth light model or the per-pixel map",
     )
-    parser.add_argument("-o", "--output", type=Path, default=Path("photometric.yaml"))
+    parser.add_argument("-o", "--output", type=Path, default=Path("photometric.yaml"),
+                        help="the calibration YAML, with <stem>.light_map.png beside it "
+                        "(default photometric.yaml; an existing one only with --overwrite)")
+    parser.add_argument("--overwrite", action="store_true",
+                        help="replace an existing -o file (and its light map)")
     parser.add_argument("--report", type=Path, help="write the report figure (PNG)")
     parser.add_argument(
         "--export-dso", type=Path, metavar="DIR", help="also write pcalib.txt + vignette.png"
@@ -286,6 +290,8 @@ def run(args: argparse.Namespace, argv: Sequence[str] | None = None) -> Photomet
     argv: the arguments it was parsed from (recorded in the provenance;
     default ``sys.argv[1:]``).
     """
+    # refused before the fit: the user's calibration is never replaced silently
+    refuse_existing(Path(args.output), overwrite=args.overwrite)
     report: FitReport | None = None
     if args.import_dso is not None:
         calibration = import_dso(args.import_dso)

@@ -59,6 +59,20 @@ def test_manifest_to_calibration_report_and_dso(tmp_path, small_card, synth, cap
     np.testing.assert_allclose(back.inverse_response, cal.inverse_response, atol=1e-5)
 
 
+def test_an_existing_output_is_refused_without_overwrite(tmp_path, small_card, capsys):
+    # -o used to replace the user's calibration (and its light map) silently.
+    manifest = _write_manifest(tmp_path, small_card, frames=2)
+    out = tmp_path / "photometric.yaml"
+    out.write_text("# the user's calibration\n")
+    assert main(["--manifest", str(manifest), "-o", str(out)]) == 2
+    error = capsys.readouterr().err.strip()
+    assert error == f"endo-calibrate: OutputExistsError: {out} exists; --overwrite replaces it"
+    assert out.read_text() == "# the user's calibration\n"
+    assert not (tmp_path / "photometric.light_map.png").exists()
+    assert main(["--manifest", str(manifest), "-o", str(out), "--overwrite"]) == 0
+    assert PhotometricCalibration.load(out).width == 96
+
+
 def test_manifest_with_a_missing_level_or_image_fails_cleanly(tmp_path, small_card, capsys):
     manifest = _write_manifest(tmp_path, small_card, frames=2, skip_level=0.5)
     assert main(["--manifest", str(manifest), "-o", str(tmp_path / "p.yaml")]) == 2

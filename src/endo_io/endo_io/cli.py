@@ -9,6 +9,9 @@ with 2 as well, so a script has one failure code for "the input was wrong".
 A tool whose lines follow argparse's ``<program>: error: <message>`` form
 (``endo-replay``, ``endo-record``) passes ``label="error"``.
 
+A tool never replaces a file the user already has unless told to:
+:func:`refuse_existing` is its one check, before any work is done.
+
 >>> @exit_on_error("endo-calibrate")
 ... def main(argv: Sequence[str] | None = None) -> int:
 ...     run(build_parser().parse_args(argv))
@@ -20,9 +23,10 @@ from __future__ import annotations
 import functools
 import sys
 from collections.abc import Callable
+from pathlib import Path
 from typing import ParamSpec
 
-from endo_io.errors import Endo3dError
+from endo_io.errors import Endo3dError, OutputExistsError
 
 #: Exit code of a command-line tool given bad input (argparse uses it too).
 EXIT_BAD_INPUT = 2
@@ -41,6 +45,26 @@ def report_error(program: str, error: BaseException, *, label: str | None = None
     """
     print(f"{program}: {label or type(error).__name__}: {error}", file=sys.stderr, flush=True)
     return EXIT_BAD_INPUT
+
+
+def refuse_existing(*paths: Path, overwrite: bool) -> None:
+    """Refuse to replace a file the user has, unless ``overwrite`` (the tool's ``--overwrite``).
+
+    Called before the tool does any work, so that a refusal costs nothing.
+
+    Args:
+        paths: the files the tool will write (an output and its side files).
+        overwrite: the user asked for existing files to be replaced.
+
+    Raises:
+        OutputExistsError: ``<path> exists; --overwrite replaces it``, naming
+            the first of ``paths`` that exists.
+    """
+    if overwrite:
+        return
+    for path in paths:
+        if path.exists():
+            raise OutputExistsError(f"{path} exists; --overwrite replaces it")
 
 
 def exit_on_error(

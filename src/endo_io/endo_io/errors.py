@@ -90,6 +90,10 @@ class FutureStampError(StampOrderError):
     """A stamp is far ahead of its stream's newest and no later sample confirms a jump yet."""
 
 
+class OutputExistsError(Endo3dError):
+    """A tool's output file exists and the user did not ask to replace it (``--overwrite``)."""
+
+
 class ParameterValidationError(Endo3dError, ValueError):
     """A node parameter has the wrong type, is out of its range or not one of its choices.
 

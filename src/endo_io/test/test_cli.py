@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import pytest
 
 from endo_io.cli import EXIT_BAD_INPUT, exit_on_error
@@ -59,3 +61,16 @@ def test_yaml_error_line_names_the_position_in_one_line() -> None:
         yaml.safe_load("a: b: c\n")
     assert yaml_error_line(raised.value) == "line 1, column 5: mapping values are not allowed here"
     assert yaml_error_line(OSError(21, "Is a directory")) == "[Errno 21] Is a directory"
+
+
+def test_refuse_existing_names_the_first_existing_file(tmp_path: Path) -> None:
+    from endo_io.cli import refuse_existing
+    from endo_io.errors import OutputExistsError
+
+    new, old = tmp_path / "new.yaml", tmp_path / "old.yaml"
+    old.write_text("kept\n")
+    refuse_existing(new, overwrite=False)
+    refuse_existing(new, old, overwrite=True)
+    with pytest.raises(OutputExistsError, match=r"old\.yaml exists; --overwrite replaces it$"):
+        refuse_existing(new, old, overwrite=False)
+    assert old.read_text() == "kept\n"

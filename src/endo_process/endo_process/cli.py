@@ -29,7 +29,7 @@ from types import FrameType
 from typing import TYPE_CHECKING
 
 from endo_io import topics
-from endo_io.cli import EXIT_BAD_INPUT, report_error
+from endo_io.cli import EXIT_BAD_INPUT, refuse_existing, report_error
 from endo_io.errors import Endo3dError
 from endo_process.worker_start import StartedWorkers, start_workers
 
@@ -140,8 +140,7 @@ def _options(args: argparse.Namespace) -> ProcessOptions:
             raise Endo3dError(f"{path}: no such file ({option})")
     if args.output.is_dir():
         raise Endo3dError(f"{args.output} is a directory (-o names the output .mcap)")
-    if args.output.exists() and not args.overwrite:
-        raise Endo3dError(f"{args.output} exists (use --overwrite to replace it)")
+    refuse_existing(args.output, overwrite=args.overwrite)
     for name in ("report", "summary_json", "ply"):  # refused now, not after the run
         path = getattr(args, name)
         option = f"--{name.replace('_', '-')}"

@@ -19,7 +19,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from endo_io.cli import exit_on_error
+from endo_io.cli import exit_on_error, refuse_existing
 from endo_io.progress import Progress
 from endo_sim.errors import SimulationParameterError
 from endo_sim.graycard import DEFAULT_CARD_DISTANCE_M
@@ -316,11 +316,9 @@ def _render(args: argparse.Namespace) -> int:
         raise SimulationParameterError(f"{output}: the bag must end in .mcap")
     stem = output.name[: -len(".mcap")]
     targets = [output] + [output.with_name(stem + suffix) for suffix in GROUND_TRUTH_SUFFIXES]
-    existing = [p for p in targets if p.exists()]
-    if existing and not args.overwrite:
-        raise SimulationParameterError(f"{existing[0]} exists; pass --overwrite to replace it")
-    for path in existing:
-        path.unlink()
+    refuse_existing(*targets, overwrite=args.overwrite)
+    for path in targets:
+        path.unlink(missing_ok=True)
     from endo_sim.bagout import estimated_size, write_bag  # rclpy types; only needed here
 
     sequence = build_sequence(config_from_args(args))

@@ -33,7 +33,7 @@ from sensor_msgs.msg import CameraInfo, Image
 from endo_io.bag import BagReader, MessageDeserializationError, deserialize, msgtype_of
 from endo_io.bag.streams import PoseStreamCollector
 from endo_io.camera import CameraModel
-from endo_io.cli import exit_on_error
+from endo_io.cli import exit_on_error, refuse_existing
 from endo_io.errors import PoseError
 from endo_io.image import image_to_array
 from endo_io.provenance import camera_record, file_record, tool_record
@@ -333,7 +333,10 @@ def build_parser() -> argparse.ArgumentParser:
         description="Hand-eye (T_marker_camera) and tracker clock offset from a checkerboard bag.",
     )
     parser.add_argument("bag", type=Path, help="rosbag2 MCAP file or directory")
-    parser.add_argument("-o", "--output", type=Path, default=Path("handeye.yaml"))
+    parser.add_argument("-o", "--output", type=Path, default=Path("handeye.yaml"),
+                        help="the calibration YAML (default handeye.yaml; an existing one "
+                        "only with --overwrite)")
+    parser.add_argument("--overwrite", action="store_true", help="replace an existing -o file")
     parser.add_argument(
         "--board",
         default=None,
@@ -385,6 +388,8 @@ def parse_board(text: str, square_mm: float) -> Checkerboard:
 def main(argv: Sequence[str] | None = None) -> int:
     """Console script ``endo-handeye``; exit code 0 on success, 2 on bad input."""
     options = build_parser().parse_args(argv)
+    # before reading the bag: a calibration the user has is never replaced silently
+    refuse_existing(options.output, overwrite=options.overwrite)
     topics = BagTopics(options.image_topic, options.camera_info_topic, options.pose_topic)
     nominal_mm = options.square_mm if options.square_mm is not None else NOMINAL_SQUARE_MM
     unit = LengthUnit.parse(options.pose_unit)

@@ -35,9 +35,10 @@ def test_handeye_on_the_simulated_bag(tmp_path, capsys):
     board = truth["scene"]["checkerboard"]
     columns, rows = board["inner_corners"]
     output = tmp_path / "handeye.yaml"
+    output.write_text("# a previous calibration\n")  # replaced: --overwrite
     arguments = [str(BAG), "-o", str(output), "--board", f"{columns}x{rows}"]
     arguments += ["--square-mm", str(board["square_m"] * 1e3), "--pose-unit", tracker["units"]]
-    arguments += ["--max-views", "300"]
+    arguments += ["--max-views", "300", "--overwrite"]
     assert main(arguments) == 0
     print(capsys.readouterr().out)
 
@@ -64,6 +65,18 @@ def test_handeye_on_the_simulated_bag(tmp_path, capsys):
     assert math.isfinite(residuals["reprojection_rms_px"])
     assert set(calibration.details["closed_form"]) == {"tsai", "park", "daniilidis"}
     assert calibration.views_used >= 20
+
+
+@pytest.mark.skipif(not BAG.exists(), reason=f"{BAG} not found (endo-sim render handeye writes it)")
+def test_an_existing_output_is_refused_without_overwrite(tmp_path, capsys):
+    # -o used to replace whatever it named, after the whole calibration: the user's
+    # previous hand-eye file, or, misnamed, their photometric calibration.
+    output = tmp_path / "handeye.yaml"
+    output.write_text("# the user's calibration\n")
+    assert main([str(BAG), "-o", str(output), "--board", "8x5"]) == 2
+    error = capsys.readouterr().err.strip()
+    assert error == f"endo-handeye: OutputExistsError: {output} exists; --overwrite replaces it"
+    assert output.read_text() == "# the user's calibration\n"
 
 
 @pytest.mark.skipif(not BAG.exists(), reason=f"{BAG} not found (endo-sim render handeye writes it)")
