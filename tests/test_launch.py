@@ -195,8 +195,7 @@ def test_calibration_handeye_and_param_flags_override_the_file_for_their_node(
     small_bag, tmp_path
 ):
     bag, params = small_bag
-    photometric = tmp_path / "photometric.yaml"
-    photometric.write_text("{}")
+    photometric = bag.parent / "photometric.yaml"  # loaded by the launcher's check
     options = build_parser().parse_args([
         "replay", str(bag), "--params", str(params), "--calibration", str(photometric),
         "--param", "sfs.solve_scale:=0.5", "--param", "flow.max_tracks:=50",
@@ -302,7 +301,9 @@ def test_respawn_brings_a_killed_node_back_and_sigterm_stops_everything(small_ba
 def test_a_node_that_cannot_start_is_reported_and_stops_the_launch(small_bag, tmp_path):
     _, params = small_bag
     document = yaml.safe_load(params.read_text())
-    document["/**/sfs"]["ros__parameters"]["solve_scale"] = 7.0
+    # A value out of range is refused by endo-launch before any start
+    # (test_launch_guards.py); a warm-up camera file only the node reads is not.
+    document["/**/sfs"]["ros__parameters"]["warm_up_camera_file"] = str(params)
     broken = tmp_path / "broken.yaml"
     broken.write_text(yaml.safe_dump(document))
     launcher = Launcher(["live", "--params", str(broken), "--log-dir", str(tmp_path / "logs")])
@@ -312,4 +313,4 @@ def test_a_node_that_cannot_start_is_reported_and_stops_the_launch(small_bag, tm
         launcher.kill()
     assert code == 1, launcher.output
     assert "endo-sfs exited with code 2" in launcher.output
-    assert "solve_scale" in launcher.output.split("endo-sfs exited with code 2", 1)[1]
+    assert "warm_up_camera_file" in launcher.output.split("endo-sfs exited with code 2", 1)[1]

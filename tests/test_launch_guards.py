@@ -6,7 +6,8 @@
   for a bare :class:`ProcessGroup` and for ``endo-launch`` itself;
 * a replay's source waits only for the topics a node reads (not ``/clock``);
 * bad source arguments (``--rate 0``, an unknown scene) are refused before
-  anything starts, also under ``--dry-run``;
+  anything starts, also under ``--dry-run``; so are the nodes' parameters
+  and calibration files (checked as the nodes check them at start);
 * a replay with ``--record`` ends with each node output's count against what
   came in (the demo's stage counts), and an output that got nothing is a
   warning and a failed run.
@@ -88,6 +89,52 @@ def test_bad_source_arguments_are_refused_before_anything_starts(
         assert done.stdout == ""  # no command line printed, nothing started
         lines = done.stderr.strip().splitlines()
         assert len(lines) == 1 and says in lines[0], done.stderr
+        assert not (tmp_path / "logs").exists()
+
+
+@pytest.mark.parametrize(
+    ("files", "argv", "says"),
+    [
+        ({"p.yaml": "a: [1, 2\n"}, ["--params", "p.yaml"],
+         "endo-photometric-correction: cannot start with these ROS arguments: failed to "
+         "initialize rcl: Couldn't parse params file"),
+        ({"p.yaml": "/**/sfs:\n  ros__parameters: {solve_scale: 0}\n"}, ["--params", "p.yaml"],
+         "endo-sfs: parameter solve_scale: 0 is out of range [0.1, 1]"),
+        ({"p.yaml": "sfs:\n  ros__parameters: {solve_scal: 0.5}\n"}, ["--params", "p.yaml"],
+         "endo-sfs: parameter solve_scal: sfs has no such parameter (did you mean solve_scale?)"),
+        ({}, ["--param", "sfs.solve_scale:=0"],
+         "endo-sfs: parameter solve_scale: 0 is out of range [0.1, 1]"),
+        ({}, ["--param", "flow.map_every:=x"],
+         "endo-flow: parameter map_every: expected an integer"),
+        ({"c.yaml": "format: nothing\n"}, ["--calibration", "c.yaml"],
+         "endo-photometric-correction: "),  # + "<path> is not an endo3d photometric calibration"
+        ({"h.yaml": "a: 1\n"}, ["--handeye", "h.yaml"], "endo-tracker-bridge: "),
+        ({"p.yaml": "/**/photometric_correction:\n"
+                    "  ros__parameters: {calibration_file: /no/c.yaml}\n"},
+         ["--params", "p.yaml"],
+         "endo-photometric-correction: calibration file /no/c.yaml not found"),
+    ],
+)
+def test_the_nodes_configuration_is_checked_before_anything_starts(
+    files: dict[str, str], argv: list[str], says: str, tmp_path: Path
+) -> None:
+    # --dry-run printed the command lines for each of these (and a parameter file
+    # that does not parse was a yaml traceback); the real start found them only
+    # once the nodes had started (a node exiting 2, the launch stopped), a
+    # calibration that does not load not at all (the correction node runs on,
+    # dropping every frame).
+    for name, text in files.items():
+        (tmp_path / name).write_text(text)
+    argv = [str(tmp_path / a) if a in files else a for a in argv]
+    for extra in (["--dry-run"], ["--log-dir", str(tmp_path / "logs")]):
+        done = _launch("live", *argv, *extra)
+        assert done.returncode == 2, (done.stdout, done.stderr)
+        assert done.stdout == ""  # no command line printed, nothing started
+        lines = done.stderr.strip().splitlines()
+        assert len(lines) == 1 and lines[0].startswith("endo-launch: LaunchError: " + says), lines
+        for name in ("c.yaml", "h.yaml"):
+            if name in files:  # the node's own loader's line, naming the file
+                assert str(tmp_path / name) in lines[0], lines
         assert not (tmp_path / "logs").exists()
 
 

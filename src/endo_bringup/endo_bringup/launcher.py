@@ -5,6 +5,10 @@ started through :class:`~endo_bringup.process_group.ProcessGroup`, with
 
 * ``--calibration photometric.yaml`` and ``--handeye handeye.yaml``: the two
   calibration files (a missing one is warned about at start);
+* before anything starts (``--dry-run`` too), each node's configuration
+  checked as the node will check it (:func:`check_nodes`): the parameter
+  file through rcl, every value against the node's parameter table, the
+  calibration files through the nodes' loaders; a fault is one line, exit 2;
 * a preset source: ``live`` (your camera driver and tracker publish the
   inputs), ``replay BAG`` (``endo-replay`` with ``/clock``, ``--rate``,
   ``--loop``) or ``sim`` (``endo-sim live``);
@@ -25,7 +29,7 @@ started through :class:`~endo_bringup.process_group.ProcessGroup`, with
   camera_info beside the images (plus the ground truth a replayed bag has).
 
 A replay without ``--loop`` ends the run once it has played and the graph's
-outputs have stopped growing. ``--dry-run`` prints the command lines.
+outputs have stopped growing. ``--dry-run`` checks, then prints the command lines.
 """
 
 from __future__ import annotations
@@ -37,10 +41,10 @@ import signal
 import sys
 import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import NoReturn, TextIO
+from typing import Any, NoReturn, TextIO
 
 import yaml
 
@@ -63,7 +67,7 @@ from endo_io.bag import BagReader
 from endo_io.bag.streams import count_messages
 from endo_io.cli import refuse_existing, report_error
 from endo_io.dds_transport import configure_large_frames
-from endo_io.errors import Endo3dError
+from endo_io.errors import Endo3dError, yaml_error_line
 from endo_io.topics import CAMERA_INFO, IMAGE_RAW, TRACKER_POSE, TRUE_CAMERA_POSE, TRUE_DEPTH
 
 PROGRAM = "endo-launch"
@@ -176,7 +180,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="start even when another endo3d graph already runs in this ROS domain "
                    "(its data and ours then mix)")
     g.add_argument("--dry-run", action="store_true",
-                   help="print the command lines, start nothing")
+                   help="check the nodes' parameters and calibration files as a start does, "
+                   "print the command lines, start nothing")
     parser = argparse.ArgumentParser(
         prog=PROGRAM,
         description="Start the endo3d graph (correction → SFS → tracker bridge → flow), "
@@ -296,8 +301,7 @@ def plan_launch(options: argparse.Namespace) -> LaunchPlan:
         source = GraphProcess(SOURCE, "endo-sim", arguments=("live", options.scene,
                               *options.sim_arg), remaps=sim_rules,
                               publishes=tuple(rules.get(t, t) for t in inputs))  # fmt: skip
-    return LaunchPlan(nodes, source, recorder, ends, _missing_calibrations(nodes),
-                      camera_file=camera_file)
+    return LaunchPlan(nodes, source, recorder, ends, check_nodes(nodes), camera_file=camera_file)
 
 
 def _check_replay_arguments(arguments: Sequence[str]) -> None:
@@ -334,26 +338,75 @@ def _parse_quietly(
     return parser.parse_args(list(arguments))
 
 
-def _missing_calibrations(nodes: Sequence[GraphProcess]) -> list[str]:
-    """What the nodes will lack: a photometric or hand–eye calibration set nowhere."""
-    needed = {"endo-photometric-correction": ("calibration_file", "--calibration",
-                                              "drops every frame"),
-              "endo-tracker-bridge": ("handeye_file", "--handeye",
-                                      "publishes the marker pose as the camera pose")}
+#: What a node lacks without its calibration: parameter, endo-launch flag, effect.
+_CALIBRATIONS = {"endo-photometric-correction": ("calibration_file", "--calibration",
+                                                 "drops every frame"),
+                 "endo-tracker-bridge": ("handeye_file", "--handeye",
+                                         "publishes the marker pose as the camera pose")}
+
+
+def _check_calibration_files(node: GraphProcess, values: Mapping[str, Any]) -> None:
+    """Load the calibration a node will load at start, with the node's own loader.
+
+    Raises:
+        Endo3dError: the file does not load (or does not suit the node's
+            parameters), with the node's message.
+    """
+    if node.name == "endo-photometric-correction" and values["calibration_file"]:
+        from endo_calib.calibration import PhotometricCalibration
+        from endo_calib.node import check_channel
+
+        path = str(values["calibration_file"])
+        check_channel(PhotometricCalibration.load(path), str(values["channel"]), path)
+    elif node.name == "endo-tracker-bridge":
+        from endo_tracker_bridge.handeye_file import HandEyeCalibration
+        from endo_tracker_bridge.node import world_tracker_from_parameter
+
+        if values["handeye_file"]:
+            HandEyeCalibration.load(str(values["handeye_file"]))
+        world_tracker_from_parameter(values["T_world_tracker"])
+
+
+def check_nodes(nodes: Sequence[GraphProcess]) -> list[str]:
+    """Check each node's start-up configuration as its start will, before anything starts.
+
+    Per node: its ROS arguments through rcl (``--params-file`` that does not
+    parse, a malformed ``-p``), every value it will start with against its
+    parameter table (type, range, choices, a misspelt name:
+    :func:`endo_io.parameters.check_start_values`) and the calibration files
+    it will load, with its own loader. ``--dry-run`` runs the same checks.
+
+    Returns:
+        Warnings: a node without its calibration (it runs, but is of little use).
+
+    Raises:
+        LaunchError: one line naming the node and the cause.
+    """
+    from endo_bringup.params_file import node_parameters
+    from endo_io.parameters import check_start_values, file_overrides
+    from endo_io.process import check_ros_arguments
+
+    document: Any = None
     warnings = []
     for node in nodes:
-        if node.name not in needed:
-            continue
-        name, flag, effect = needed[node.name]
-        if node.parameters.get(name):
-            continue
-        if node.params_file:
-            document = yaml.safe_load(Path(node.params_file).read_text()) or {}
-            section = document.get(f"/**/{node.node_name}", document.get(node.node_name, {}))
-            if (section or {}).get("ros__parameters", {}).get(name):
-                continue
-        warnings.append(f"no {name} for {node.name}: it {effect} (pass {flag} FILE, or "
-                        f"set {name} in --params)")
+        try:
+            check_ros_arguments(node.command())
+            if node.params_file and document is None:
+                document = yaml.safe_load(Path(node.params_file).read_text()) or {}
+            given = file_overrides(document, node.node_name, node.remaps.get("__ns", ""))
+            # `-p NAME:=VALUE`: rcl reads VALUE as YAML
+            given.update({name: yaml.safe_load(value) if value else value
+                          for name, value in node.parameters.items()})  # fmt: skip
+            values = check_start_values(node_parameters(node), given, node.node_name)
+            _check_calibration_files(node, values)
+        except (Endo3dError, OSError, yaml.YAMLError) as error:
+            reason = yaml_error_line(error) if isinstance(error, yaml.YAMLError) else str(error)
+            raise LaunchError(f"{node.name}: {reason}") from None
+        if node.name in _CALIBRATIONS:
+            name, flag, effect = _CALIBRATIONS[node.name]
+            if not values[name]:
+                warnings.append(f"no {name} for {node.name}: it {effect} (pass {flag} FILE, "
+                                f"or set {name} in --params)")  # fmt: skip
     return warnings
 
 

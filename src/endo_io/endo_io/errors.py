@@ -103,6 +103,10 @@ class ParameterValidationError(Endo3dError, ValueError):
     """
 
 
+class RosArgumentsError(Endo3dError):
+    """rcl refuses a node's ROS arguments: a parameter file that does not parse, a bad remap."""
+
+
 def yaml_error_line(error: Exception) -> str:
     """One line naming where and why PyYAML refused a document.
 

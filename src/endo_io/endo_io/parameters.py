@@ -36,7 +36,8 @@ pre-set callback converts integers for doubles before rclpy checks types.
 from __future__ import annotations
 
 import contextlib
-from collections.abc import Callable, Iterable, Sequence
+import re
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -216,6 +217,105 @@ class ParameterSpec:
         return value
 
 
+#: Parameters rclpy declares on every node itself, besides a node's table.
+ROS_OWN_PARAMETERS = frozenset({"use_sim_time", "start_type_description_service"})
+
+
+def refuse_near_misses(
+    names: Iterable[str], specs: Mapping[str, ParameterSpec], node_name: str
+) -> None:
+    """Refuse a start-up override whose name is a typo of a row (``solve_scal``).
+
+    Args:
+        names: overrides given that are none of the rows.
+        specs: the node's table by name.
+        node_name: the node, for the message.
+
+    Raises:
+        ParameterValidationError: a name is a near miss (:func:`_is_near_miss`)
+            of a row's: ``parameter solve_scal: sfs has no such parameter (did
+            you mean solve_scale?)``.
+    """
+    for name in names:
+        close = [row for row in specs if _is_near_miss(name, row)]
+        if close:
+            raise ParameterValidationError(
+                f"parameter {name}: {node_name} has no such parameter (did you mean {close[0]}?)"
+            )
+
+
+def check_start_values(
+    specs: Sequence[ParameterSpec], given: Mapping[str, Any], node_name: str
+) -> dict[str, Any]:
+    """The values a node will start with, checked as :class:`NodeParameters` checks them.
+
+    For a launcher that checks a node's configuration before starting it
+    (``endo-launch``): each row's override or default through
+    :meth:`ParameterSpec.validate`, then :func:`refuse_near_misses`, in the
+    node's order, without creating a node.
+
+    Args:
+        specs: the node's table.
+        given: the start-up overrides (parameter file and ``-p``), name ->
+            value as parsed from YAML.
+        node_name: the node, for the message.
+
+    Returns:
+        Every row's value, converted.
+
+    Raises:
+        ParameterValidationError: the first value the node would refuse.
+    """
+    rows = {spec.name: spec for spec in specs}
+    values = {spec.name: spec.validate(given.get(spec.name, spec.default)) for spec in specs}
+    refuse_near_misses(
+        sorted(name for name in given if name not in rows and name not in ROS_OWN_PARAMETERS
+               and not name.startswith(_RCLPY_PREFIXES)),
+        rows, node_name,
+    )  # fmt: skip
+    return values
+
+
+def _flatten(prefix: str, values: Mapping[Any, Any], into: dict[str, Any]) -> None:
+    for key, value in values.items():
+        name = f"{prefix}{key}"
+        if isinstance(value, Mapping):
+            _flatten(name + ".", value, into)
+        else:
+            into[name] = value
+
+
+def file_overrides(document: Any, node_name: str, namespace: str = "") -> dict[str, Any]:
+    """The values a ROS 2 parameter file gives one node, as rcl applies them at start.
+
+    Every section whose key matches the node's fully qualified name applies,
+    in the file's order (a later one wins): ``/**``, ``/**/sfs``, ``sfs``,
+    ``/rig1/sfs``; ``*`` stands for one name, ``**`` for any number. Nested
+    mappings are dotted names (``qos_overrides./topic.reliability``).
+
+    Args:
+        document: the parsed YAML (``yaml.safe_load``), which rcl accepted.
+        node_name: the node's name.
+        namespace: its namespace ("" or ``/rig1``).
+
+    Returns:
+        Parameter name -> value.
+    """
+    fqn = f"{namespace.rstrip('/')}/{node_name}"
+    values: dict[str, Any] = {}
+    if not isinstance(document, Mapping):
+        return values
+    for key, section in document.items():
+        pattern = "/" + str(key).lstrip("/")
+        regex = re.escape(pattern).replace(r"/\*\*", "(/[^/]+)*").replace(r"\*", "[^/]*")
+        if not re.fullmatch(regex, fqn) or not isinstance(section, Mapping):
+            continue
+        parameters = section.get("ros__parameters")
+        if isinstance(parameters, Mapping):
+            _flatten("", parameters, values)
+    return values
+
+
 #: A node's reaction to accepted changes: ``apply(changes, values)`` with the
 #: changed parameters and every parameter's value after the change; it puts
 #: them into effect, or raises an Endo3dError to refuse them (nothing changes).
@@ -267,13 +367,7 @@ class NodeParameters:
             and not node.has_parameter(name)  # use_sim_time and rclpy's own
             and not name.startswith(_RCLPY_PREFIXES)
         )
-        for name in unknown:
-            close = [row for row in self.specs if _is_near_miss(name, row)]
-            if close:
-                raise ParameterValidationError(
-                    f"parameter {name}: {node.get_name()} has no such parameter "
-                    f"(did you mean {close[0]}?)"
-                )
+        refuse_near_misses(unknown, self.specs, node.get_name())
         if unknown:
             node.get_logger().warning(
                 f"ignoring parameter(s) that {node.get_name()} does not have: "

@@ -47,7 +47,7 @@ from rclpy.utilities import get_rmw_implementation_identifier
 
 from endo_io.cli import report_error
 from endo_io.dds_transport import TransportChoice, configure_large_frames
-from endo_io.errors import Endo3dError, ParameterValidationError
+from endo_io.errors import Endo3dError, ParameterValidationError, RosArgumentsError
 
 
 @dataclass(frozen=True)
@@ -307,8 +307,7 @@ def _run_node(factory: Callable[[], Node], argv: list[str],
     try:
         rclpy.init(args=argv)
     except _rclpy.RCLError as error:  # ROS arguments rcl refuses: a --params-file, a remap
-        reason = re.split(r", at /", str(error).splitlines()[0])[0]
-        print(f"{program}: cannot start with these ROS arguments: {reason}", file=sys.stderr)
+        print(f"{program}: {_refused_arguments(error)}", file=sys.stderr)
         return 2
     if sigint is not None and sigint.received:
         # A SIGINT before rclpy.init found no context to shut down: the stop asked for.
@@ -354,6 +353,45 @@ def _run_node(factory: Callable[[], Node], argv: list[str],
         # down already, and a later rclpy.init() in this process must work.
         rclpy.try_shutdown()
     return int(getattr(node, "exit_code", 0) or 0)
+
+
+def _refused_arguments(error: Exception) -> str:
+    """One line from rcl's refusal of a node's ROS arguments (its source positions cut)."""
+    reason = re.split(r", at /", str(error).splitlines()[0])[0]
+    return f"cannot start with these ROS arguments: {reason}"
+
+
+def check_ros_arguments(argv: Sequence[str]) -> None:
+    """Parse a node's command line as its start will (``rclpy.init``), starting nothing.
+
+    rcl reads the ``--ros-args`` block: a ``--params-file`` that does not
+    parse or is not a ROS parameter file, a malformed ``-p`` value or remap.
+    The parse runs in a context of its own that is shut down at once (no
+    node, no DDS participant); rcl's own ``[ERROR]`` line is kept off stderr.
+
+    Args:
+        argv: the node's command line, program first.
+
+    Raises:
+        RosArgumentsError: rcl refuses them; the one line ``run_node``
+            would print.
+    """
+    from rclpy.context import Context
+
+    context = Context()
+    saved = os.dup(2)
+    try:
+        with open(os.devnull, "w") as quiet:  # noqa: PTH123
+            os.dup2(quiet.fileno(), 2)
+            try:
+                rclpy.init(args=list(argv), context=context)
+            finally:
+                os.dup2(saved, 2)
+    except _rclpy.RCLError as error:
+        raise RosArgumentsError(_refused_arguments(error)) from None
+    finally:
+        os.close(saved)
+    rclpy.try_shutdown(context=context)
 
 
 def split_ros_args(argv: Sequence[str]) -> tuple[list[str], list[str]]:

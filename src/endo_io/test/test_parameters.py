@@ -182,3 +182,45 @@ def test_run_node_turns_a_typo_into_one_line_and_exit_code_2(capsys):
     assert code == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "tapz" in err[0] and "did you mean taps?" in err[0]
+
+
+@pytest.mark.parametrize(
+    ("overrides", "message"),
+    [
+        ({"gain": 9.5}, "parameter gain: 9.5 is out of range [0, 8]"),
+        ({"mode": "slow"}, "parameter mode: 'slow' is not one of fast, exact"),
+        ({"gian": 1.5}, "parameter gian: filter_under_test has no such parameter "
+                        "(did you mean gain?)"),
+    ],
+)
+def test_start_values_are_checked_without_a_node_as_the_node_checks_them(
+    context, overrides, message
+):
+    # endo-launch checks every node's configuration before starting anything.
+    from endo_io.parameters import check_start_values
+
+    with pytest.raises(ParameterValidationError, match=f"^{re.escape(message)}$"):
+        _node(**overrides)
+    with pytest.raises(ParameterValidationError, match=f"^{re.escape(message)}$"):
+        check_start_values(TABLE, overrides, "filter_under_test")
+    values = check_start_values(TABLE, {"gain": 1, "solve_scale": 0.5, "use_sim_time": True},
+                                "filter_under_test")  # fmt: skip
+    assert values["gain"] == 1.0 and isinstance(values["gain"], float) and values["taps"] == 3
+
+
+def test_file_overrides_apply_the_sections_rcl_applies_to_the_node():
+    from endo_io.parameters import file_overrides
+
+    document = {
+        "/**": {"ros__parameters": {"a": 1, "b": 1}},
+        "/**/filter": {"ros__parameters": {"b": 2, "qos": {"depth": 5}}},
+        "filter": {"ros__parameters": {"c": 3}},
+        "/rig1/filter": {"ros__parameters": {"d": 4}},
+        "/*/filter": {"ros__parameters": {"e": 5}},
+        "other": {"ros__parameters": {"f": 6}},
+    }
+    assert file_overrides(document, "filter") == {"a": 1, "b": 2, "qos.depth": 5, "c": 3}
+    assert file_overrides(document, "filter", "/rig1") == {
+        "a": 1, "b": 2, "qos.depth": 5, "d": 4, "e": 5
+    }
+    assert file_overrides("just a string", "filter") == {}
