@@ -21,5 +21,9 @@ class ParameterFileError(ProcessInputError):
     """The ``--params`` file cannot be read or holds a value of the wrong kind."""
 
 
+class ImageStampBackError(Endo3dError):
+    """An image is stamped before an image already read (a clock jump back, frames out of order)."""
+
+
 class WorkerError(Endo3dError):
     """A shading worker process failed; the message carries its error."""

@@ -57,7 +57,7 @@ from endo_io.pose_buffer import PoseBuffer
 from endo_io.progress import Progress
 from endo_io.stamp import NS_PER_S, ns_to_stamp, stamp_to_ns
 from endo_io.tf import StampedTransform, static_transforms
-from endo_process.errors import ProcessInputError
+from endo_process.errors import ImageStampBackError, ProcessInputError
 from endo_process.flow_stage import FlowStage, offline_flow_options
 from endo_process.inputs import (
     CameraInfoPairing,
@@ -324,8 +324,9 @@ class _PoseFeed:
             self._output.hold_cdr(topics.MARKER_POSE, POSE_TYPE, marker[k], pose.sample.stamp_ns)
             try:
                 self.buffer.insert(pose.stamp_ns, read_back[k])
-            except Endo3dError as error:
-                self._report.pose_buffer_events[type(error).__name__] += 1
+            except Endo3dError as error:  # ClockJumpError: the tracker's stamps went back
+                self._report.count(self._report.pose_buffer_events, type(error).__name__,
+                                   str(error))  # fmt: skip
 
     def at(self, stamp_ns: int) -> np.ndarray:
         """T_world_camera at ``stamp_ns``; raises PoseLookupError when there is none."""
@@ -357,6 +358,7 @@ def _raw_frames(
     the output; the frame loop takes it back out.
     """
     index = 0
+    newest_ns: int | None = None  # the newest image stamp read
     clock = _StageClock(report)
     start = clock.now()
     for msg in images:
@@ -364,8 +366,19 @@ def _raw_frames(
             return
         report.frames_in += 1
         stamp_ns = stamp_to_ns(msg.header.stamp)
+        went_back = newest_ns is not None and stamp_ns < newest_ns
+        newest_ns = stamp_ns if newest_ns is None else max(newest_ns, stamp_ns)
         try:
             paired = pairing.at(stamp_ns)
+            if paired is None and went_back:
+                assert newest_ns is not None
+                # the camera_info stream has moved on past this stamp: not a missing camera_info
+                error = ImageStampBackError(
+                    f"image stamp went back {(newest_ns - stamp_ns) / NS_PER_S:.3f} s, from "
+                    f"{newest_ns} to {stamp_ns} ns (a clock jump, or frames out of order)"
+                )
+                report.count(report.dropped, type(error).__name__, str(error))
+                continue
             if paired is None:
                 report.count(report.dropped, "NoCameraInfoError",
                              f"no camera_info at or before the image stamped {stamp_ns} ns")

@@ -17,7 +17,9 @@ def _causes(counter: Counter[str]) -> str:
 
 
 def drop_lines(report: ProcessReport) -> list[str]:
-    """One line per cause of dropped frames, rejected tracker samples and frames flow refused.
+    """One line per cause: dropped frames, rejected tracker samples, pose buffer events, flow.
+
+    A pose buffer event is a tracker clock jump (ClockJumpError) or a pose it refused.
 
     Each names the count, the cause and the first such item's message, e.g.
     ``20 frames dropped, CalibrationMismatchError: image 640x480 bgr8 ...``.
@@ -25,6 +27,8 @@ def drop_lines(report: ProcessReport) -> list[str]:
     lines = []
     for what, counter in (("frames dropped", report.dropped),
                           ("tracker samples rejected", report.tracker_rejected),
+                          ("poses refused or reset by the pose buffer",
+                           report.pose_buffer_events),
                           ("frames refused by flow", report.flow_dropped)):  # fmt: skip
         for cause, n in counter.most_common():
             lines.append(f"{n} {what}, {cause}: {report.reasons.get(cause, '')}".rstrip(": "))

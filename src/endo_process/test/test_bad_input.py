@@ -354,3 +354,51 @@ def test_a_file_that_is_not_yaml_is_one_line_naming_where(
         "line 2, column 1: expected ',' or ']', but got '<stream end>' (while parsing a flow "
         "sequence)" + (")" if option != "--handeye" else "")
     ), error
+
+
+def test_stamps_going_back_are_named_counted_and_one_line_each(
+    calibrations: tuple[Path, Path], tmp_path: Path, capsys: pytest.CaptureFixture
+) -> None:
+    # An image stamped 2 s back was dropped as 'NoCameraInfoError: no camera_info at or
+    # before the image stamped ...' (the camera_info stream had moved past it), and a
+    # tracker pose stamped 2 s back reset the pose buffer (ClockJumpError) without a line.
+    from endo_io.bag import deserialize, serialize
+    from endo_io.stamp import ns_to_stamp, stamp_to_ns
+
+    source = _subset(tmp_path / "src.mcap", ALL, images=6)
+    bag = tmp_path / "back.mcap"
+    back_ns = 2_000_000_000
+    image_stamps: list[int] = []
+    seen = {topics.IMAGE_RAW: 0, topics.TRACKER_POSE: 0}
+    with BagReader(source) as reader, BagWriter(bag) as writer:
+        for name, info in reader.topics.items():
+            writer.add_topic(name, info.msgtype)
+        for message in reader.messages():
+            data = message.data
+            if message.topic in seen:
+                seen[message.topic] += 1
+                decoded = deserialize(message)
+                stamp = stamp_to_ns(decoded.header.stamp)
+                if (message.topic, seen[message.topic]) in {(topics.IMAGE_RAW, 4),
+                                                            (topics.TRACKER_POSE, 5)}:
+                    stamp -= back_ns
+                    decoded.header.stamp = ns_to_stamp(stamp)
+                    data = serialize(decoded)
+                if message.topic == topics.IMAGE_RAW:
+                    image_stamps.append(stamp)
+            writer.write(message.topic, data, message.log_time_ns)
+    assert main(_argv(bag, tmp_path / "out.mcap", calibrations)) == EXIT_OK
+    lines = capsys.readouterr().err.strip().splitlines()
+    newest, back = image_stamps[2], image_stamps[3]
+    assert (
+        f"endo-process: warning: 1 frames dropped, ImageStampBackError: image stamp went back "
+        f"{(newest - back) / 1e9:.3f} s, from {newest} to {back} ns (a clock jump, or frames "
+        "out of order)"
+    ) in lines, lines
+    jumps = [line for line in lines if "pose buffer, ClockJumpError" in line]
+    assert len(jumps) == 1, lines
+    assert jumps[0].startswith(
+        "endo-process: warning: 1 poses refused or reset by the pose buffer, ClockJumpError: "
+        "pose time jumped back 1.98"
+    ) and jumps[0].endswith("ns); pose buffer reset"), jumps
+    assert not any("NoCameraInfoError" in line for line in lines), lines
