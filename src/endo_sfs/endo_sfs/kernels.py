@@ -36,6 +36,7 @@ from typing import Any
 import numpy as np
 from numba import njit, prange
 
+from endo_sfs.cycles import cycle_counter
 from endo_sfs.heap import heap_pop, heap_push
 from endo_sfs.prefetch import prefetch
 from endo_sfs.visit_order import FIRST_PASS_BUCKETS, value_order
@@ -959,6 +960,7 @@ def near_light_sweep(
     seam: np.ndarray,
     sweep_split: int,
     first_sweeps: np.ndarray,
+    ticks: np.ndarray,
 ) -> tuple[int, float, int]:
     """Fast sweeping of the near-light perspective SFS equation, in place.
 
@@ -1002,8 +1004,18 @@ def near_light_sweep(
     before it (:func:`mark_first_sweeps`) rather than in the first sweep
     that reaches it: the same fixed point (to the tolerance), fewer solves
     against neighbours still at their start values.
+
+    ticks: (3,) int64, or empty. When given, receives the cycle counter
+    (:func:`endo_sfs.cycles.cycle_counter`) at the start, at the start of
+    the one-thread finish after a two-thread first pass or split sweeps
+    (the end when there was none), and at the end, so that the caller can
+    split the kernel's wall time.
     Returns (iterations, last max change of v, node updates computed).
     """
+    timed = ticks.size >= 3
+    if timed:
+        ticks[0] = cycle_counter()
+        ticks[1] = -1
     ny, nx = v.shape
     state = initial_state(valid)  # the padding of ``valid`` is 0: OUTSIDE
     if first_pass.size == 0 and first_sweeps.size > 0 and order != 3:
@@ -1024,6 +1036,8 @@ def near_light_sweep(
                 j = seam[k] - i * nx
                 if state[i, j] == LOCKED:
                     state[i, j] = UNLOCKED
+            if timed:
+                ticks[1] = cycle_counter()
         else:
             updates += _ordered_pass(
                 v, node, state, first_pass, hx, hy, reflectance, order, tolerance, eps, table
@@ -1048,6 +1062,8 @@ def near_light_sweep(
         if _count_unlocked(state) == 0:
             # Every node is consistent with its final stencil: a sweep
             # would only confirm it.
+            if timed:
+                _end_ticks(ticks)
             return 0, 0.0, updates
     spans = row_spans(valid)
     dirty = np.zeros(ny, dtype=np.uint8)
@@ -1064,11 +1080,23 @@ def near_light_sweep(
             for j in range(2, nx - 2):
                 if state[i, j] == LOCKED:
                     state[i, j] = UNLOCKED
+        if timed:
+            ticks[1] = cycle_counter()
     iterations, change, more = _sweeps(
         v, node, state, spans, dirty, 2, ny - 2, hx, hy, reflectance, order, tolerance,
         max_iterations, eps, table,
     )
+    if timed:
+        _end_ticks(ticks)
     return iterations, change, updates + more
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _end_ticks(ticks: np.ndarray) -> None:
+    """The end read of :func:`near_light_sweep`'s ``ticks`` (finish start = end if unset)."""
+    ticks[2] = cycle_counter()
+    if ticks[1] < 0:
+        ticks[1] = ticks[2]
 
 
 @njit(cache=True, nogil=True, error_model="numpy")

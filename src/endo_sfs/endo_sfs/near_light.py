@@ -149,7 +149,9 @@ def solve_near_light(
     that meets its predicted upwind neighbours first
     (:func:`endo_sfs.kernels.mark_first_sweeps`). timings: if
     given, receives the wall seconds of the stages ("inputs", "order",
-    "sweeps", "outputs").
+    "sweeps", "finish", "outputs"; "finish" is the one-thread end of the
+    sweeps after a two-thread first pass or split sweeps, 0 on one thread,
+    and "sweeps" the rest of them).
     Returns ((ny, nx) float64 v, NaN at invalid nodes; (ny, nx) float64
     F = tan θ, the angle between surface normal and ray, NaN at invalid
     nodes; info).
@@ -200,7 +202,7 @@ def solve_near_light(
     if order == 3 and warm_start is None:
         _, _, updates = kernels.near_light_sweep(
             v, node, valid_p, hx, hy, reflectance, 2, tolerance, max_iterations, eps, table,
-            value_order(key, valid_p, FIRST_PASS_BUCKETS), 0, no_pass, 0, no_key,
+            value_order(key, valid_p, FIRST_PASS_BUCKETS), 0, no_pass, 0, no_key, no_pass,
         )
     ordered, split, seam, sweep_split = no_pass, 0, no_pass, 0
     parallel = threads > 1 and nodes >= MIN_PARALLEL_NODES
@@ -213,12 +215,18 @@ def solve_near_light(
         sweep_split = int(np.searchsorted(np.cumsum(valid_p.sum(axis=1)), nodes // 2))
     stages["order"] = (now := time.perf_counter()) - start
     start = now
+    ticks = np.zeros(3, dtype=np.int64)
     iterations, change, more = kernels.near_light_sweep(
         v, node, valid_p, hx, hy, reflectance, order, tolerance, max_iterations, eps, table,
         ordered, split, seam, sweep_split,
-        key if first_sweeps and warm_start is not None else no_key,
+        key if first_sweeps and warm_start is not None else no_key, ticks,
     )
-    stages["sweeps"] = (now := time.perf_counter()) - start
+    seconds = (now := time.perf_counter()) - start
+    # The one-thread finish's share of the kernel, by its cycle counts.
+    total = int(ticks[2] - ticks[0])
+    finish = seconds * (int(ticks[2] - ticks[1]) / total) if total > 0 else 0.0
+    stages["sweeps"] = seconds - finish
+    stages["finish"] = finish
     start = now
     info = SolveInfo(
         int(iterations), float(change), bool(change <= tolerance), int(updates + more)

@@ -92,9 +92,10 @@ class SfsSolution:
 #: the validity pass (finite, dark, saturated, mask, brightest value),
 #: highlight detection, resampling to the nodes, the solver's inputs
 #: (global shift, padded arrays), ordering and splitting, the sweeps (and
-#: first pass), unpadding, and the resampling back to depth.
-STAGES = ("validity", "highlights", "to_nodes", "inputs", "order", "sweeps", "outputs",
-          "to_pixels")
+#: first pass), the sweeps' one-thread finish after two threads (0 on one
+#: thread), unpadding, and the resampling back to depth.
+STAGES = ("validity", "highlights", "to_nodes", "inputs", "order", "sweeps", "finish",
+          "outputs", "to_pixels")
 
 
 @dataclass(frozen=True)

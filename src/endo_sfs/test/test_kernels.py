@@ -179,11 +179,17 @@ def test_any_first_pass_order_reaches_the_fixed_point_of_the_sweeps(split):
             intensity, valid, grid.conformal_factor_sq, np.empty((0, 0)), np.empty((0, 0)),
             0.0, reflectance,
         )
+        ticks = np.full(3, -7, dtype=np.int64)
         _, change, _ = kernels.near_light_sweep(
             v, node, valid_p, hx, hy, reflectance, 2, 1e-9, 500, 0.0, table, first_pass,
-            parts, seam, rows, np.empty((0, 0)) if key is None else key,
+            parts, seam, rows, np.empty((0, 0)) if key is None else key, ticks,
         )
         assert change <= 1e-9
+        # The cycle counts that split the kernel's time: start ≤ start of the
+        # one-thread finish ≤ end, the finish empty without two threads.
+        assert 0 < ticks[0] <= ticks[1] <= ticks[2]
+        if parts == 0 and rows == 0:
+            assert ticks[1] == ticks[2]
         return v[2:-2, 2:-2]
 
     reference = run(empty, 0, empty)  # plain sweeps

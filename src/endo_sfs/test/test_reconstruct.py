@@ -132,6 +132,7 @@ def test_a_near_light_solve_times_its_stages_and_reuses_its_buffers_exactly(scen
     first = solve(image, camera, options, mask=mask)
     assert set(first.timings) == set(STAGES)
     assert all(seconds >= 0.0 for seconds in first.timings.values())
+    assert options.threads > 1 or first.timings["finish"] == 0.0  # no two-thread phase
     # A frame of another grid in between, then the same frame again on the
     # reused buffers, then on fresh ones: the same depth bit for bit (one thread).
     solve(image, camera, dataclasses.replace(options, solve_scale=1.0), mask=mask)
