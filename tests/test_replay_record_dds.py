@@ -416,7 +416,7 @@ def test_a_recording_that_fills_the_disk_reports_what_the_file_holds(
     replay.wait(30)
     log = processes.output(recorder)
     errors = [line for line in log.splitlines() if "stopping: " in line]
-    assert len(errors) == 1 and "File too large" in errors[0], log
+    assert len(errors) == 1 and "cannot write (file size limit: File too large)" in errors[0], log
     got = by_topic(read_all(output)[0])
     assert output.stat().st_size <= FILE_LIMIT
     lost = 0

@@ -108,7 +108,7 @@ def test_on_a_full_disk_the_written_counts_are_what_the_file_holds(
             error = str(exc)
             break
     assert error is not None and disk.failures >= 1
-    assert "No space left on device" in error and "\n" not in error
+    assert "cannot write (disk full: No space left on device)" in error and "\n" not in error
     with pytest.raises(BagError, match="No space left"):  # every later write refuses
         recording.write("/value", b"late", T0 + 10**9)
     sent["/value"].append(b"late")  # received and refused: lost

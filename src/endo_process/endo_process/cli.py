@@ -6,6 +6,9 @@ Exit status:
 * 1: the recording is truncated or damaged (a cut, or messages whose bytes
   do not decode as their topic's type: those are skipped and counted), or no
   frame gave a relative depth: what could be processed was, and was written;
+  or writing the output failed (a full disk, a file size limit): the run
+  stopped there, the output reads to its last complete chunk (as
+  endo-record's), and the summary counts what it holds;
   one line on stderr says what was wrong. Any run prints one line per cause
   of dropped frames and rejected tracker samples, with the first one's
   message (the table counts them);
@@ -165,7 +168,8 @@ def exit_status(report: ProcessReport) -> int:
     if report.interrupted:
         return EXIT_INTERRUPTED
     nothing = report.frames_in > 0 and report.frames_shaded == 0
-    return EXIT_DAMAGED if report.damage or report.undecodable or nothing else EXIT_OK
+    failed = report.damage or report.undecodable or report.write_failure
+    return EXIT_DAMAGED if failed or nothing else EXIT_OK
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -197,14 +201,14 @@ def _run(args: argparse.Namespace, workers: StartedWorkers | None) -> int:
     except (Endo3dError, BagError) as error:
         return report_error(PROGRAM, error)
     accuracy = None
-    if report.frames_shaded and not report.interrupted:
+    if report.frames_shaded and not report.interrupted and not report.write_failure:
         accuracy = score_recording(options.output)
     print(format_report(report, accuracy))
     if accuracy is not None and accuracy.poses is not None:
         mismatch = registration_mismatch(options.bag, load_settings(options.params).T_world_tracker)
         if mismatch is not None:
             print(f"{PROGRAM}: warning: {mismatch}", file=sys.stderr)
-    if args.report is not None and report.frames_shaded:
+    if args.report is not None and report.frames_shaded and not report.write_failure:
         # Only here: matplotlib is ~0.3 CPU-s of imports a run without --report skips.
         from endo_process.report import write_report_figure
 
@@ -212,7 +216,12 @@ def _run(args: argparse.Namespace, workers: StartedWorkers | None) -> int:
                             args.report)  # fmt: skip
     if args.summary_json is not None:
         document = summary_document(report, accuracy)
-        args.summary_json.write_text(json.dumps(document, indent=1, allow_nan=False) + "\n")
+        try:
+            args.summary_json.write_text(json.dumps(document, indent=1, allow_nan=False) + "\n")
+        except OSError as error:  # the disk that refused the output, say
+            print(f"{PROGRAM}: error: cannot write {args.summary_json} ({error.strerror})",
+                  file=sys.stderr)  # fmt: skip
+            report.write_failure = report.write_failure or str(error)
     for line in drop_lines(report):
         print(f"{PROGRAM}: warning: {line}", file=sys.stderr)
     if report.damage:
@@ -225,6 +234,11 @@ def _run(args: argparse.Namespace, workers: StartedWorkers | None) -> int:
     if report.frames_in > 0 and report.frames_shaded == 0 and not report.interrupted:
         print(f"{PROGRAM}: error: none of the {report.frames_in} frames read gave a relative "
               "depth (the causes above)", file=sys.stderr)  # fmt: skip
+    if report.write_failure and report.output is not None:
+        print(f"{PROGRAM}: error: writing stopped after {report.frames_in} of "
+              f"{report.frames_total} frames: {report.write_failure}"
+              + ("" if args.ply is None else f"; --ply {args.ply} not written"),
+              file=sys.stderr)  # fmt: skip
     if report.interrupted:
         print(f"{PROGRAM}: interrupted; {options.output} holds the "
               f"{report.frames_shaded} frames processed", file=sys.stderr)  # fmt: skip

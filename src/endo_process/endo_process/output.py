@@ -18,7 +18,9 @@ lz4, zlib's CRC and ``os.write``, all done without the GIL; so that work (~1 ms
 per 640x480 float image) leaves the frame loop's thread and runs on whichever
 core has time. The calls reach the writer in the order they are made, so the
 file is the one a direct writer makes; a writer error is raised by the next
-call (and by :meth:`OutputBag.close`).
+call (and by :meth:`OutputBag.close`). A write that fails (a full disk, a
+file size limit) stops the writer: the file reads to its last complete chunk,
+as endo-record's does (:attr:`OutputBag.failure`, :attr:`OutputBag.on_disk`).
 """
 
 from __future__ import annotations
@@ -156,6 +158,21 @@ class OutputBag:
             self.counts[name] = 0
         self._writer = _WriterThread(writer) if threaded else _DirectWriter(writer)
         self._bag = writer  # its methods, called through the thread only
+
+    @property
+    def failure(self) -> str:
+        """The writer's one-line error once a write failed (a full disk), "" while it works."""
+        return self._bag.failure
+
+    @property
+    def on_disk(self) -> Counter[str]:
+        """Messages per topic in complete chunks on disk (what a reader gets)."""
+        return Counter({name: count for name, (count, _) in self._bag.written.items()})
+
+    @property
+    def lost(self) -> int:
+        """Messages handed to the writer that a failed write kept off the disk."""
+        return self._bag.lost
 
     def hold(self, topic: str, message: Any, log_time_ns: int) -> None:
         """Queue a small message; it is written once frame outputs pass its time."""

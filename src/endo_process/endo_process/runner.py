@@ -49,7 +49,7 @@ from endo_calib.errors import CalibrationError
 from endo_flow.messages import SCALE_TYPE, grey_cloud_cdr, scale_message_cdr
 from endo_flow.warm_up import warm_up_pipeline
 from endo_io import topics
-from endo_io.bag import BagMessage, BagReader
+from endo_io.bag import BagError, BagMessage, BagReader
 from endo_io.errors import Endo3dError, PoseLookupError
 from endo_io.image import IRRADIANCE_ENCODINGS, encode_irradiance, image_to_array
 from endo_io.pose import transforms_to_pose_stamped_cdr
@@ -131,6 +131,9 @@ class ProcessReport:
     do not decode as their topic's type, per topic (``first_undecodable``:
     the first one's error); ``reasons``: the first one-line message of each
     cause counted in ``dropped``, ``tracker_rejected`` and ``flow_dropped``.
+    ``write_failure``: the output writer's error when a write failed (a full
+    disk, a file size limit): the run stopped there, ``written`` counts what
+    the file holds and ``lost`` the messages that did not reach it.
     """
 
     frames_in: int = 0
@@ -166,6 +169,8 @@ class ProcessReport:
     reasons: dict[str, str] = field(default_factory=dict)
     interrupted: bool = False
     output: Path | None = None
+    write_failure: str = ""
+    lost: int = 0
 
     def count(self, counter: Counter[str], cause: str, reason: str) -> None:
         """Count one dropped item under ``cause``; keep the first ``reason`` given for it."""
@@ -476,8 +481,8 @@ def _write_map(
     cloud = flow.map_cloud(stamp_ns, world_frame)
     if cloud is None:
         return
-    report.map_points = cloud.width * cloud.height
     output.write(topics.MAP, cloud, stamp_ns)
+    report.map_points = cloud.width * cloud.height
 
 
 def _export_ply(flow: FlowStage, options: ProcessOptions, report: ProcessReport) -> None:
@@ -649,6 +654,10 @@ def process_bag(
                 break
     except KeyboardInterrupt:
         report.interrupted = True
+    except BagError:
+        if not output.failure:  # not the output's writer: an input
+            raise
+        report.write_failure = output.failure  # a full disk: stop here, keep what is on disk
     finally:
         report.seconds = time.perf_counter() - loop_start
         report.loop_cpu_seconds = time.process_time() - loop_cpu_start
@@ -661,18 +670,28 @@ def process_bag(
                 options.max_frames is not None and report.frames_in < inputs.frame_count
             )
             end = last_stamp if partial and last_stamp is not None else np.iinfo(np.int64).max
-            if not partial:
-                feed.drain()
-            output.copy_until(truth, truth_pending, end)
-            if last_stamp is not None:
-                _write_map(output, flow, options, last_stamp, world_frame, report)
-            output.close(end if partial else None)
+            try:
+                if not report.write_failure:  # the writer refuses every write after one failed
+                    if not partial:
+                        feed.drain()
+                    output.copy_until(truth, truth_pending, end)
+                    if last_stamp is not None:
+                        _write_map(output, flow, options, last_stamp, world_frame, report)
+                output.close(end if partial else None)
+            except BagError:
+                if not output.failure:
+                    raise
+                report.write_failure = output.failure
+                with contextlib.suppress(BagError):
+                    output.close()  # the file only: it reads to its last complete chunk
             streams.close()
         finally:
             pool.close()
-    _export_ply(flow, options, report)
+    if not report.write_failure:  # a full disk would refuse the PLY too
+        _export_ply(flow, options, report)
     report.interrupted = report.interrupted or stop.is_set()
-    report.written = Counter(output.counts)
+    report.written = output.on_disk if report.write_failure else Counter(output.counts)
+    report.lost = output.lost
     report.poses_written = report.written[topics.CAMERA_POSE]
     report.damage = inputs.damage
     report.undecodable = inputs.undecodable

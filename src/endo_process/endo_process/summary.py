@@ -72,6 +72,9 @@ def _rows(report: ProcessReport) -> list[tuple[str, str]]:
     if report.output is not None:
         written = sum(report.written.values())
         rows.append(("output", f"{report.output} ({written} messages)"))
+        if report.write_failure:
+            rows.append(("output write failed", f"{report.lost} messages lost; the file reads "
+                         "to its last complete chunk (endo-bag recover makes a complete copy)"))
     return rows
 
 
@@ -195,6 +198,8 @@ def summary_document(report: ProcessReport, accuracy: Accuracy | None) -> dict[s
         "undecodable": dict(report.undecodable),
         "interrupted": report.interrupted,
         "written": dict(report.written),
+        "write_failure": report.write_failure or None,
+        "lost": report.lost,
         "accuracy": None,
     }  # fmt: skip
     document["accuracy"] = accuracy_document(accuracy)

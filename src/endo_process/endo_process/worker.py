@@ -23,6 +23,7 @@ import numpy as np
 
 from endo_calib.calibration import PhotometricCalibration
 from endo_io.camera import CameraModel
+from endo_process.errors import WorkerError
 from endo_process.shading import ShadedFrame, ShadingStage
 from endo_sfs.warm_up import warm_up_frame
 
@@ -72,13 +73,24 @@ class SlotRing:
         pixels: H × W of the frames the slots are sized for.
         slots: how many.
         name: the shared memory to attach to (a worker), or None (create it).
+
+    Raises:
+        WorkerError: the shared memory cannot be had (one line naming why).
     """
 
     def __init__(self, pixels: int, slots: int, name: str | None = None) -> None:
         self.pixels = pixels
         self.slots = slots
         size = max(1, 2 * pixels * slots) * 4
-        self.memory = SharedMemory(name=name, create=name is None, size=size if name is None else 0)
+        try:
+            self.memory = SharedMemory(name=name, create=name is None,
+                                       size=size if name is None else 0)  # fmt: skip
+        except OSError as error:
+            raise WorkerError(
+                f"cannot create {size / 1e6:.1f} MB of shared memory for the --jobs workers "
+                f"({error.strerror}; a file size limit, ulimit -f, applies to /dev/shm too): "
+                "--jobs 1 needs none"
+            ) from None
         self._owner = name is None
         self._images = np.ndarray((slots, 2, pixels), np.float32, buffer=self.memory.buf)
 

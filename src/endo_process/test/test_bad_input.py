@@ -402,3 +402,45 @@ def test_stamps_going_back_are_named_counted_and_one_line_each(
         "pose time jumped back 1.98"
     ) and jumps[0].endswith("ns); pose buffer reset"), jumps
     assert not any("NoCameraInfoError" in line for line in lines), lines
+
+
+def test_a_full_disk_stops_the_run_with_the_summary_and_a_readable_output(
+    calibrations: tuple[Path, Path], tmp_path: Path
+) -> None:
+    # It was exit 2 with one BagError line and no summary. A file size limit
+    # stands in for a full disk (EFBIG as ENOSPC: a short write, then an error).
+    import re
+    import resource
+
+    limit = 12_000_000
+
+    def limited() -> None:
+        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+        resource.setrlimit(resource.RLIMIT_FSIZE, (limit, limit))
+
+    out = tmp_path / "out.mcap"
+    argv = _argv(PHANTOM, out, calibrations, "--max-frames", "12")
+    done = subprocess.run([str(Path(sys.executable).parent / "endo-process"), *argv],
+                          capture_output=True, text=True, timeout=300, preexec_fn=limited,
+                          check=False)  # fmt: skip
+    assert done.returncode == EXIT_DAMAGED, done.stderr
+    errors = done.stderr.strip().splitlines()
+    assert len(errors) == 1, errors
+    assert re.fullmatch(
+        rf"endo-process: error: writing stopped after \d+ of 90 frames: {re.escape(str(out))}: "
+        r"cannot write \(file size limit: File too large\); the bag holds the \d+ messages "
+        r"written before, \d+ not yet on disk are lost", errors[0]
+    ), errors[0]
+    assert "endo-process summary" in done.stdout and "output write failed" in done.stdout
+    said = re.search(r"output\s+\S+ \((\d+) messages\)", done.stdout)
+    assert said is not None, done.stdout
+    from endo_io.bag import BagCorruptError
+
+    held: dict[str, int] = {}
+    # what was written reads back, every message counted (BagCorruptError after the last)
+    with BagReader(out) as reader, contextlib.suppress(BagCorruptError):
+        for message in reader.messages():
+            held[message.topic] = held.get(message.topic, 0) + 1
+    assert sum(held.values()) == int(said.group(1)) and held[topics.DEPTH_RELATIVE] >= 1
+    assert out.stat().st_size <= limit
+

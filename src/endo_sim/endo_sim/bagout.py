@@ -41,7 +41,7 @@ import numpy as np
 import yaml
 from std_msgs.msg import Float32
 
-from endo_io.bag import BagWriter, qos_profiles_to_yaml, serialize
+from endo_io.bag import BagError, BagWriter, qos_profiles_to_yaml, serialize
 from endo_io.image import array_to_image
 from endo_io.pose import matrix_to_pose
 from endo_io.qos import reliable_qos
@@ -156,12 +156,18 @@ def recording_messages(sequence: Sequence) -> Iterator[TimedMessage]:
 
 @dataclass(frozen=True)
 class BagSummary:
-    """What was written: paths, message counts per topic, and the bag's size."""
+    """What was written: paths, message counts per topic, and the bag's size.
+
+    ``failure``: the writer's one-line error when a write failed (a full
+    disk, a file size limit): the bag then reads to its last complete chunk
+    and ``message_counts`` are what it holds; "" otherwise.
+    """
 
     bag_path: Path
     ground_truth_paths: tuple[Path, ...]
     message_counts: dict[str, int]
     bag_bytes: int
+    failure: str = ""
 
 
 #: Compressed bytes per raw byte with zstd chunks, measured on the sample and
@@ -210,17 +216,31 @@ def write_bag(
         topics.append(GRAY_LEVEL)
     qos = qos_profiles_to_yaml([reliable_qos(10)])
     counts = dict.fromkeys(topics, 0)
+    failure = ""
     with BagWriter(path, compression=compression) as bag:
         for topic in topics:
             bag.add_topic(topic, _TOPIC_TYPES[topic], qos)
-        for message in recording_messages(sequence):
-            data = serialize(message.message)
-            bag.write(message.topic, data, message.log_time_ns)
-            counts[message.topic] += 1
-            if progress is not None and message.topic == IMAGE_RAW:
-                progress(counts[IMAGE_RAW])
-    truth = write_ground_truth(sequence, path, counts)
-    return BagSummary(path, truth, counts, path.stat().st_size)
+        try:
+            for message in recording_messages(sequence):
+                data = serialize(message.message)
+                bag.write(message.topic, data, message.log_time_ns)
+                counts[message.topic] += 1
+                if progress is not None and message.topic == IMAGE_RAW:
+                    progress(counts[IMAGE_RAW])
+        except BagError:
+            if not bag.failure:
+                raise
+            failure = bag.failure  # a full disk: the file reads to its last complete chunk
+    if failure:
+        counts = {topic: bag.written[topic][0] for topic in topics}
+    truth: tuple[Path, ...] = ()
+    try:
+        truth = write_ground_truth(sequence, path, counts)
+    except OSError as error:
+        if not failure:
+            raise
+        failure += f"; ground truth not written ({error.strerror})"
+    return BagSummary(path, truth, counts, path.stat().st_size, failure)
 
 
 def _matrix(value: np.ndarray) -> list[list[float]]:

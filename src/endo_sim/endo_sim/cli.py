@@ -21,6 +21,7 @@ from typing import TYPE_CHECKING
 
 from endo_io.cli import exit_on_error, refuse_existing
 from endo_io.progress import Progress
+from endo_io.topics import IMAGE_RAW
 from endo_sim.errors import SimulationParameterError
 from endo_sim.graycard import DEFAULT_CARD_DISTANCE_M
 from endo_sim.photometry import Photometry
@@ -336,6 +337,10 @@ def _render(args: argparse.Namespace) -> int:
         print(f"  {topic}: {count} messages")
     for path in summary.ground_truth_paths:
         print(f"  ground truth: {path}")
+    if summary.failure:  # a full disk: what is on disk is readable and counted above
+        print(f"endo-sim: error: writing stopped after {summary.message_counts[IMAGE_RAW]} of "
+              f"{frames} frames: {summary.failure}", file=sys.stderr)  # fmt: skip
+        return 1
     return 0
 
 
@@ -352,7 +357,12 @@ def _live(args: argparse.Namespace, argv: Sequence[str]) -> int:
 
 @exit_on_error("endo-sim")
 def main(argv: Sequence[str] | None = None) -> int:
-    """Console entry point; exit code 0 on success, 2 on bad input."""
+    """Console entry point; exit code 0 on success, 2 on bad input, 1 when writing failed.
+
+    A full disk (or file size limit) stops ``render``: the bag reads to its
+    last complete chunk, the counts printed are what it holds, and one line
+    on stderr names the cause.
+    """
     full = list(sys.argv if argv is None else [sys.argv[0], *argv])
     from rclpy.utilities import remove_ros_args
 

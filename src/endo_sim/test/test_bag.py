@@ -147,3 +147,47 @@ def test_cli_render_rgb_and_refuses_to_overwrite(tmp_path: Path, capsys) -> None
     assert main(args) == 2
     assert "exists" in capsys.readouterr().err
     assert main([*args, "--overwrite"]) == 0
+
+
+def test_render_on_a_full_disk_keeps_what_was_written_and_exits_1(tmp_path: Path) -> None:
+    # It was exit 2 with one BagError line, no counts and no ground truth. A
+    # file size limit stands in for a full disk (EFBIG as ENOSPC).
+    import re
+    import resource
+    import signal
+    import subprocess
+    import sys
+
+    limit = 3_000_000  # about half the bag: chunks of 1 MiB
+
+    def limited() -> None:
+        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+        resource.setrlimit(resource.RLIMIT_FSIZE, (limit, limit))
+
+    out = tmp_path / "colon.mcap"
+    argv = ["render", "colon", "-o", str(out), "--width", "160", "--height", "120",
+            "--duration", "2", "--compression", "none", "-q"]  # fmt: skip
+    done = subprocess.run([str(Path(sys.executable).parent / "endo-sim"), *argv],
+                          capture_output=True, text=True, timeout=300, preexec_fn=limited,
+                          check=False)  # fmt: skip
+    assert done.returncode == 1, done.stderr
+    errors = done.stderr.strip().splitlines()
+    assert len(errors) == 1 and re.fullmatch(
+        rf"endo-sim: error: writing stopped after \d+ of 60 frames: {re.escape(str(out))}: "
+        r"cannot write \(file size limit: File too large\); the bag holds the \d+ messages "
+        r"written before, \d+ not yet on disk are lost", errors[0]
+    ), errors
+    said = dict(re.findall(r"^  (/\S+): (\d+) messages$", done.stdout, re.M))
+    from endo_io.bag import BagCorruptError
+
+    held: dict[str, int] = {}
+    with BagReader(out) as reader:  # the counts printed are what the file holds
+        try:
+            for message in reader.messages():
+                held[message.topic] = held.get(message.topic, 0) + 1
+        except BagCorruptError:  # raised after the last intact message: the cut
+            pass
+    assert {t: int(n) for t, n in said.items() if int(n)} == held and held
+    truth = yaml.safe_load((tmp_path / "colon.ground_truth.yaml").read_text())
+    assert truth is not None
+

@@ -45,6 +45,7 @@ directory of a killed recording opens as a bag and counts what its files hold.
 from __future__ import annotations
 
 import contextlib
+import errno
 import os
 import struct
 import time
@@ -95,6 +96,12 @@ COMPRESSIONS: tuple[str, ...] = tuple(_COMPRESSION)
 #: are written (and at every flush), so that a killed recorder's count is current.
 METADATA_PERIOD_S = 1.0
 _LIBRARY = "endo_io.bag"
+#: The cause named in a failed write's message, by errno (the OS's text follows it).
+_WRITE_FAILURES = {
+    errno.ENOSPC: "disk full",
+    errno.EFBIG: "file size limit",
+    errno.EDQUOT: "disk quota exceeded",
+}
 _MAX_TIME_NS = 2**64 - 1
 
 
@@ -389,7 +396,8 @@ class BagWriter:
         self._summary_possible = False
         if self._sink is not None:
             self._settle()
-        self._stop(f"cannot {doing} ({exc.strerror or exc})")
+        cause = _WRITE_FAILURES.get(exc.errno or 0)
+        self._stop(f"cannot {doing} ({cause + ': ' if cause else ''}{exc.strerror or exc})")
         return BagError(self._failure)
 
     def _interrupted(self, exc: BaseException) -> None:
