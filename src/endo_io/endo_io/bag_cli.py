@@ -24,7 +24,7 @@ from typing import NoReturn
 
 from endo_io.bag.info import bag_info, format_bag_info
 from endo_io.bag.repair import recover, reindex
-from endo_io.bag.writer import COMPRESSIONS
+from endo_io.bag.writer import COMPRESSIONS, OUTPUT_PATH_HELP
 from endo_io.errors import Endo3dError
 
 PROG = "endo-bag"
@@ -56,7 +56,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     recover_cmd.add_argument("source", type=Path, help="damaged .mcap file or bag directory")
     recover_cmd.add_argument(
-        "target", type=Path, help="new .mcap file (or bag directory); must not exist"
+        "target", type=Path, help="the new bag, which must not exist; " + OUTPUT_PATH_HELP
     )
     recover_cmd.add_argument(
         "--compression",

@@ -71,7 +71,7 @@ from rclpy.node import Node
 from endo_io.bag import BagWriter, message_class
 from endo_io.bag.qos_yaml import qos_profiles_to_yaml
 from endo_io.bag.serde import cdr_check
-from endo_io.bag.writer import COMPRESSIONS
+from endo_io.bag.writer import COMPRESSIONS, OUTPUT_PATH_HELP
 from endo_io.cli import exit_on_error
 from endo_io.errors import BagError, Endo3dError
 from endo_io.process import run_node, split_ros_args
@@ -164,7 +164,8 @@ def build_parser() -> argparse.ArgumentParser:
         "--output",
         type=Path,
         default=None,
-        help="output .mcap file (default endo_record_<date>_<time>.mcap); must not exist",
+        help="the bag to write, which must not exist (default "
+        "endo_record_<date>_<time>.mcap); " + OUTPUT_PATH_HELP,
     )
     parser.add_argument(
         "--compression", choices=COMPRESSIONS, default="zstd", help="chunk compression"

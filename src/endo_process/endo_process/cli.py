@@ -49,6 +49,8 @@ EXIT_OK, EXIT_DAMAGED, EXIT_INPUT, EXIT_INTERRUPTED = 0, 1, EXIT_BAD_INPUT, 130
 
 def build_parser() -> argparse.ArgumentParser:
     """The command line."""
+    from endo_io.bag.writer import OUTPUT_PATH_HELP  # not at import: a worker needs none of it
+
     parser = argparse.ArgumentParser(
         prog=PROGRAM,
         description="Run the endo3d graph's cores offline over a recording (no DDS): "
@@ -56,7 +58,8 @@ def build_parser() -> argparse.ArgumentParser:
         "flow and scale; write the live graph's topics to an MCAP and print a summary.",
     )
     parser.add_argument("bag", type=Path, help="rosbag2 MCAP file or bag directory")
-    parser.add_argument("-o", "--output", type=Path, required=True, help="output .mcap")
+    parser.add_argument("-o", "--output", type=Path, required=True,
+                        help="the output bag; " + OUTPUT_PATH_HELP)
     parser.add_argument("--calibration", type=Path, required=True,
                         help="photometric.yaml (endo-calibrate)")
     parser.add_argument("--handeye", type=Path, required=True, help="handeye.yaml (endo-handeye)")
@@ -142,7 +145,8 @@ def _options(args: argparse.Namespace) -> ProcessOptions:
             option = "the recording" if name == "bag" else f"--{name.replace('_', '-')}"
             raise Endo3dError(f"{path}: no such file ({option})")
     if args.output.is_dir():
-        raise Endo3dError(f"{args.output} is a directory (-o names the output .mcap)")
+        raise Endo3dError(f"{args.output} is a directory (-o names a new bag: "
+                          f"{args.output}.mcap, or a directory that does not exist yet)")
     refuse_existing(args.output, overwrite=args.overwrite)
     for name in ("report", "summary_json", "ply"):  # refused now, not after the run
         path = getattr(args, name)

@@ -332,7 +332,8 @@ def test_a_directory_as_output_is_one_line_and_exit_2(
     assert main(argv) == EXIT_INPUT
     error = capsys.readouterr().err.strip()
     assert error == (
-        f"endo-process: Endo3dError: {tmp_path} is a directory (-o names the output .mcap)"
+        f"endo-process: Endo3dError: {tmp_path} is a directory (-o names a new bag: "
+        f"{tmp_path}.mcap, or a directory that does not exist yet)"
     )
 
 
@@ -444,3 +445,19 @@ def test_a_full_disk_stops_the_run_with_the_summary_and_a_readable_output(
     assert sum(held.values()) == int(said.group(1)) and held[topics.DEPTH_RELATIVE] >= 1
     assert out.stat().st_size <= limit
 
+
+def test_an_output_name_without_mcap_is_a_rosbag2_directory(
+    calibrations: tuple[Path, Path], tmp_path: Path, capsys: pytest.CaptureFixture
+) -> None:
+    # What `ros2 bag record -o NAME` makes: NAME/NAME_0.mcap and metadata.yaml (--help says so).
+    import yaml
+
+    out = tmp_path / "run"
+    assert main(_argv(PHANTOM, out, calibrations, "--max-frames", "2")) == EXIT_OK
+    assert sorted(p.name for p in out.iterdir()) == ["metadata.yaml", "run_0.mcap"]
+    info = yaml.safe_load((out / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
+    assert info["relative_file_paths"] == ["run_0.mcap"]
+    with BagReader(out) as reader:
+        assert reader.topics[topics.DEPTH_RELATIVE].message_count == 2
+        assert info["message_count"] == sum(t.message_count for t in reader.topics.values())
+    assert f"{out} (" in capsys.readouterr().out  # the summary's output row

@@ -55,7 +55,6 @@ from endo_io.topics import (
     TRUE_DEPTH,
     WORLD_FRAME,
 )
-from endo_sim.errors import SimulationParameterError
 from endo_sim.sequences import Sequence, SimulationConfig
 from endo_sim.tracker import simulate_tracker
 from endo_sim.trajectory import NS_PER_S
@@ -204,13 +203,14 @@ def write_bag(
     compression: str = "zstd",
     progress: Callable[[int], None] | None = None,
 ) -> BagSummary:
-    """Render and write the recording to ``path`` (a new ``*.mcap``) and its ground truth.
+    """Render and write the recording to ``path`` and its ground truth beside it.
 
-    ``progress`` is called with the number of frames written so far after each image.
+    ``path``: a new ``NAME.mcap`` file, or any other NAME for a rosbag2 bag
+    directory (:class:`endo_io.bag.BagWriter`); the ground truth is
+    ``NAME.ground_truth.yaml`` (...) beside it either way. ``progress`` is
+    called with the number of frames written so far after each image.
     """
     path = Path(path)
-    if path.suffix != ".mcap":
-        raise SimulationParameterError(f"{path}: the bag must be a single .mcap file")
     topics = [IMAGE_RAW, CAMERA_INFO, TRUE_DEPTH, TRUE_CAMERA_POSE, TRACKER_POSE]
     if sequence.gray_levels is not None:
         topics.append(GRAY_LEVEL)
@@ -240,7 +240,8 @@ def write_bag(
         if not failure:
             raise
         failure += f"; ground truth not written ({error.strerror})"
-    return BagSummary(path, truth, counts, path.stat().st_size, failure)
+    size = sum(file.stat().st_size for file in bag.file_paths)
+    return BagSummary(path, truth, counts, size, failure)
 
 
 def _matrix(value: np.ndarray) -> list[list[float]]:
@@ -324,7 +325,7 @@ def write_ground_truth(
     sequence: Sequence, bag_path: Path, counts: dict[str, int]
 ) -> tuple[Path, ...]:
     """Write the ground-truth files beside ``bag_path``; returns their paths."""
-    stem = bag_path.name[: -len(".mcap")]
+    stem = bag_path.stem  # what endo_sim.ground_truth.ground_truth_of looks for
     folder = bag_path.parent
     camera_yaml = folder / f"{stem}.camera.yaml"
     sequence.camera.save_yaml(camera_yaml)
@@ -336,6 +337,8 @@ def write_ground_truth(
     light = folder / f"{stem}.light_map.npy"
     np.save(light, sequence.renderer.light_map)
     document = folder / f"{stem}.ground_truth.yaml"
-    text = yaml.safe_dump(ground_truth_document(sequence, stem, counts), sort_keys=False, width=100)
+    content = ground_truth_document(sequence, stem, counts)
+    content["bag"] = bag_path.name  # NAME.mcap, or a bag directory's NAME
+    text = yaml.safe_dump(content, sort_keys=False, width=100)
     document.write_text(text)
     return (document, camera_yaml, inverse, light)

@@ -272,13 +272,17 @@ def config_from_args(args: argparse.Namespace) -> SimulationConfig:
 
 def build_parser() -> argparse.ArgumentParser:
     """The ``endo-sim`` argument parser (subcommands ``render`` and ``live``)."""
+    from endo_io.bag.writer import OUTPUT_PATH_HELP  # the writer's modules: only when parsing
+
     parser = argparse.ArgumentParser(
         prog="endo-sim", description="Simulated tracked endoscope with ground truth."
     )
     sub = parser.add_subparsers(dest="command", required=True)
     render = sub.add_parser("render", help="write a rosbag2 MCAP bag and ground-truth files")
     _add_common(render)
-    render.add_argument("-o", "--output", type=Path, required=True, help="bag path, *.mcap")
+    render.add_argument("-o", "--output", type=Path, required=True,
+                        help="the bag; " + OUTPUT_PATH_HELP + "; the ground truth is written "
+                        "beside it (NAME.ground_truth.yaml, ...)")
     render.add_argument("--compression", choices=("zstd", "lz4", "none"), default="zstd")
     render.add_argument(
         "--overwrite",
@@ -313,10 +317,10 @@ def _warn_if_large(estimate: SizeEstimate, depth_every: int, fps: float) -> None
 
 def _render(args: argparse.Namespace) -> int:
     output: Path = args.output
-    if output.suffix != ".mcap":
-        raise SimulationParameterError(f"{output}: the bag must end in .mcap")
-    stem = output.name[: -len(".mcap")]
-    targets = [output] + [output.with_name(stem + suffix) for suffix in GROUND_TRUTH_SUFFIXES]
+    if output.is_dir():  # an existing bag directory is never deleted, --overwrite or not
+        raise SimulationParameterError(f"{output} is a directory (-o names a new bag: "
+                                       f"{output}.mcap, or a directory that does not exist yet)")
+    targets = [output] + [output.with_name(output.stem + s) for s in GROUND_TRUTH_SUFFIXES]
     refuse_existing(*targets, overwrite=args.overwrite)
     for path in targets:
         path.unlink(missing_ok=True)

@@ -191,3 +191,21 @@ def test_render_on_a_full_disk_keeps_what_was_written_and_exits_1(tmp_path: Path
     truth = yaml.safe_load((tmp_path / "colon.ground_truth.yaml").read_text())
     assert truth is not None
 
+
+def test_render_to_a_name_without_mcap_makes_a_rosbag2_directory(tmp_path: Path) -> None:
+    # -o NAME made "the bag must end in .mcap"; endo-process and endo-record made a
+    # rosbag2 directory NAME/ (NAME_0.mcap, metadata.yaml), as `ros2 bag record -o NAME`.
+    from endo_sim.ground_truth import ground_truth_of
+
+    out = tmp_path / "colon"
+    args = ["render", "colon", "-o", str(out), "--width", "160", "--height", "120",
+            "--duration", "1", "-q"]  # fmt: skip
+    assert main(args) == 0
+    assert sorted(p.name for p in out.iterdir()) == ["colon_0.mcap", "metadata.yaml"]
+    with BagReader(out) as reader:
+        assert reader.topics["/endoscope/image_raw"].message_count == 30
+    truth = ground_truth_of(out)
+    assert truth["bag"] == "colon" and (tmp_path / "colon.camera.yaml").is_file()
+    # an existing directory is never replaced, --overwrite or not
+    assert main([*args, "--overwrite"]) == 2
+    assert sorted(p.name for p in out.iterdir()) == ["colon_0.mcap", "metadata.yaml"]

@@ -96,6 +96,11 @@ COMPRESSIONS: tuple[str, ...] = tuple(_COMPRESSION)
 #: are written (and at every flush), so that a killed recorder's count is current.
 METADATA_PERIOD_S = 1.0
 _LIBRARY = "endo_io.bag"
+#: What an output bag path (a tool's ``-o``) makes, for every tool's ``--help``.
+OUTPUT_PATH_HELP = (
+    "NAME.mcap: one MCAP file; any other NAME: a rosbag2 bag directory NAME/ holding "
+    "NAME_0.mcap and metadata.yaml, as 'ros2 bag record -o NAME' makes"
+)
 #: The cause named in a failed write's message, by errno (the OS's text follows it).
 _WRITE_FAILURES = {
     errno.ENOSPC: "disk full",
@@ -794,4 +799,4 @@ class BagWriter:
         self.close()
 
 
-__all__ = ["COMPRESSIONS", "METADATA_PERIOD_S", "BagWriter"]
+__all__ = ["COMPRESSIONS", "METADATA_PERIOD_S", "OUTPUT_PATH_HELP", "BagWriter"]
