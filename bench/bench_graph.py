@@ -112,7 +112,9 @@ def configurations(scales: list[float]) -> list[Configuration]:
     as float, as before 2026-12-02; "recorder nice 0" runs the recorder at
     the nodes' priority, as before the recorder was niced; "map off" runs flow
     without its voxel map, "map unpublished" fuses it but does not publish it
-    in the run (map_period_s 3600); "sfs threads 1"
+    in the run (map_period_s 3600), "map no budget" publishes it every
+    map_period_s whatever its size (map_bandwidth_mb_s 0, as before
+    2026-12-03), "map budget 6" at 6 MB/s instead of the default; "sfs threads 1"
     one endo-sfs on one thread; "sfs 2 workers x 1 thread" two endo-sfs
     processes (worker_count 2) of one thread each.
     """
@@ -131,7 +133,9 @@ def configurations(scales: list[float]) -> list[Configuration]:
                                 sfs_workers=2),
                   Configuration("recorder nice 0", scale, recorder_nice=0),
                   Configuration("map off", scale, {FLOW: {"map_enabled": "false"}}),
-                  Configuration("map unpublished", scale, {FLOW: {"map_period_s": "3600.0"}})]
+                  Configuration("map unpublished", scale, {FLOW: {"map_period_s": "3600.0"}}),
+                  Configuration("map no budget", scale, {FLOW: {"map_bandwidth_mb_s": "0.0"}}),
+                  Configuration("map budget 6", scale, {FLOW: {"map_bandwidth_mb_s": "6.0"}})]
     return found
 
 

@@ -55,7 +55,9 @@ Publications (reliable, QoS overridable):
   image's header, so ``/endoscope/camera_info`` describes it; nothing before
   the scale has converged once;
 * ``/endoscope/map``: the fused voxel map, PointCloud2 in ``world_frame``,
-  transient-local, every ``map_period_s``. The map fuses every
+  transient-local, every ``map_period_s`` at most, and while frames come at
+  most ``map_bandwidth_mb_s`` megabytes per second on average
+  (:class:`endo_flow.map_schedule.MapPublishSchedule`). The map fuses every
   ``map_decimation``-th pixel (1: full resolution) of every ``map_every``-th
   frame with world points, from the same back-projection as the topic's
   cloud (:func:`endo_flow.cloud.world_clouds`);
@@ -102,6 +104,7 @@ from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 from std_srvs.srv import Trigger
 
 from endo_flow.errors import FlowError, FlowInputError
+from endo_flow.map_schedule import MapPublishSchedule
 from endo_flow.messages import grey_cloud_cdr, scale_message
 from endo_flow.pipeline import (
     SCALE_OBSERVATIONS,
@@ -219,8 +222,13 @@ PARAMETERS: tuple[ParameterSpec, ...] = (
     ParameterSpec("map_max_voxels", 2_000_000,
                   "map capacity (memory bound); the voxels seen longest ago go first",
                   range=(1000, 100_000_000), read_only=True),
-    ParameterSpec("map_period_s", 2.0, "publishing period of the map, seconds",
+    ParameterSpec("map_period_s", 2.0, "shortest publishing period of the map, seconds",
                   range=(0.1, 3600.0), read_only=True),
+    ParameterSpec("map_bandwidth_mb_s", 2.0,
+                  "while frames come, the map is published at most at this many megabytes "
+                  "per second: after a map of B MB the next waits B / this seconds (at "
+                  "least map_period_s); when frames stop it goes every map_period_s; 0: "
+                  "every map_period_s always (docs/flow.md)", range=(0.0, 10_000.0)),
     ParameterSpec("map_min_count", 1, "voxels fused from fewer points are not published or "
                   "exported", range=(1, 1000)),
     ParameterSpec("ply_path", "endo3d_map.ply", "file ~/export_map writes"),
@@ -324,6 +332,8 @@ class FlowNode(Node):
         self.create_timer(PASSIVE_POSE_TAKE_PERIOD_S, self._tick)
         self.create_timer(values["map_period_s"], self._publish_map)
         self._map_dirty = False
+        self._map_schedule = MapPublishSchedule(values["map_period_s"],
+                                                values["map_bandwidth_mb_s"])
         self._last_frame_s = time.monotonic()
         self._last_frame_ns = 0  # the stamp of the last frame published (map errors name it)
         self.get_logger().info(
@@ -556,10 +566,16 @@ class FlowNode(Node):
         voxel_map = self.pipeline.voxel_map
         if voxel_map is None or not self._map_dirty:
             return
+        now = time.monotonic()
+        if not self._map_schedule.due(
+                now, frames_paused=now - self._last_frame_s > MAP_FINISH_AFTER_S):
+            return
         records, finite = voxel_map.published_records(self.parameters["map_min_count"])
         stamp = self.get_clock().now().nanoseconds
-        self.map_pub.publish(records_to_pointcloud2_cdr(
-            records, stamp, self.parameters["world_frame"], is_dense=finite))
+        message = records_to_pointcloud2_cdr(
+            records, stamp, self.parameters["world_frame"], is_dense=finite)
+        self.map_pub.publish(message)
+        self._map_schedule.published(now, len(message))
         self._map_dirty = False
 
     def _reset_map(self, _request: Trigger.Request, response: Trigger.Response

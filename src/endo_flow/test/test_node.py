@@ -32,15 +32,23 @@ pytestmark = pytest.mark.ros
 
 
 @pytest.fixture
-def graph(tmp_path):
-    rclpy.init()
-    flow = FlowNode(parameter_overrides=[
-        Parameter("tracking_downsample", value=1),
-        Parameter("ply_path", value=str(tmp_path / "map.ply")),
-        Parameter("map_period_s", value=0.2),
+def graph(tmp_path, request):
+    """The node and a peer.
+
+    ``@pytest.mark.parametrize("graph", [{name: value}], indirect=True)``
+    overrides parameters.
+    """
+    settings = {
+        "tracking_downsample": 1,
+        "ply_path": str(tmp_path / "map.ply"),
+        "map_period_s": 0.2,
         # the tests publish a frame before the previous one is done: every frame, not the newest
-        Parameter("newest_frame", value=False),
-    ])
+        "newest_frame": False,
+        **getattr(request, "param", {}),
+    }
+    rclpy.init()
+    flow = FlowNode(parameter_overrides=[Parameter(name, value=value)
+                                         for name, value in settings.items()])
     peer = Node("flow_test_peer")
     got: dict[str, list] = {"depth": [], "scale": [], "points": [], "map": [], "diag": []}
     peer.create_subscription(Image, topics.DEPTH, got["depth"].append, reliable_qos(100))
@@ -148,6 +156,36 @@ def test_frames_become_metric_depth_points_map_and_scale(graph, moving, kit):
     future = reset.call_async(Trigger.Request())
     assert spin_until(future.done, timeout=10.0) and future.result().success
     assert len(flow.pipeline.voxel_map) == 0
+
+
+@pytest.mark.parametrize("graph", [{"map_bandwidth_mb_s": 0.001, "map_every": 8}],
+                         indirect=True)
+def test_the_map_keeps_its_budget_and_goes_whole_once_the_frames_stop(graph, moving):
+    # While frames come, a map of B bytes holds the next back B / 1 kB/s (hours here), so
+    # one map goes during the stream. When the frames stop, the rest of the last fused
+    # frame (fused a band per frame, map_every 8) is fused and the final map goes at once,
+    # whatever the budget: it is the map endo-process would export.
+    flow, _peer, pubs, got, spin_until = graph
+    frames = moving.frames(moving.poses)
+    step = frames[1].stamp_ns - frames[0].stamp_ns
+    for k, frame in enumerate(frames[:60]):
+        for dt in (0, step // 2):
+            T = moving.poses[min(k + (dt > 0), len(frames) - 1)] if dt else frame.T_world_camera
+            pubs["pose"].publish(matrix_to_pose(T, frame.stamp_ns + dt, topics.WORLD_FRAME))
+        _publish_frame(pubs, frame)
+        spin_until(lambda k=k: len(got["scale"]) > k, timeout=2.0)
+    assert spin_until(lambda: len(got["scale"]) == 60, timeout=15.0)
+    during = len(got["map"])
+    assert during == 1, f"{during} maps while frames came, with a budget of one"
+    # the stream's last frames: a fused frame still part-fused right after them
+    assert spin_until(lambda: len(got["map"]) == 2, timeout=5.0)
+    assert not flow.pipeline.map_pending
+    voxel_map = flow.pipeline.voxel_map
+    assert voxel_map is not None and len(voxel_map) > 1000
+    final, _rgb = pointcloud2_to_xyz(got["map"][-1])
+    assert len(final) == len(voxel_map)
+    spin_until(lambda: False, timeout=0.6)  # three more ticks: nothing changed, nothing sent
+    assert len(got["map"]) == 2
 
 
 def test_a_frame_without_poses_waits_then_goes_on_without(graph, moving):
