@@ -102,6 +102,8 @@ class Configuration:
     sfs_workers: int = 1
     #: the recorder's niceness (GraphSettings.recorder_nice; None: the default).
     recorder_nice: int | None = None
+    #: the recorder's chunk compression (GraphSettings.recorder_compression; None: lz4).
+    recorder_compression: str | None = None
 
 
 def configurations(scales: list[float]) -> list[Configuration]:
@@ -110,7 +112,8 @@ def configurations(scales: list[float]) -> list[Configuration]:
     "all on" runs one endo-sfs with its default threads (2), the corrected
     image in 16UC1 fixed point (the default); "corrected 32FC1" publishes it
     as float, as before 2026-12-02; "recorder nice 0" runs the recorder at
-    the nodes' priority, as before the recorder was niced; "map off" runs flow
+    the nodes' priority, as before the recorder was niced; "recorder
+    uncompressed" records without lz4 (ros2 bag record's default); "map off" runs flow
     without its voxel map, "map unpublished" fuses it but does not publish it
     in the run (map_period_s 3600), "map no budget" publishes it every
     map_period_s whatever its size (map_bandwidth_mb_s 0, as before
@@ -132,6 +135,7 @@ def configurations(scales: list[float]) -> list[Configuration]:
                   Configuration("sfs 2 workers x 1 thread", scale, {SFS: {"threads": "1"}},
                                 sfs_workers=2),
                   Configuration("recorder nice 0", scale, recorder_nice=0),
+                  Configuration("recorder uncompressed", scale, recorder_compression="none"),
                   Configuration("map off", scale, {FLOW: {"map_enabled": "false"}}),
                   Configuration("map unpublished", scale, {FLOW: {"map_period_s": "3600.0"}}),
                   Configuration("map no budget", scale, {FLOW: {"map_bandwidth_mb_s": "0.0"}}),
@@ -235,6 +239,8 @@ def run_once(bag: Path, configuration: Configuration, rate: float, work: Path,
                        sfs_workers=configuration.sfs_workers)
     if configuration.recorder_nice is not None:
         settings = replace(settings, recorder_nice=configuration.recorder_nice)
+    if configuration.recorder_compression is not None:
+        settings = replace(settings, recorder_compression=configuration.recorder_compression)
     processes = planned_graph(bag, photometric, handeye, out, settings)
     settings = replace(settings, listeners=GraphMonitor.played_listeners(processes, listen))
     before = _cpu_ms()

@@ -268,20 +268,22 @@ def graph_nodes(
 
 
 def recorder_process(
-    topics: Sequence[str], output: Path, nice: int = RECORDER_NICENESS
+    topics: Sequence[str], output: Path, nice: int = RECORDER_NICENESS,
+    compression: str = "lz4",
 ) -> GraphProcess:
     """``endo-record`` of ``topics`` into ``output``, flushed every 0.2 s (readable meanwhile).
 
     Chunks in lz4, not zstd: the recorder compresses ~5 MB of float images per
     frame, and zstd (level 3, mcap's) cost 2.0 ms of CPU per MB against lz4's
     0.5 ms, for files 1.16x bigger (a graph recording, docs/benchmarks.md).
-    It runs at ``nice`` (:data:`RECORDER_NICENESS` by default).
+    It runs at ``nice`` (:data:`RECORDER_NICENESS` by default); ``compression``
+    is endo-record's ``--compression``.
     """
     return GraphProcess(
         RECORDER,
         "endo-record",
         arguments=("--topics", *topics, "-o", str(output), "--flush-period", "0.2",
-                   "--compression", "lz4"),
+                   "--compression", compression),
         subscribes=tuple(topics),
         nice=nice,
     )
@@ -355,6 +357,7 @@ class GraphSettings:
     two one-thread workers let more depths out but doubled the latency
     (docs/benchmarks.md, session graphrate); more workers are for more cores.
     recorder_nice: the recorder's niceness (:data:`RECORDER_NICENESS`).
+    recorder_compression: the recorder's chunk compression (lz4 | zstd | none).
     """
 
     rate: float = 0.25
@@ -368,6 +371,7 @@ class GraphSettings:
     listeners: Mapping[str, int] = field(default_factory=dict)
     sfs_workers: int = 1
     recorder_nice: int = RECORDER_NICENESS
+    recorder_compression: str = "lz4"
 
 
 #: The SFS row's process name (worker 0's when there are several).
@@ -456,7 +460,8 @@ def graph_processes(
         for name in {*rows, *settings.node_parameters}
     }), settings.sfs_workers)
     recorded = [*node_outputs(nodes), CAMERA_INFO, TRUE_DEPTH, TRUE_CAMERA_POSE]
-    recorder = recorder_process(recorded, recording, settings.recorder_nice)
+    recorder = recorder_process(recorded, recording, settings.recorder_nice,
+                                settings.recorder_compression)
     subscribers = subscriber_counts([recorder, *nodes], played, settings.listeners)
     return [recorder, *nodes, replay_process(bag, played, settings.rate, subscribers)]
 
