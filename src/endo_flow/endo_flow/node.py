@@ -55,9 +55,11 @@ Publications (reliable, QoS overridable):
   image's header, so ``/endoscope/camera_info`` describes it; nothing before
   the scale has converged once;
 * ``/endoscope/map``: the fused voxel map, PointCloud2 in ``world_frame``,
-  transient-local, every ``map_period_s`` at most, and while frames come at
-  most ``map_bandwidth_mb_s`` megabytes per second on average
-  (:class:`endo_flow.map_schedule.MapPublishSchedule`). The map fuses every
+  transient-local. While frames come it goes right after a frame (the
+  longest wait for the next), at most every ``map_period_s`` and at most
+  ``map_bandwidth_mb_s`` megabytes per second
+  (:class:`endo_flow.map_schedule.MapPublishSchedule`); once they stop, a
+  changed map goes every ``map_period_s``. The map fuses every
   ``map_decimation``-th pixel (1: full resolution) of every ``map_every``-th
   frame with world points, from the same back-projection as the topic's
   cloud (:func:`endo_flow.cloud.world_clouds`);
@@ -225,10 +227,10 @@ PARAMETERS: tuple[ParameterSpec, ...] = (
     ParameterSpec("map_period_s", 2.0, "shortest publishing period of the map, seconds",
                   range=(0.1, 3600.0), read_only=True),
     ParameterSpec("map_bandwidth_mb_s", 2.0,
-                  "while frames come, the map is published at most at this many megabytes "
-                  "per second: after a map of B MB the next waits B / this seconds (at "
-                  "least map_period_s); when frames stop it goes every map_period_s; 0: "
-                  "every map_period_s always (docs/flow.md)", range=(0.0, 10_000.0)),
+                  "while frames come, the map is published after a frame at most at this "
+                  "many megabytes per second: after a map of B MB the next waits B / this "
+                  "seconds (at least map_period_s); once frames stop, every map_period_s; "
+                  "0: every map_period_s (docs/flow.md)", range=(0.0, 10_000.0)),
     ParameterSpec("map_min_count", 1, "voxels fused from fewer points are not published or "
                   "exported", range=(1, 1000)),
     ParameterSpec("ply_path", "endo3d_map.ply", "file ~/export_map writes"),
@@ -330,7 +332,7 @@ class FlowNode(Node):
         # poses taken even while no depth comes (their DDS history holds 2 s at 250 Hz),
         # and the deadlines of waiting frames checked while no pose comes
         self.create_timer(PASSIVE_POSE_TAKE_PERIOD_S, self._tick)
-        self.create_timer(values["map_period_s"], self._publish_map)
+        self.create_timer(values["map_period_s"], self._on_map_timer)
         self._map_dirty = False
         self._map_schedule = MapPublishSchedule(values["map_period_s"],
                                                 values["map_bandwidth_mb_s"])
@@ -498,11 +500,16 @@ class FlowNode(Node):
             return
         self.health.ok()
         self._publish(pending, out)
-        # the map's full-resolution cloud and insert after the frame's outputs are out, a
-        # band of rows after each frame: map_every frames share each fused frame's work
-        self._last_frame_s = time.monotonic()
+        self._last_frame_s = now = time.monotonic()
         self._last_frame_ns = pending.stamp_ns
-        self._fuse_map(self.pipeline.options.map_every)
+        # After the frame's outputs, the longest wait for the next frame: either the map,
+        # when its budget allows (this frame's slot then holds no band), or a band of rows
+        # of the map's full-resolution cloud and insert (map_every frames share each fused
+        # frame's work; a band left out is fused with the next fused frame).
+        if self._map_dirty and self._map_schedule.due(now):
+            self._publish_map(now)
+        else:
+            self._fuse_map(self.pipeline.options.map_every)
 
     def _fuse_map(self, parts: int) -> None:
         """The next 1/parts of a deferred map frame; a failure is counted, never raised."""
@@ -538,7 +545,6 @@ class FlowNode(Node):
                 self.points_pub.publish(grey_cloud_cdr(out.points, out.intensity,
                                                        pending.stamp_ns,
                                                        self.parameters["world_frame"]))
-                self._map_dirty = True
             # CDR bytes built directly: one copy of the pixels, not the message's and rclpy's
             self.depth_pub.publish(array_to_image_cdr(out.depth, "32FC1",
                                                       stamp_to_ns(header.stamp),
@@ -562,13 +568,19 @@ class FlowNode(Node):
 
     # ------------------------------------------------------------------ map
 
-    def _publish_map(self) -> None:
-        voxel_map = self.pipeline.voxel_map
-        if voxel_map is None or not self._map_dirty:
-            return
+    def _on_map_timer(self) -> None:
+        """While the frames have stopped, a changed map goes every ``map_period_s``.
+
+        While frames come, the map goes after a frame instead (:meth:`_process`).
+        """
         now = time.monotonic()
-        if not self._map_schedule.due(
-                now, frames_paused=now - self._last_frame_s > MAP_FINISH_AFTER_S):
+        if self._map_dirty and now - self._last_frame_s > MAP_FINISH_AFTER_S:
+            self._publish_map(now)
+
+    def _publish_map(self, now: float) -> None:
+        """Publish the whole map (``now``: the monotonic clock, for the budget)."""
+        voxel_map = self.pipeline.voxel_map
+        if voxel_map is None:
             return
         records, finite = voxel_map.published_records(self.parameters["map_min_count"])
         stamp = self.get_clock().now().nanoseconds

@@ -175,8 +175,8 @@ def test_the_map_keeps_its_budget_and_goes_whole_once_the_frames_stop(graph, mov
         _publish_frame(pubs, frame)
         spin_until(lambda k=k: len(got["scale"]) > k, timeout=2.0)
     assert spin_until(lambda: len(got["scale"]) == 60, timeout=15.0)
-    during = len(got["map"])
-    assert during == 1, f"{during} maps while frames came, with a budget of one"
+    during = [m.width for m in got["map"]]
+    assert len(during) == 1 and during[0] > 0, f"maps while frames came: {during}"
     # the stream's last frames: a fused frame still part-fused right after them
     assert spin_until(lambda: len(got["map"]) == 2, timeout=5.0)
     assert not flow.pipeline.map_pending
