@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import resource
 import time
 import traceback
 from dataclasses import dataclass
@@ -82,15 +83,17 @@ class SlotRing:
         self.pixels = pixels
         self.slots = slots
         size = max(1, 2 * pixels * slots) * 4
+        # Python 3.11's SharedMemory, when it cannot size a new segment, unregisters it
+        # from the resource tracker before registering it, and the tracker process
+        # prints a KeyError traceback beside our line: a file size limit is checked first.
+        limit = resource.getrlimit(resource.RLIMIT_FSIZE)[0]
+        if name is None and limit != resource.RLIM_INFINITY and size > limit:
+            raise WorkerError(_no_shared_memory(size, "over the file size limit"))
         try:
             self.memory = SharedMemory(name=name, create=name is None,
                                        size=size if name is None else 0)  # fmt: skip
         except OSError as error:
-            raise WorkerError(
-                f"cannot create {size / 1e6:.1f} MB of shared memory for the --jobs workers "
-                f"({error.strerror}; a file size limit, ulimit -f, applies to /dev/shm too): "
-                "--jobs 1 needs none"
-            ) from None
+            raise WorkerError(_no_shared_memory(size, str(error.strerror))) from None
         self._owner = name is None
         self._images = np.ndarray((slots, 2, pixels), np.float32, buffer=self.memory.buf)
 
@@ -132,6 +135,13 @@ class SlotRing:
         if self._owner:
             with contextlib.suppress(FileNotFoundError):
                 self.memory.unlink()
+
+
+def _no_shared_memory(size: int, why: str) -> str:
+    """The one line for a ring of ``size`` bytes that cannot be had, and ``why``."""
+    return (f"cannot create {size / 1e6:.1f} MB of shared memory for the --jobs workers "
+            f"({why}; a file size limit, ulimit -f, applies to /dev/shm too): "
+            "--jobs 1 needs none")
 
 
 def serve(inbox: Any, outbox: Any) -> None:

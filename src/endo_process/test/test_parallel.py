@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import subprocess
+import sys
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -59,3 +61,27 @@ def test_workers_no_run_took_are_stopped() -> None:
     started.close()
     assert all(process.exitcode is not None for process in started.processes)
     started.close()  # again: nothing left to do
+
+
+def test_shared_memory_over_the_file_size_limit_is_one_line() -> None:
+    # A file size limit applies to /dev/shm: Python 3.11's SharedMemory then unregistered
+    # the segment before registering it, and the resource tracker printed a KeyError
+    # traceback beside endo-process's line (the hostile user's ulimit -f, --jobs 2).
+    script = (
+        "import resource, signal\n"
+        "signal.signal(signal.SIGXFSZ, signal.SIG_IGN)\n"
+        "resource.setrlimit(resource.RLIMIT_FSIZE, (6_000_000, resource.RLIM_INFINITY))\n"
+        "from endo_process.errors import WorkerError\n"
+        "from endo_process.worker import SlotRing\n"
+        "SlotRing(640 * 480, 2).close()  # 4.9 MB: fits\n"
+        "try:\n"
+        "    SlotRing(640 * 480, 8)\n"
+        "except WorkerError as error:\n"
+        "    print(error)\n"
+    )
+    result = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
+                            timeout=60)
+    assert result.returncode == 0, result.stderr
+    assert "cannot create 19.7 MB of shared memory" in result.stdout
+    assert "over the file size limit" in result.stdout
+    assert "Traceback" not in result.stderr and "KeyError" not in result.stderr, result.stderr
