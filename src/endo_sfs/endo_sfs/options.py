@@ -84,9 +84,11 @@ class SfsOptions:
             At 640×480 the halved image costs about half (docs/sfs.md,
             "Cost per frame"), with the phantom's AbsRel unchanged at
             solve_scale 0.5 (0.0797) and 0.0787 against 0.0788 at 1.
-        threads: CPU threads for the resampling and, with the near-light
-            model on large grids, for the first pass of the solver (two
-            halves at once), ≥ 1. 1 gives bit-identical results run to
+        threads: CPU threads for the resampling, the highlight detection
+            (two independent halves of its baseline at once,
+            :func:`endo_sfs.highlights.detect_highlights`) and, with the
+            near-light model on large grids, for the first pass of the
+            solver (two halves at once), ≥ 1. 1 gives bit-identical results run to
             run; 2 gives results equal to those to the tolerance.
         first_sweeps: near-light, warm-started frames solved by sweeps
             alone (no first pass): each node is first solved in the sweep

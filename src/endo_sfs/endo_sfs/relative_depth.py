@@ -389,7 +389,8 @@ def _solve_near_light(
     start = now
     if options.mask_highlights:
         valid &= ~detect_highlights(image, mask, options.saturation,
-                                    downsample=options.detection_downsample(image.shape[0]))
+                                    downsample=options.detection_downsample(image.shape[0]),
+                                    threads=options.threads)
     timings["highlights"] = (now := time.perf_counter()) - start
     start = now
     if not valid.any():

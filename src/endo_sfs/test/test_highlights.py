@@ -136,6 +136,22 @@ def test_bad_arguments_raise_named_errors():
         detect_highlights(image, fov, downsample=0)
     with pytest.raises(SfsInputError):
         detect_highlights(image, fov, shoulder_growth=0.5)
+    with pytest.raises(SfsInputError):
+        detect_highlights(image, fov, threads=0)
+
+
+@pytest.mark.parametrize("downsample", [1, 2])
+@pytest.mark.parametrize("use_mask", [True, False])
+def test_two_threads_find_the_same_pixels_as_one(downsample, use_mask):
+    # The two threads compute the baseline's two independent halves (and every
+    # numba kernel runs on one thread): the same values, so the same mask.
+    image, ratio, fov = _wall(np.random.default_rng(5))
+    mask = fov if use_mask else None
+    one = detect_highlights(image, mask, downsample=downsample)
+    assert one[fov & np.isnan(image)].all() and one[fov & (ratio > 1.0)].mean() > 0.99
+    for _ in range(3):  # the second thread's state does not carry over
+        np.testing.assert_array_equal(
+            detect_highlights(image, mask, downsample=downsample, threads=2), one)
 
 
 @pytest.mark.parametrize("use_mask", [True, False])
