@@ -41,6 +41,7 @@ from endo_sfs.near_light import solve_near_light
 from endo_sfs.options import SfsOptions
 from endo_sfs.orthographic import SolveInfo, solve_orthographic
 from endo_sfs.resampling import depth_from_log_distance, usable_pixels
+from endo_sfs.second_thread import beside
 
 #: The settings a solve uses when none are given.
 DEFAULT_OPTIONS = SfsOptions()
@@ -93,7 +94,10 @@ class SfsSolution:
 #: highlight detection, resampling to the nodes, the solver's inputs
 #: (global shift, padded arrays), ordering and splitting, the sweeps (and
 #: first pass), the sweeps' one-thread finish after two threads (0 on one
-#: thread), unpadding, and the resampling back to depth.
+#: thread), unpadding, and the resampling back to depth. With two threads
+#: and highlight masking the validity pass runs on the second thread while
+#: this one detects the highlights (:mod:`endo_sfs.second_thread`), and
+#: "validity" is what is left to wait for after the detection.
 STAGES = ("validity", "highlights", "to_nodes", "inputs", "order", "sweeps", "finish",
           "outputs", "to_pixels")
 
@@ -377,8 +381,25 @@ def _solve_near_light(
     grid = solve_grid(camera, "stereographic", options.solve_scale)
     region = np.empty((0, 0), dtype=bool) if mask is None else np.ascontiguousarray(mask, bool)
     saturation = np.inf if options.saturation is None else options.saturation
-    valid, peak = usable_pixels(image, region, grid.pixel_has_ray, options.dark_level,
-                                saturation)  # fmt: skip
+
+    def validity() -> tuple[np.ndarray, float]:
+        return usable_pixels(image, region, grid.pixel_has_ray, options.dark_level, saturation)
+
+    highlights = None
+    if options.mask_highlights and options.threads > 1:
+        # The validity pass on the second thread while this one detects the
+        # highlights (which then start their own second-thread part);
+        # "validity" is the wait for it after the detection.
+        timings["validity"] = 0.0  # (the stages in their usual order)
+        started = beside(validity)
+        highlights = detect_highlights(image, mask, options.saturation,
+                                       downsample=options.detection_downsample(image.shape[0]),
+                                       threads=options.threads)  # fmt: skip
+        timings["highlights"] = (now := time.perf_counter()) - start
+        start = now
+        valid, peak = started.result()
+    else:
+        valid, peak = validity()
     if peak > options.max_irradiance:
         raise IrradianceRangeError(
             f"irradiance reaches {peak:.3g}, above max_irradiance "
@@ -387,12 +408,14 @@ def _solve_near_light(
         )
     timings["validity"] = (now := time.perf_counter()) - start
     start = now
-    if options.mask_highlights:
-        valid &= ~detect_highlights(image, mask, options.saturation,
-                                    downsample=options.detection_downsample(image.shape[0]),
-                                    threads=options.threads)
-    timings["highlights"] = (now := time.perf_counter()) - start
-    start = now
+    if highlights is None and options.mask_highlights:
+        highlights = detect_highlights(image, mask, options.saturation,
+                                       downsample=options.detection_downsample(image.shape[0]))
+    if highlights is not None:
+        valid &= ~highlights
+    if "highlights" not in timings:
+        timings["highlights"] = (now := time.perf_counter()) - start
+        start = now
     if not valid.any():
         raise NoValidPixelsError(
             "no usable pixel: the frame is all dark, saturated, NaN or masked"
