@@ -662,7 +662,7 @@ def detect_highlights(
             threads as the caller set); 2 or more runs half of the baseline's
             work on a second thread (:func:`diffuse_excess`,
             :mod:`endo_sfs.second_thread`) and every numba kernel on one
-            thread: 0.72–0.76 of the time of numba's two-thread kernels on
+            thread: 0.71–0.80 of the time of numba's two-thread kernels on
             the phantom at 320×240. The same answer either way.
 
     Returns:
