@@ -55,6 +55,10 @@ class MapPublishSchedule:
         """Whether the map may go at ``now_s`` (a monotonic clock, seconds)."""
         return now_s >= self._next_s
 
+    def reset(self) -> None:
+        """Let the next message go at once (the map was emptied: no budget to wait out)."""
+        self._next_s = float("-inf")
+
     def published(self, now_s: float, n_bytes: int) -> None:
         """Record a message of ``n_bytes`` sent at ``now_s``."""
         self._next_s = now_s + self.interval_s(n_bytes)

@@ -230,7 +230,8 @@ PARAMETERS: tuple[ParameterSpec, ...] = (
                   "while frames come, the map is published after a frame at most at this "
                   "many megabytes per second: after a map of B MB the next waits B / this "
                   "seconds (at least map_period_s); once frames stop, every map_period_s; "
-                  "0: every map_period_s (docs/flow.md)", range=(0.0, 10_000.0)),
+                  "0: no budget, at most every map_period_s (docs/flow.md)",
+                  range=(0.0, 10_000.0), read_only=True),
     ParameterSpec("map_min_count", 1, "voxels fused from fewer points are not published or "
                   "exported", range=(1, 1000)),
     ParameterSpec("ply_path", "endo3d_map.ply", "file ~/export_map writes"),
@@ -333,7 +334,9 @@ class FlowNode(Node):
         # and the deadlines of waiting frames checked while no pose comes
         self.create_timer(PASSIVE_POSE_TAKE_PERIOD_S, self._tick)
         self.create_timer(values["map_period_s"], self._on_map_timer)
-        self._map_dirty = False
+        # the map's revision last published: whatever changed it since (a band, process()
+        # fusing the rest of a deferred frame, a reset) makes it go again
+        self._published_revision = 0
         self._map_schedule = MapPublishSchedule(values["map_period_s"],
                                                 values["map_bandwidth_mb_s"])
         self._last_frame_s = time.monotonic()
@@ -491,6 +494,7 @@ class FlowNode(Node):
             out = self._step(pending, pose)
         except ClockJumpError as error:  # the pipeline reset itself; this frame is dropped
             self.health.clock_jump(str(error))
+            self._map_was_reset()
             return
         except Endo3dError as error:
             self.health.drop(type(error).__name__, str(error))
@@ -506,7 +510,7 @@ class FlowNode(Node):
         # when its budget allows (this frame's slot then holds no band), or a band of rows
         # of the map's full-resolution cloud and insert (map_every frames share each fused
         # frame's work; a band left out is fused with the next fused frame).
-        if self._map_dirty and self._map_schedule.due(now):
+        if self._map_changed and self._map_schedule.due(now):
             self._publish_map(now)
         else:
             self._fuse_map(self.pipeline.options.map_every)
@@ -514,8 +518,7 @@ class FlowNode(Node):
     def _fuse_map(self, parts: int) -> None:
         """The next 1/parts of a deferred map frame; a failure is counted, never raised."""
         try:
-            if self.pipeline.fuse_deferred_map(parts=parts):
-                self._map_dirty = True
+            self.pipeline.fuse_deferred_map(parts=parts)
         except Exception as error:  # the frame is out; a map failure must not stop the node
             self.health.drop(type(error).__name__,
                              f"map fusion after frame {self._last_frame_ns} ns: {error}")
@@ -532,6 +535,7 @@ class FlowNode(Node):
         jump = self._frame_time.check(pending.stamp_ns, time.monotonic_ns())
         if jump is not None:
             self.pipeline.reset()
+            self._map_was_reset()
             self.health.clock_jump(
                 f"{jump.describe('frame time')}; tracks, scale filter and map reset"
             )
@@ -574,7 +578,7 @@ class FlowNode(Node):
         While frames come, the map goes after a frame instead (:meth:`_process`).
         """
         now = time.monotonic()
-        if self._map_dirty and now - self._last_frame_s > MAP_FINISH_AFTER_S:
+        if self._map_changed and now - self._last_frame_s > MAP_FINISH_AFTER_S:
             self._publish_map(now)
 
     def _publish_map(self, now: float) -> None:
@@ -588,7 +592,17 @@ class FlowNode(Node):
             records, stamp, self.parameters["world_frame"], is_dense=finite)
         self.map_pub.publish(message)
         self._map_schedule.published(now, len(message))
-        self._map_dirty = False
+        self._published_revision = voxel_map.revision
+
+    @property
+    def _map_changed(self) -> bool:
+        """Whether the map changed since it was last published."""
+        voxel_map = self.pipeline.voxel_map
+        return voxel_map is not None and voxel_map.revision != self._published_revision
+
+    def _map_was_reset(self) -> None:
+        """An emptied map goes after the next frame, whatever the budget of the last one."""
+        self._map_schedule.reset()
 
     def _reset_map(self, _request: Trigger.Request, response: Trigger.Response
                    ) -> Trigger.Response:
@@ -596,7 +610,7 @@ class FlowNode(Node):
             response.success, response.message = False, "the map is disabled (map_enabled)"
             return response
         dropped = self.pipeline.reset_map()
-        self._map_dirty = True
+        self._map_was_reset()
         response.success, response.message = True, f"map reset ({dropped} voxels dropped)"
         self.get_logger().info(response.message)
         return response

@@ -267,6 +267,9 @@ class VoxelMap:
         self._state = np.array([_NONE, _NONE, 0], np.int64)  # head, tail, evicted
         self._n = 0
         self.skipped = 0
+        #: changes with every reset and every insert that took points in (a publisher
+        #: compares it with the revision it last sent); only equality matters
+        self.revision = 0
 
     def __len__(self) -> int:
         return self._n
@@ -288,6 +291,7 @@ class VoxelMap:
         self._table[:] = _EMPTY
         self._state[:] = (_NONE, _NONE, 0)
         self._n = 0
+        self.revision += 1
 
     def insert(
         self,
@@ -328,6 +332,8 @@ class VoxelMap:
             self._prev, self._next, self._state, self._n,
         )
         self.skipped += skipped
+        if n > skipped:
+            self.revision += 1
 
     def recency_order(self) -> np.ndarray:
         """Row indices of the held voxels, from the one seen longest ago to the newest: (n,) int64.

@@ -55,3 +55,11 @@ def test_zero_bandwidth_falls_back_to_the_period() -> None:
 def test_bad_settings_are_refused(period: float, bandwidth: float) -> None:
     with pytest.raises(ValueError, match="must be"):
         MapPublishSchedule(period, bandwidth)
+
+
+def test_a_reset_lets_the_next_message_go_at_once() -> None:
+    schedule = MapPublishSchedule(2.0, 2.0)
+    schedule.published(10.0, 64_000_000)  # 32 s of budget
+    assert not schedule.due(20.0)
+    schedule.reset()
+    assert schedule.due(20.0)

@@ -19,7 +19,7 @@ from rclpy.parameter import Parameter
 from sensor_msgs.msg import CameraInfo, Image, PointCloud2
 from std_srvs.srv import Trigger
 
-from endo_flow.node import PARAMETERS, FlowNode
+from endo_flow.node import MAP_FINISH_AFTER_S, PARAMETERS, FlowNode
 from endo_flow.scale import ScaleState
 from endo_io import topics
 from endo_io.image import ImageView, array_to_image, image_to_array
@@ -164,28 +164,37 @@ def test_the_map_keeps_its_budget_and_goes_whole_once_the_frames_stop(graph, mov
     # While frames come, a map of B bytes holds the next back B / 1 kB/s (hours here), so
     # one map goes during the stream. When the frames stop, the rest of the last fused
     # frame (fused a band per frame, map_every 8) is fused and the final map goes at once,
-    # whatever the budget: it is the map endo-process would export.
-    flow, _peer, pubs, got, spin_until = graph
+    # whatever the budget, and so does the emptied map after ~/reset_map.
+    flow, peer, pubs, got, spin_until = graph
     frames = moving.frames(moving.poses)
     step = frames[1].stamp_ns - frames[0].stamp_ns
+    pauses = 0  # a frame sent MAP_FINISH_AFTER_S after the last: frames stopped, a map may go
+    sent = time.monotonic()
     for k, frame in enumerate(frames[:60]):
         for dt in (0, step // 2):
             T = moving.poses[min(k + (dt > 0), len(frames) - 1)] if dt else frame.T_world_camera
             pubs["pose"].publish(matrix_to_pose(T, frame.stamp_ns + dt, topics.WORLD_FRAME))
+        pauses += time.monotonic() - sent > 0.8 * MAP_FINISH_AFTER_S
         _publish_frame(pubs, frame)
+        sent = time.monotonic()
         spin_until(lambda k=k: len(got["scale"]) > k, timeout=2.0)
     assert spin_until(lambda: len(got["scale"]) == 60, timeout=15.0)
     during = [m.width for m in got["map"]]
-    assert len(during) == 1 and during[0] > 0, f"maps while frames came: {during}"
+    assert 1 <= len(during) <= 1 + pauses and during[0] > 0, f"maps while frames came: {during}"
     # the stream's last frames: a fused frame still part-fused right after them
-    assert spin_until(lambda: len(got["map"]) == 2, timeout=5.0)
+    assert spin_until(lambda: len(got["map"]) == len(during) + 1, timeout=5.0)
     assert not flow.pipeline.map_pending
     voxel_map = flow.pipeline.voxel_map
     assert voxel_map is not None and len(voxel_map) > 1000
     final, _rgb = pointcloud2_to_xyz(got["map"][-1])
     assert len(final) == len(voxel_map)
     spin_until(lambda: False, timeout=0.6)  # three more ticks: nothing changed, nothing sent
-    assert len(got["map"]) == 2
+    assert len(got["map"]) == len(during) + 1
+    reset = peer.create_client(Trigger, "/flow/reset_map")
+    future = reset.call_async(Trigger.Request())
+    assert spin_until(future.done, timeout=10.0) and future.result().success
+    assert spin_until(lambda: len(got["map"]) == len(during) + 2, timeout=5.0)
+    assert got["map"][-1].width == 0
 
 
 def test_a_frame_without_poses_waits_then_goes_on_without(graph, moving):

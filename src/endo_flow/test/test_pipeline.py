@@ -216,6 +216,44 @@ def test_a_deferred_frame_fused_in_bands_gives_the_same_map(moving, kit):
     np.testing.assert_array_equal(one.points().normals, other.points().normals)
 
 
+def test_bands_left_out_for_a_publish_are_fused_by_the_next_fused_frame(moving, kit):
+    """The live node fuses no band in a slot that publishes the map; process() takes the rest.
+
+    The map is the one fused at once, and its revision changes with each change, so the node
+    publishes a map that process() changed by itself.
+    """
+    at_once = FlowPipeline(kit.options(map_every=3))
+    banded = FlowPipeline(kit.options(map_every=3))
+    rest_in_process = 0
+    for k, frame in enumerate(moving.frames(moving.poses)):
+        at_once.process(frame)
+        voxels = banded.voxel_map
+        assert voxels is not None
+        before = voxels.revision
+        pending = banded.map_pending
+        banded.process(frame, defer_map=True)
+        if pending and banded.map_pending:  # the rest of the previous one went in process()
+            rest_in_process += voxels.revision != before
+        if k % 4 == 3:  # the map was published in this slot: no band
+            continue
+        before = voxels.revision
+        if banded.fuse_deferred_map(parts=3):
+            assert voxels.revision != before
+    while banded.map_pending:
+        banded.fuse_deferred_map(parts=3)
+    assert rest_in_process > 0
+    one, other = at_once.voxel_map, banded.voxel_map
+    assert one is not None and other is not None and len(one) > 0
+    np.testing.assert_array_equal(one.voxel_keys(), other.voxel_keys())
+    np.testing.assert_array_equal(one.recency_order(), other.recency_order())
+    np.testing.assert_array_equal(one.points().count, other.points().count)
+    np.testing.assert_array_equal(one.points().points, other.points().points)
+    np.testing.assert_array_equal(one.points().normals, other.points().normals)
+    revision = other.revision
+    other.reset()
+    assert other.revision != revision
+
+
 def test_a_map_reset_drops_the_frame_waiting_for_it(moving, kit):
     pipe = FlowPipeline(kit.options(map_every=3))
     for frame in moving.frames(moving.poses):
