@@ -224,7 +224,10 @@ def solve_near_light(
     seconds = (now := time.perf_counter()) - start
     # The one-thread finish's share of the kernel, by its cycle counts.
     total = int(ticks[2] - ticks[0])
-    finish = seconds * (int(ticks[2] - ticks[1]) / total) if total > 0 else 0.0
+    # the share is clamped: a counter that is not constant-rate or not synchronised
+    # between cores must not make a negative or oversized stage
+    share = min(max(int(ticks[2] - ticks[1]) / total, 0.0), 1.0) if total > 0 else 0.0
+    finish = seconds * share
     stages["sweeps"] = seconds - finish
     stages["finish"] = finish
     start = now

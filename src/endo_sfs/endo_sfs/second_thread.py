@@ -7,6 +7,13 @@ workers (docs/sfs.md, "Speed"). With ``SfsOptions.threads`` ≥ 2 the solve
 instead runs whole independent stages side by side: :func:`beside` starts one
 on a second thread (one worker for the process, made on first use) while the
 calling thread does another, each with numba on one thread.
+
+That needs a thread-safe numba threading layer (OpenMP or TBB): numba's own
+``workqueue`` layer aborts the process when two threads launch parallel
+kernels at once ("Concurrent access has been detected"), whatever
+``set_num_threads``. Where numba runs on ``workqueue`` (no libgomp or TBB,
+or ``NUMBA_THREADING_LAYER=workqueue``) :func:`beside` runs the task on the
+calling thread: the same result, without the overlap.
 """
 
 from __future__ import annotations
@@ -22,6 +29,24 @@ import numba
 _T = TypeVar("_T")
 _pool: ThreadPoolExecutor | None = None
 _pool_lock = threading.Lock()
+_threadsafe: bool | None = None  # whether numba's threading layer is (decided on first use)
+
+
+def threading_layer_is_threadsafe() -> bool:
+    """Whether two threads may run numba's parallel kernels at once (not ``workqueue``).
+
+    Starts numba's threads to find out (numba picks its layer then), once per process.
+    """
+    global _threadsafe
+    if _threadsafe is None:
+        try:
+            from numba.np.ufunc import parallel
+
+            parallel._launch_threads()  # numba chooses its layer here
+            _threadsafe = numba.threading_layer() != "workqueue"
+        except Exception:  # no layer could be loaded, or numba's internals moved: be safe
+            _threadsafe = False
+    return _threadsafe
 
 
 def _on_one_numba_thread(task: Callable[[], _T]) -> _T:
@@ -37,6 +62,13 @@ def beside(task: Callable[[], _T]) -> Future[_T]:
     the task and the caller's own work overlap.
     """
     global _pool
+    if not threading_layer_is_threadsafe():
+        done: Future[_T] = Future()
+        try:
+            done.set_result(task())
+        except Exception as error:  # .result() raises it, as the pool's future would
+            done.set_exception(error)
+        return done
     with _pool_lock:
         if _pool is None:
             _pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="endo_sfs")

@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
+
 import numpy as np
 import pytest
 
@@ -235,3 +239,29 @@ def test_halved_blocks_equal_block_means():
     expected, expected_inside = block_means(image, region, 40.0, 2)
     np.testing.assert_array_equal(inside, expected_inside)
     np.testing.assert_allclose(small, expected, rtol=1e-6)  # NaN where saturated in both
+
+
+def test_two_threads_on_numbas_workqueue_layer_run_in_turn_and_find_the_same_pixels():
+    # numba's workqueue layer aborts the process when two threads launch parallel kernels
+    # at once (no libgomp or TBB on the machine, or NUMBA_THREADING_LAYER=workqueue); the
+    # detection's second thread then runs its part on the calling thread.
+    script = (
+        "import numpy as np\n"
+        "from endo_sfs.highlights import detect_highlights\n"
+        "import threading\n"
+        "from endo_sfs.second_thread import beside, threading_layer_is_threadsafe\n"
+        "same = beside(threading.get_ident).result() == threading.get_ident()\n"
+        "rng = np.random.default_rng(5)\n"
+        "image = (0.2 + 0.05 * rng.random((240, 320))).astype(np.float32)\n"
+        "image[100:110, 150:165] = 3.0\n"
+        "one = detect_highlights(image, None)\n"
+        "for _ in range(10):\n"
+        "    assert np.array_equal(detect_highlights(image, None, threads=2), one)\n"
+        "print(threading_layer_is_threadsafe(), same, int(one.sum()))\n"
+    )
+    env = {**os.environ, "NUMBA_THREADING_LAYER": "workqueue"}
+    result = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
+                            timeout=300, env=env)
+    assert result.returncode == 0, result.stderr[-2000:]
+    threadsafe, on_the_calling_thread, found = result.stdout.split()
+    assert threadsafe == "False" and on_the_calling_thread == "True" and int(found) > 100

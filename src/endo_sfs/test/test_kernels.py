@@ -7,6 +7,7 @@ import pytest
 from scipy.optimize import brentq
 
 from endo_sfs import kernels
+from endo_sfs.cycles import COUNTER_AVAILABLE
 from endo_sfs.grid import build_solve_grid
 from endo_sfs.reflectance import colocated_cosine, colocated_radiance, oren_nayar_coefficients
 from endo_sfs.synthetic import scene_camera
@@ -187,7 +188,10 @@ def test_any_first_pass_order_reaches_the_fixed_point_of_the_sweeps(split):
         assert change <= 1e-9
         # The cycle counts that split the kernel's time: start ≤ start of the
         # one-thread finish ≤ end, the finish empty without two threads.
-        assert 0 < ticks[0] <= ticks[1] <= ticks[2]
+        if COUNTER_AVAILABLE:
+            assert 0 < ticks[0] <= ticks[1] <= ticks[2]
+        else:
+            assert ticks[0] == ticks[1] == ticks[2] == 0
         if parts == 0 and rows == 0:
             assert ticks[1] == ticks[2]
         return v[2:-2, 2:-2]
