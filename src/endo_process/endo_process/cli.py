@@ -212,12 +212,16 @@ def _run(args: argparse.Namespace, workers: StartedWorkers | None) -> int:
         mismatch = registration_mismatch(options.bag, load_settings(options.params).T_world_tracker)
         if mismatch is not None:
             print(f"{PROGRAM}: warning: {mismatch}", file=sys.stderr)
-    if args.report is not None and report.frames_shaded and not report.write_failure:
+    if args.report is not None and report.write_failure:
+        print(f"{PROGRAM}: error: --report {args.report} not drawn (the output is incomplete)",
+              file=sys.stderr)  # fmt: skip
+    elif args.report is not None and report.frames_shaded:
         # Only here: matplotlib is ~0.3 CPU-s of imports a run without --report skips.
         from endo_process.report import write_report_figure
 
         write_report_figure(options.output, accuracy or Accuracy(), options.calibration,
                             args.report)  # fmt: skip
+    summary_failed = False  # the output itself may be whole: not a write_failure of it
     if args.summary_json is not None:
         document = summary_document(report, accuracy)
         try:
@@ -225,7 +229,7 @@ def _run(args: argparse.Namespace, workers: StartedWorkers | None) -> int:
         except OSError as error:  # the disk that refused the output, say
             print(f"{PROGRAM}: error: cannot write {args.summary_json} ({error.strerror})",
                   file=sys.stderr)  # fmt: skip
-            report.write_failure = report.write_failure or str(error)
+            summary_failed = True
     for line in drop_lines(report):
         print(f"{PROGRAM}: warning: {line}", file=sys.stderr)
     if report.damage:
@@ -246,7 +250,8 @@ def _run(args: argparse.Namespace, workers: StartedWorkers | None) -> int:
     if report.interrupted:
         print(f"{PROGRAM}: interrupted; {options.output} holds the "
               f"{report.frames_shaded} frames processed", file=sys.stderr)  # fmt: skip
-    return exit_status(report)
+    status = exit_status(report)
+    return max(status, EXIT_DAMAGED) if summary_failed else status
 
 
 if __name__ == "__main__":

@@ -461,3 +461,18 @@ def test_an_output_name_without_mcap_is_a_rosbag2_directory(
         assert reader.topics[topics.DEPTH_RELATIVE].message_count == 2
         assert info["message_count"] == sum(t.message_count for t in reader.topics.values())
     assert f"{out} (" in capsys.readouterr().out  # the summary's output row
+
+
+def test_a_summary_json_that_cannot_be_written_is_not_a_failure_of_the_output(
+    calibrations: tuple[Path, Path], tmp_path: Path, capsys: pytest.CaptureFixture
+) -> None:
+    # The review: it set the output's write failure, so the run then said "writing stopped
+    # after 2 of 2 frames ...; --ply not written" of a complete output.
+    bag = _subset(tmp_path / "short.mcap", ALL, images=2)
+    out = tmp_path / "out.mcap"
+    argv = _argv(bag, out, calibrations, "--summary-json", "/proc/version", "--overwrite")
+    assert main(argv) == 1
+    error = capsys.readouterr().err
+    assert "cannot write /proc/version" in error
+    assert "writing stopped" not in error and "not written" not in error
+    assert out.exists() and out.stat().st_size > 0
