@@ -335,8 +335,10 @@ class FlowNode(Node):
         self.create_timer(PASSIVE_POSE_TAKE_PERIOD_S, self._tick)
         self.create_timer(values["map_period_s"], self._on_map_timer)
         # the map's revision last published: whatever changed it since (a band, process()
-        # fusing the rest of a deferred frame, a reset) makes it go again
-        self._published_revision = 0
+        # fusing the rest of a deferred frame, a reset) makes it go again; the warm-up's
+        # fused-then-emptied map is not a change anyone needs to see
+        voxel_map = self.pipeline.voxel_map
+        self._published_revision = 0 if voxel_map is None else voxel_map.revision
         self._map_schedule = MapPublishSchedule(values["map_period_s"],
                                                 values["map_bandwidth_mb_s"])
         self._last_frame_s = time.monotonic()

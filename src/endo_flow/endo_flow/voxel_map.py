@@ -290,8 +290,9 @@ class VoxelMap:
         """Empty the map (memory stays allocated)."""
         self._table[:] = _EMPTY
         self._state[:] = (_NONE, _NONE, 0)
+        if self._n:  # emptying an empty map changes nothing a subscriber sees
+            self.revision += 1
         self._n = 0
-        self.revision += 1
 
     def insert(
         self,
