@@ -117,7 +117,9 @@ def configurations(scales: list[float]) -> list[Configuration]:
     without its voxel map, "map unpublished" fuses it but does not publish it
     in the run (map_period_s 3600), "map no budget" publishes it every
     map_period_s whatever its size (map_bandwidth_mb_s 0, as before
-    2026-12-03), "map budget 6" at 6 MB/s instead of the default; "sfs threads 1"
+    2026-12-03), "map budget 6" at 6 MB/s instead of the default, "map stream
+    whole" publishes the whole map while frames come (map_stream_max_points 0,
+    as before 2026-12-03's thinned live map); "sfs threads 1"
     one endo-sfs on one thread; "sfs 2 workers x 1 thread" two endo-sfs
     processes (worker_count 2) of one thread each.
     """
@@ -139,7 +141,9 @@ def configurations(scales: list[float]) -> list[Configuration]:
                   Configuration("map off", scale, {FLOW: {"map_enabled": "false"}}),
                   Configuration("map unpublished", scale, {FLOW: {"map_period_s": "3600.0"}}),
                   Configuration("map no budget", scale, {FLOW: {"map_bandwidth_mb_s": "0.0"}}),
-                  Configuration("map budget 6", scale, {FLOW: {"map_bandwidth_mb_s": "6.0"}})]
+                  Configuration("map budget 6", scale, {FLOW: {"map_bandwidth_mb_s": "6.0"}}),
+                  Configuration("map stream whole", scale,
+                                {FLOW: {"map_stream_max_points": "0"}})]
     return found
 
 

@@ -58,8 +58,9 @@ Publications (reliable, QoS overridable):
   transient-local. While frames come it goes right after a frame (the
   longest wait for the next), at most every ``map_period_s`` and at most
   ``map_bandwidth_mb_s`` megabytes per second
-  (:class:`endo_flow.map_schedule.MapPublishSchedule`); once they stop, a
-  changed map goes every ``map_period_s``. The map fuses every
+  (:class:`endo_flow.map_schedule.MapPublishSchedule`), thinned evenly to
+  about ``map_stream_max_points`` voxels; once they stop, the whole map goes
+  (and then a changed one every ``map_period_s``). The map fuses every
   ``map_decimation``-th pixel (1: full resolution) of every ``map_every``-th
   frame with world points, from the same back-projection as the topic's
   cloud (:func:`endo_flow.cloud.world_clouds`);
@@ -232,6 +233,13 @@ PARAMETERS: tuple[ParameterSpec, ...] = (
                   "seconds (at least map_period_s); once frames stop, every map_period_s; "
                   "0: no budget, at most every map_period_s (docs/flow.md)",
                   range=(0.0, 10_000.0), read_only=True),
+    ParameterSpec("map_stream_max_points", 125_000,
+                  "while frames come, the map message holds about this many voxels at most, "
+                  "an even thinning that keeps the same voxels from one message to the next "
+                  "(4 MB at 125000); once frames stop, the whole map; ~/export_map and "
+                  "endo-process always write the whole map; 0: the whole map always "
+                  "(docs/flow.md)",
+                  range=(0, 100_000_000), read_only=True),
     ParameterSpec("map_min_count", 1, "voxels fused from fewer points are not published or "
                   "exported", range=(1, 1000)),
     ParameterSpec("ply_path", "endo3d_map.ply", "file ~/export_map writes"),
@@ -339,6 +347,7 @@ class FlowNode(Node):
         # fused-then-emptied map is not a change anyone needs to see
         voxel_map = self.pipeline.voxel_map
         self._published_revision = 0 if voxel_map is None else voxel_map.revision
+        self._published_whole = True  # whether the last map sent held every voxel
         self._map_schedule = MapPublishSchedule(values["map_period_s"],
                                                 values["map_bandwidth_mb_s"])
         self._last_frame_s = time.monotonic()
@@ -513,7 +522,7 @@ class FlowNode(Node):
         # of the map's full-resolution cloud and insert (map_every frames share each fused
         # frame's work; a band left out is fused with the next fused frame).
         if self._map_changed and self._map_schedule.due(now):
-            self._publish_map(now)
+            self._publish_map(now, whole=False)
         else:
             self._fuse_map(self.pipeline.options.map_every)
 
@@ -575,26 +584,38 @@ class FlowNode(Node):
     # ------------------------------------------------------------------ map
 
     def _on_map_timer(self) -> None:
-        """While the frames have stopped, a changed map goes every ``map_period_s``.
+        """Frames stopped: a changed (or thinned) map goes whole every ``map_period_s``.
 
         While frames come, the map goes after a frame instead (:meth:`_process`).
         """
         now = time.monotonic()
-        if self._map_changed and now - self._last_frame_s > MAP_FINISH_AFTER_S:
-            self._publish_map(now)
+        if ((self._map_changed or not self._published_whole)
+                and now - self._last_frame_s > MAP_FINISH_AFTER_S):
+            self._publish_map(now, whole=True)
 
-    def _publish_map(self, now: float) -> None:
-        """Publish the whole map (``now``: the monotonic clock, for the budget)."""
+    def _publish_map(self, now: float, *, whole: bool) -> None:
+        """Publish the map (``now``: the monotonic clock, for the budget).
+
+        ``whole``: every voxel; otherwise a map larger than
+        ``map_stream_max_points`` goes thinned to about that many
+        (:meth:`endo_flow.voxel_map.VoxelMap.published_records`): the cost of a
+        publish, in the node's thread and in every subscriber, grows with the
+        message (docs/flow.md, "The live map's size").
+        """
         voxel_map = self.pipeline.voxel_map
         if voxel_map is None:
             return
-        records, finite = voxel_map.published_records(self.parameters["map_min_count"])
+        cap = self.parameters["map_stream_max_points"]
+        fraction = 1.0 if whole or cap == 0 or len(voxel_map) <= cap else cap / len(voxel_map)
+        records, finite = voxel_map.published_records(self.parameters["map_min_count"],
+                                                      fraction=fraction)
         stamp = self.get_clock().now().nanoseconds
         message = records_to_pointcloud2_cdr(
             records, stamp, self.parameters["world_frame"], is_dense=finite)
         self.map_pub.publish(message)
         self._map_schedule.published(now, len(message))
         self._published_revision = voxel_map.revision
+        self._published_whole = fraction == 1.0
 
     @property
     def _map_changed(self) -> bool:

@@ -40,6 +40,7 @@ _MASK = (1 << 21) - 1
 _EMPTY = -1
 _NONE = np.int32(-1)  # no list neighbour
 _HEAD, _TAIL, _EVICTED = 0, 1, 2  # slots of the list state array
+_ALL_BITS = np.int64(-1)  # a hash mask keeping all 64 bits
 
 
 @numba.njit(cache=True, nogil=True)
@@ -193,11 +194,13 @@ def _walk(nxt: np.ndarray, head: int, n: int) -> np.ndarray:
 
 @numba.njit(cache=True, nogil=True)
 def _published(
-    mean: np.ndarray, grey: np.ndarray, count: np.ndarray, n: int, min_count: int,
-    words: np.ndarray, bits: np.ndarray,
+    keys: np.ndarray, mean: np.ndarray, grey: np.ndarray, count: np.ndarray, n: int,
+    min_count: int, below: np.uint64, words: np.ndarray, bits: np.ndarray,
 ) -> tuple[int, bool]:
     """Write the kept voxels' records; returns (how many, all finite).
 
+    A voxel is kept when fused from at least ``min_count`` points and its
+    key's 64-bit hash is below ``below`` (2**64 - 1: every voxel).
     ``words`` (rows, 8) float32 and ``bits`` (rows, 8) uint32 are two views
     of the same zeroed buffer of ``XYZRGB_RECORD``s: x, y, z the voxel's
     mean, rgb its grey level rounded (half to even) and clipped to 0-255 in
@@ -205,8 +208,11 @@ def _published(
     """
     m = 0
     finite = True
+    every = below == np.uint64(0xFFFFFFFFFFFFFFFF)
     for i in range(n):
         if count[i] < min_count:
+            continue
+        if not every and np.uint64(_hash(keys[i], _ALL_BITS)) >= below:
             continue
         for k in range(3):
             words[m, k] = mean[i, k]
@@ -217,6 +223,13 @@ def _published(
         bits[m, 4] = (g << np.uint32(16)) | (g << np.uint32(8)) | g
         m += 1
     return m, finite
+
+
+def _hash_bound(fraction: float) -> np.uint64:
+    """The 64-bit hash below which a voxel is kept, for a kept share ``fraction`` in (0, 1]."""
+    if fraction >= 1.0:
+        return np.uint64(0xFFFFFFFFFFFFFFFF)
+    return np.uint64(int(fraction * 2.0**64))
 
 
 @dataclass(frozen=True)
@@ -360,7 +373,8 @@ class VoxelMap:
         return MapPoints(self._mean[:n][keep], normal, self._grey[:n][keep],
                          self._count[:n][keep])
 
-    def published_records(self, min_count: int = 1) -> tuple[np.ndarray, bool]:
+    def published_records(self, min_count: int = 1, *, fraction: float = 1.0
+                          ) -> tuple[np.ndarray, bool]:
         """The voxels fused from at least ``min_count`` points as point records, in row order.
 
         What the map topic carries: ((M,) ``endo_io.point_records.XYZRGB_RECORD``
@@ -370,10 +384,22 @@ class VoxelMap:
         bytes as ``grey_cloud_cdr`` of :meth:`points`' positions and grey
         levels (tested), without its normals and copies: 24 MB of map took
         ~50 ms of the flow node's thread that way, every map period.
+
+        Args:
+            min_count: voxels fused from fewer points are left out.
+            fraction: in (0, 1], the share of the voxels kept (1: all). A
+                voxel is kept when the hash of its coordinates, as a number
+                in [0, 1), is below ``fraction``: a spatially even thinning
+                that keeps the same voxels from one call to the next, and
+                whose kept set only shrinks as ``fraction`` does (a live
+                view thinned as the map grows does not flicker).
         """
+        if not 0.0 < fraction <= 1.0:
+            raise ValueError(f"fraction must be in (0, 1], got {fraction}")
         n = self._n
         words = np.zeros((n, XYZRGB_RECORD.itemsize // 4), np.float32)
-        m, finite = _published(self._mean, self._grey, self._count, n, int(min_count), words,
+        m, finite = _published(self._keys, self._mean, self._grey, self._count, n,
+                               int(min_count), _hash_bound(fraction), words,
                                words.view(np.uint32))
         return words[:m].view(XYZRGB_RECORD).reshape(-1), bool(finite)
 

@@ -96,6 +96,45 @@ def test_published_records_are_the_grey_cloud_of_the_map_bytes_for_bytes(min_cou
         grey_cloud_cdr(expected.points, expected.grey, 123, "world"))
 
 
+def test_a_thinned_map_keeps_an_even_stable_nested_share_of_its_voxels():
+    """published_records(fraction=f): ~f of the voxels, spread evenly, the same ones each call."""
+    rng = np.random.default_rng(9)
+    m = VoxelMap(2.5e-4, max_voxels=200_000)
+    # a curved surface of ~70k voxels (a half cylinder of radius 20 mm, 80 mm long)
+    angle, z = rng.uniform(0.0, np.pi, 400_000), rng.uniform(0.0, 0.08, 400_000)
+    surface = np.stack([0.02 * np.cos(angle), 0.02 * np.sin(angle), z], axis=1)
+    m.insert(surface, rng.uniform(0, 255, len(surface)))
+    whole, _ = m.published_records()
+    n = len(whole)
+    assert n == len(m) > 50_000
+    xyz = {f: m.published_records(fraction=f)[0][["x", "y", "z"]] for f in (0.5, 0.1, 0.02)}
+    for f, kept in xyz.items():
+        # binomial: within 5 standard deviations of f * n
+        assert abs(len(kept) - f * n) < 5 * np.sqrt(n * f * (1 - f)), (f, len(kept))
+        # even: every eighth of the cylinder's length keeps its share
+        counts = np.histogram(kept["z"], bins=8, range=(0.0, 0.08))[0]
+        whole_counts = np.histogram(whole["z"], bins=8, range=(0.0, 0.08))[0]
+        np.testing.assert_allclose(counts / whole_counts, f, rtol=0.25)
+    # the same voxels each call, and a smaller share is a subset of a larger one
+    again, _ = m.published_records(fraction=0.1)
+    assert again.tobytes() == m.published_records(fraction=0.1)[0].tobytes()
+    as_set = {f: {tuple(r) for r in kept.tolist()} for f, kept in xyz.items()}
+    assert as_set[0.02] <= as_set[0.1] <= as_set[0.5] <= {tuple(r) for r in
+                                                         whole[["x", "y", "z"]].tolist()}
+    # a voxel's later points change its mean and grey level, not whether it is kept
+    m.insert(surface[:1000], np.zeros(1000))
+    later = m.published_records(fraction=0.1)[0]
+
+    def voxels(records: np.ndarray) -> set[tuple[int, ...]]:
+        xyz = np.stack([records[c] for c in ("x", "y", "z")], axis=1).astype(np.float64)
+        return {tuple(v) for v in np.floor(xyz / 2.5e-4).astype(np.int64).tolist()}
+
+    assert (later["rgb"] != again["rgb"]).any() and voxels(later) == voxels(again)
+    for bad in (0.0, -0.5, 1.5, float("nan")):
+        with pytest.raises(ValueError, match="fraction"):
+            m.published_records(fraction=bad)
+
+
 def test_ply_binary_round_trip(tmp_path):
     rng = np.random.default_rng(1)
     pts = rng.normal(0.0, 0.05, (37, 3)).astype(np.float32)
