@@ -135,9 +135,10 @@ PARAMETERS: tuple[ParameterSpec, ...] = (
     ),
     ParameterSpec(
         "threads", 2,
-        "CPU threads per frame (resampling; near_light on grids of 20000+ nodes: the first "
-        "pass, or the sweeps when the predicted order is poor, as two halves at once); 1 "
-        "leaves the other cores to the rest of the graph and makes the output bit-reproducible",
+        "CPU threads per frame (resampling; highlight detection's two halves and the "
+        "validity pass at once; near_light on grids of 20000+ nodes: the first pass, or the "
+        "sweeps when the predicted order is poor, as two halves at once); 1 leaves the other "
+        "cores to the rest of the graph and makes the output bit-reproducible",
         range=(1, 64),
     ),
     ParameterSpec(
