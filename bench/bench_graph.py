@@ -104,6 +104,8 @@ class Configuration:
     recorder_nice: int | None = None
     #: the recorder's chunk compression (GraphSettings.recorder_compression; None: lz4).
     recorder_compression: str | None = None
+    #: (process niceness, writing thread's niceness) of the recorder (None: the defaults)
+    recorder_priorities: tuple[int, int] | None = None
 
 
 def configurations(scales: list[float]) -> list[Configuration]:
@@ -113,7 +115,9 @@ def configurations(scales: list[float]) -> list[Configuration]:
     image in 16UC1 fixed point (the default); "corrected 32FC1" publishes it
     as float, as before 2026-12-02; "recorder nice 0" runs the recorder at
     the nodes' priority, as before the recorder was niced; "recorder
-    uncompressed" records without lz4 (ros2 bag record's default); "map off" runs flow
+    uncompressed" records without lz4 (ros2 bag record's default); "recorder
+    writer niced" runs the recorder at nice 0 with only its writing thread at
+    nice 10 (endo-record's --writer-nice); "map off" runs flow
     without its voxel map, "map unpublished" fuses it but does not publish it
     in the run (map_period_s 3600), "map no budget" publishes it every
     map_period_s whatever its size (map_bandwidth_mb_s 0, as before
@@ -138,6 +142,7 @@ def configurations(scales: list[float]) -> list[Configuration]:
                                 sfs_workers=2),
                   Configuration("recorder nice 0", scale, recorder_nice=0),
                   Configuration("recorder uncompressed", scale, recorder_compression="none"),
+                  Configuration("recorder writer niced", scale, recorder_priorities=(0, 10)),
                   Configuration("map off", scale, {FLOW: {"map_enabled": "false"}}),
                   Configuration("map unpublished", scale, {FLOW: {"map_period_s": "3600.0"}}),
                   Configuration("map no budget", scale, {FLOW: {"map_bandwidth_mb_s": "0.0"}}),
@@ -245,6 +250,10 @@ def run_once(bag: Path, configuration: Configuration, rate: float, work: Path,
         settings = replace(settings, recorder_nice=configuration.recorder_nice)
     if configuration.recorder_compression is not None:
         settings = replace(settings, recorder_compression=configuration.recorder_compression)
+    if configuration.recorder_priorities is not None:
+        process_nice, writer_nice = configuration.recorder_priorities
+        settings = replace(settings, recorder_nice=process_nice,
+                           recorder_writer_nice=writer_nice)
     processes = planned_graph(bag, photometric, handeye, out, settings)
     settings = replace(settings, listeners=GraphMonitor.played_listeners(processes, listen))
     before = _cpu_ms()

@@ -269,7 +269,7 @@ def graph_nodes(
 
 def recorder_process(
     topics: Sequence[str], output: Path, nice: int = RECORDER_NICENESS,
-    compression: str = "lz4",
+    compression: str = "lz4", writer_nice: int = 0,
 ) -> GraphProcess:
     """``endo-record`` of ``topics`` into ``output``, flushed every 0.2 s (readable meanwhile).
 
@@ -277,13 +277,14 @@ def recorder_process(
     frame, and zstd (level 3, mcap's) cost 2.0 ms of CPU per MB against lz4's
     0.5 ms, for files 1.16x bigger (a graph recording, docs/benchmarks.md).
     It runs at ``nice`` (:data:`RECORDER_NICENESS` by default); ``compression``
-    is endo-record's ``--compression``.
+    is endo-record's ``--compression``, ``writer_nice`` its ``--writer-nice``
+    (the writing thread's niceness on top of the process's).
     """
     return GraphProcess(
         RECORDER,
         "endo-record",
         arguments=("--topics", *topics, "-o", str(output), "--flush-period", "0.2",
-                   "--compression", compression),
+                   "--compression", compression, "--writer-nice", str(writer_nice)),
         subscribes=tuple(topics),
         nice=nice,
     )
@@ -358,6 +359,8 @@ class GraphSettings:
     (docs/benchmarks.md, session graphrate); more workers are for more cores.
     recorder_nice: the recorder's niceness (:data:`RECORDER_NICENESS`).
     recorder_compression: the recorder's chunk compression (lz4 | zstd | none).
+    recorder_writer_nice: the niceness of the recorder's writing thread on top
+    of ``recorder_nice`` (endo-record's ``--writer-nice``).
     """
 
     rate: float = 0.25
@@ -372,6 +375,7 @@ class GraphSettings:
     sfs_workers: int = 1
     recorder_nice: int = RECORDER_NICENESS
     recorder_compression: str = "lz4"
+    recorder_writer_nice: int = 0
 
 
 #: The SFS row's process name (worker 0's when there are several).
@@ -461,7 +465,7 @@ def graph_processes(
     }), settings.sfs_workers)
     recorded = [*node_outputs(nodes), CAMERA_INFO, TRUE_DEPTH, TRUE_CAMERA_POSE]
     recorder = recorder_process(recorded, recording, settings.recorder_nice,
-                                settings.recorder_compression)
+                                settings.recorder_compression, settings.recorder_writer_nice)
     subscribers = subscriber_counts([recorder, *nodes], played, settings.listeners)
     return [recorder, *nodes, replay_process(bag, played, settings.rate, subscribers)]
 

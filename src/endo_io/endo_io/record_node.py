@@ -34,9 +34,16 @@ At the end (SIGINT, SIGTERM, a limit) the messages still waiting are taken
 once more, each subscription on its own: one that rclpy refuses (its context
 or handle gone) is logged, the others and the held-back batch are written.
 
-A flush timer closes the current chunk about once a second, so a recorder
-killed with SIGKILL leaves a file that reads up to the last flush (and a bag
-directory whose metadata.yaml counts it). SIGINT and SIGTERM end the
+The node's thread only takes and queues; the messages are checked, framed,
+compressed and written on a thread of its own
+(:class:`endo_io.record_writer.BackgroundWriter`), at ``--writer-nice``
+below the taking, through a queue bounded by ``--buffer-mb``: a disk or a
+writer that falls behind no longer leaves them in the subscription
+histories to overflow, and what the bound refuses is counted and reported
+as lost, with the reason. The writer closes the current chunk about once a
+second (``--flush-period``), so a recorder killed with SIGKILL leaves a file
+that reads up to the last flush (and a bag directory whose metadata.yaml
+counts it). SIGINT and SIGTERM end the
 recording cleanly (summary and footer written), as do ``--max-messages`` and
 ``--max-duration``: SIGINT raises no KeyboardInterrupt inside the writer
 (:func:`endo_io.process.run_node`'s own, for every node). A failed write
@@ -84,6 +91,7 @@ from endo_io.record import (
     seconds_to_ns,
     topics_to_record,
 )
+from endo_io.record_writer import DEFAULT_BUFFER_BYTES, BackgroundWriter
 from endo_io.stamp import NS_PER_S
 from endo_io.taking import NeverExecutedGroup, take_waiting_timed
 
@@ -209,6 +217,22 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="SECONDS",
         help="how often to write buffered messages out as a chunk",
     )
+    parser.add_argument(
+        "--buffer-mb",
+        type=float,
+        default=DEFAULT_BUFFER_BYTES / 2**20,
+        metavar="MB",
+        help="bound of the messages taken but not yet written (MiB); beyond it messages are "
+        "refused and reported as lost",
+    )
+    parser.add_argument(
+        "--writer-nice",
+        type=int,
+        default=0,
+        metavar="N",
+        help="niceness added to the writing thread only (0-19): taking the messages stays at "
+        "the process's priority, so a busy machine delays the writing, not the taking",
+    )
     return parser
 
 
@@ -227,18 +251,24 @@ class RecordNode(Node):
         self._taken_from: dict[str, Any] = {}
         self.order = ReceiveOrder()
         recording.start(self.get_clock().now().nanoseconds)
+        self._writer = BackgroundWriter(recording, max_bytes=int(options.buffer_mb * 2**20),
+                                        nice=options.writer_nice,
+                                        flush_period_s=options.flush_period)
+        self._refused_logged = 0
+        self._undecodable_logged: set[str] = set()
         self.create_timer(options.discovery_period, self._discover)
         if options.take_period > 0:
             self.create_timer(options.take_period, self._take)
-        self.create_timer(options.flush_period, self._flush)
         what = "all topics" if options.all else ", ".join(options.topics)
         self.get_logger().info(f"recording {what} into {options.output}")
         self._discover()
 
     def _discover(self) -> None:
-        if self._recording.limit_reached(self.get_clock().now().nanoseconds):
+        if self._writer_stopped() or self._recording.limit_reached(
+                self.get_clock().now().nanoseconds):
             self._stop()
             return
+        self._log_refused()
         choices = topics_to_record(
             self.get_topic_names_and_types(),
             self._options.topics,
@@ -316,31 +346,45 @@ class RecordNode(Node):
 
     def _write(self, topic: str, data: bytes, receive_ns: int,
                publish_ns: int | None = None) -> bool:
-        """Record one message; False when the recording stops (a limit, a failed write)."""
-        tally = self._recording.report.topics[topic]
-        undecodable = tally.undecodable
-        try:
-            limit_reached = self._recording.write(topic, data, receive_ns, publish_ns)
-        except (BagError, OSError) as error:
-            self._write_failed(error)
-            return False
-        if tally.undecodable == 1 and undecodable == 0:
-            self.get_logger().warning(
-                f"recording undecodable messages on {topic} as received, counting them: "
-                f"{tally.undecodable_reason}"
-            )
-        if limit_reached:
-            self._stop()
-            return False
-        return True
+        """Queue one message for the writer; False when the recording stopped.
 
-    def _flush(self) -> None:
-        if self._stopping:
-            return
-        try:
-            self._recording.flush()
-        except (BagError, OSError) as error:
-            self._write_failed(error)
+        A message the full queue refuses is counted (and logged, see
+        :meth:`_log_refused`); the recording goes on.
+        """
+        if self._writer.put(topic, data, receive_ns, publish_ns):
+            return True
+        return not self._writer_stopped()
+
+    def _writer_stopped(self) -> bool:
+        """Whether the writer stopped (a limit or a failed write); stops the node if so."""
+        state = self._writer.state
+        if state.error is not None:
+            if not self._stopping:
+                self._write_failed(state.error)
+            return True
+        if state.limit:
+            self._stop()
+            return True
+        for topic, tally in self._recording.report.topics.items():
+            if tally.undecodable and topic not in self._undecodable_logged:
+                self._undecodable_logged.add(topic)
+                self.get_logger().warning(
+                    f"recording undecodable messages on {topic} as received, counting them: "
+                    f"{tally.undecodable_reason}"
+                )
+        return False
+
+    def _log_refused(self) -> None:
+        """One line when the write queue starts refusing messages, and again every 100."""
+        refused = sum(self._writer.refused.values())
+        if refused > self._refused_logged and (self._refused_logged == 0
+                                               or refused >= self._refused_logged + 100):
+            self.get_logger().error(
+                f"{refused} messages lost so far: the write queue is full "
+                f"({self._options.buffer_mb:g} MB, --buffer-mb); the disk or the writer "
+                f"thread is slower than the data ({dict(self._writer.refused)})"
+            )
+            self._refused_logged = refused
 
     def _write_failed(self, error: Exception) -> None:
         # A full disk or a vanished file: stop, keep what is on disk.
@@ -359,6 +403,8 @@ class RecordNode(Node):
             stopped = self._stopping
             self._take(final=True)
             self._stopping = stopped
+        self._writer.close()  # writes what is queued; every refusal counted into the report
+        self._writer_stopped()  # a write that failed while draining: logged, exit code 1
         try:
             report = self._recording.close()
         except (BagError, OSError) as error:
@@ -389,6 +435,10 @@ def _check_options(options: argparse.Namespace) -> None:
         raise RecordOptionError(f"--max-messages must be >= 1, got {options.max_messages}")
     if options.queue_depth < 1:
         raise RecordOptionError(f"--queue-depth must be >= 1, got {options.queue_depth}")
+    if not options.buffer_mb > 0:
+        raise RecordOptionError(f"--buffer-mb must be > 0, got {options.buffer_mb}")
+    if not 0 <= options.writer_nice <= 19:
+        raise RecordOptionError(f"--writer-nice must be in 0-19, got {options.writer_nice}")
     if not (options.discovery_period > 0 and options.flush_period > 0):
         raise RecordOptionError("--discovery-period and --flush-period must be > 0")
     if options.take_period < 0:

@@ -5,6 +5,7 @@ Review of issue 15's batched takes.
 
 from __future__ import annotations
 
+import threading
 import time
 
 import pytest
@@ -186,3 +187,66 @@ def test_take_period_0_records_each_message_in_its_own_callback(tmp_path):
     assert [msg.data for _, msg in written] == [f"c{k}" for k in range(5)]
     times = [t for t, _ in written]
     assert times == sorted(times)
+
+
+class _StalledDisk(BagWriter):
+    """A BagWriter whose writes wait until ``go`` is set (a disk that stalls)."""
+
+    def __init__(self, path, go):
+        super().__init__(path, compression="none")
+        self._go = go
+
+    def write(self, topic, data, log_time_ns, publish_time_ns=None):
+        self._go.wait()
+        super().write(topic, data, log_time_ns, publish_time_ns)
+
+
+@pytest.mark.ros
+def test_a_stalled_disk_does_not_stop_the_taking_and_what_the_queue_refuses_is_reported(
+        tmp_path):
+    # The writer thread waits on the disk; the node keeps taking every 20 ms. Its queue
+    # (--buffer-mb, here ~200 bytes) holds what it can; the rest is refused, counted,
+    # logged once and reported as lost; everything queued is written once the disk goes on.
+    output = tmp_path / "stalled.mcap"
+    topic = "/rn_test/s"
+    options = build_parser().parse_args(
+        ["--topics", topic, "-o", str(output), "--buffer-mb", str(200 / 2**20)])
+    _check_options(options)
+    go = threading.Event()
+    rclpy.init()
+    try:
+        peer = Node("record_node_test_peer_s")
+        publisher = peer.create_publisher(String, topic, reliable_qos(100))
+        recording = Recording(_StalledDisk(output, go))
+        recorder = RecordNode(recording, options)
+        executor = SingleThreadedExecutor()
+        executor.add_node(peer)
+        executor.add_node(recorder)
+        deadline = time.monotonic() + 10.0
+        while publisher.get_subscription_count() == 0:
+            assert time.monotonic() < deadline, "recorder did not subscribe"
+            executor.spin_once(timeout_sec=0.05)
+        for k in range(60):  # ~28 bytes of CDR each: ~7 fit the queue
+            publisher.publish(String(data=f"stalled message {k:03d}"))
+        refused = recorder._writer.refused
+        settled = time.monotonic()
+        while time.monotonic() - settled < 0.5:  # every message taken: the count settles
+            before = sum(refused.values())
+            executor.spin_once(timeout_sec=0.05)
+            if sum(refused.values()) != before or before == 0:
+                settled = time.monotonic()
+            assert time.monotonic() < deadline, dict(refused)
+        lost = sum(refused.values())
+        assert 40 <= lost < 60, lost  # the queue took some, the stall refused the rest
+        go.set()
+        executor.shutdown()
+        recorder.close()
+        assert recorder.exit_code == 0
+    finally:
+        rclpy.try_shutdown()
+    report = recording.report
+    assert report.topics[topic].received == 60 and report.lost == lost
+    with BagReader(output) as reader:
+        data = [deserialize(m).data for m in reader.messages()]
+    assert len(data) == 60 - lost and data == sorted(data)  # what was queued, in order
+    assert data[0] == "stalled message 000"
