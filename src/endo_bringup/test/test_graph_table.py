@@ -80,7 +80,7 @@ def test_command_lines_come_from_the_table(tmp_path: Path) -> None:
     assert recorder == [
         "--topics", *outputs, topics.CAMERA_INFO, topics.TRUE_DEPTH, topics.TRUE_CAMERA_POSE,
         "-o", str(tmp_path / "graph.mcap"),
-        "--flush-period", "0.2", "--compression", "lz4",
+        "--flush-period", "0.2", "--compression", "lz4", "--writer-nice", "0",
     ]  # fmt: skip
     # the recorder yields the CPU to the frames' path; every other process runs as its parent
     assert {p.name: p.nice for p in processes} == {
