@@ -397,13 +397,17 @@ class RecordNode(Node):
         self._stopping = True
         self.context.try_shutdown()
 
+    def stop_writer(self) -> None:
+        """Write what the writer thread still has queued and end it (idempotent)."""
+        self._writer.close()
+
     def close(self) -> None:
         """Write what still waits, finalise the bag and print what was recorded."""
         if self._taken_group is not None and self.exit_code == 0:
             stopped = self._stopping
             self._take(final=True)
             self._stopping = stopped
-        self._writer.close()  # writes what is queued; every refusal counted into the report
+        self.stop_writer()  # writes what is queued; every refusal counted into the report
         self._writer_stopped()  # a write that failed while draining: logged, exit code 1
         try:
             report = self._recording.close()
@@ -470,6 +474,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         code = run_node(factory, ros_args)
     finally:
+        for node in nodes:  # the writer thread done before the recording closes (idempotent)
+            node.stop_writer()
         recording.close()  # done by the node's close() unless it was never created (idempotent)
     return code
 
