@@ -206,7 +206,8 @@ def _run(args: argparse.Namespace, workers: StartedWorkers | None) -> int:
         return report_error(PROGRAM, error)
     accuracy = None
     if report.frames_shaded and not report.interrupted and not report.write_failure:
-        accuracy = score_recording(options.output)
+        # scored as it was written; read back only when the truth came late
+        accuracy = report.accuracy or score_recording(options.output)
     print(format_report(report, accuracy))
     if accuracy is not None and accuracy.poses is not None:
         mismatch = registration_mismatch(options.bag, load_settings(options.params).T_world_tracker)

@@ -137,6 +137,10 @@ class OutputBag:
             given, as rosbag2's MCAP plugin does by default (``noChunkCRC``):
             zlib's CRC over ~4 MB per 640×480 frame is CPU the two cores
             need for the solve (docs/process.md, "Output").
+        tap: called with (topic, CDR bytes) of every message as it is handed
+            to the writer, in the file's order (``endo-process`` scores its
+            output with it, :class:`endo_process.accuracy.RecordingScorer`,
+            instead of reading the file back).
     """
 
     def __init__(
@@ -147,9 +151,11 @@ class OutputBag:
         *,
         threaded: bool = True,
         crcs: bool = True,
+        tap: Callable[[str, bytes], None] | None = None,
     ) -> None:
         writer = BagWriter(path, compression=compression, crcs=crcs)
         self.path = Path(path)
+        self._tap = tap
         self.counts: Counter[str] = Counter()
         self._held: list[tuple[int, int, str, bytes]] = []
         self._order = 0
@@ -228,24 +234,28 @@ class OutputBag:
         """Write the held messages with log time <= ``until_ns`` (all when None)."""
         while self._held and (until_ns is None or self._held[0][0] <= until_ns):
             log_time, _, topic, data = heapq.heappop(self._held)
-            self._writer.call(self._bag.write, topic, data, log_time)
-            self.counts[topic] += 1
+            self._hand(topic, data, log_time)
+
+    def _hand(self, topic: str, data: bytes, log_time_ns: int) -> None:
+        """One message to the writer (and the tap)."""
+        self._writer.call(self._bag.write, topic, data, log_time_ns)
+        self.counts[topic] += 1
+        if self._tap is not None:
+            self._tap(topic, data)
 
     def write(self, topic: str, message: Any, log_time_ns: int) -> None:
         """Write one frame output now, after every held message that is not later."""
         if topic not in self.counts:
             self._writer.call(self._bag.add_topic, topic, msgtype_of(message))
         self.release(log_time_ns)
-        self._writer.call(self._bag.write, topic, serialize(message), log_time_ns)
-        self.counts[topic] += 1
+        self._hand(topic, serialize(message), log_time_ns)
 
     def write_cdr(self, topic: str, msgtype: str, data: bytes, log_time_ns: int) -> None:
         """Write one frame output given as CDR bytes of ``msgtype``, as :meth:`write` does."""
         if topic not in self.counts:
             self._writer.call(self._bag.add_topic, topic, msgtype)
         self.release(log_time_ns)
-        self._writer.call(self._bag.write, topic, data, log_time_ns)
-        self.counts[topic] += 1
+        self._hand(topic, data, log_time_ns)
 
     def write_image(
         self, topic: str, array: np.ndarray, encoding: str, stamp_ns: int, frame_id: str
@@ -259,9 +269,7 @@ class OutputBag:
         if topic not in self.counts:
             self._writer.call(self._bag.add_topic, topic, IMAGE_TYPE)
         self.release(stamp_ns)
-        data = array_to_image_cdr(array, encoding, stamp_ns, frame_id)
-        self._writer.call(self._bag.write, topic, data, stamp_ns)
-        self.counts[topic] += 1
+        self._hand(topic, array_to_image_cdr(array, encoding, stamp_ns, frame_id), stamp_ns)
 
     def flush(self) -> None:
         """Close the current chunk so that it survives a crash (in the writer thread, in turn)."""

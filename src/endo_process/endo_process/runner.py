@@ -57,6 +57,7 @@ from endo_io.pose_buffer import PoseBuffer
 from endo_io.progress import Progress
 from endo_io.stamp import NS_PER_S, ns_to_stamp, stamp_to_ns
 from endo_io.tf import StampedTransform, static_transforms
+from endo_process.accuracy import Accuracy, RecordingScorer
 from endo_process.errors import ImageStampBackError, ProcessInputError
 from endo_process.flow_stage import FlowStage, offline_flow_options
 from endo_process.inputs import (
@@ -131,6 +132,11 @@ class ProcessReport:
     do not decode as their topic's type, per topic (``first_undecodable``:
     the first one's error); ``reasons``: the first one-line message of each
     cause counted in ``dropped``, ``tracker_rejected`` and ``flow_dropped``.
+    ``accuracy``: the output against the ground truth the input carries,
+    scored as it was written (:class:`endo_process.accuracy.RecordingScorer`;
+    empty without truth); None when the run stopped early (a stop, a write
+    failure) or the truth came after the outputs of its frames, so that the
+    file is to be scored with :func:`endo_process.accuracy.score_recording`.
     ``write_failure``: the output writer's error when a write failed (a full
     disk, a file size limit): the run stopped there, ``written`` counts what
     the file holds and ``lost`` the messages that did not reach it.
@@ -171,6 +177,7 @@ class ProcessReport:
     output: Path | None = None
     write_failure: str = ""
     lost: int = 0
+    accuracy: Accuracy | None = None
 
     def count(self, counter: Counter[str], cause: str, reason: str) -> None:
         """Count one dropped item under ``cause``; keep the first ``reason`` given for it."""
@@ -551,8 +558,11 @@ def process_bag(
             copied = {name: reader.topics[name] for name in inputs.ground_truth}
         if options.overwrite:  # only now: every input has been checked
             options.output.unlink(missing_ok=True)
+        # The output scored as it is written, not read back (with ground truth only).
+        scorer = RecordingScorer() if copied else None
         output = OutputBag(options.output, options.compression, copied,
-                           threaded=pool.worker_count == 0, crcs=options.chunk_crcs)  # fmt: skip
+                           threaded=pool.worker_count == 0, crcs=options.chunk_crcs,
+                           tap=None if scorer is None else scorer.add)  # fmt: skip
         world_frame = str(settings.flow["world_frame"])
         poses = iter_camera_poses(iter_tracker_poses(streams), settings, handeye, report)
         first_pose = next(poses, None)
@@ -690,6 +700,11 @@ def process_bag(
     if not report.write_failure:  # a full disk would refuse the PLY too
         _export_ply(flow, options, report)
     report.interrupted = report.interrupted or stop.is_set()
+    if not report.interrupted and not report.write_failure:
+        if scorer is None:
+            report.accuracy = Accuracy()
+        elif scorer.complete:
+            report.accuracy = scorer.result()
     report.written = output.on_disk if report.write_failure else Counter(output.counts)
     report.lost = output.lost
     report.poses_written = report.written[topics.CAMERA_POSE]

@@ -23,7 +23,7 @@ import pytest
 from endo_io import topics
 from endo_io.bag import BagReader
 from endo_io.bag.streams import read_depth_frames
-from endo_process.accuracy import messages_at, read_scale_stream, score_recording
+from endo_process.accuracy import Accuracy, messages_at, read_scale_stream, score_recording
 from endo_process.report import headline, write_report_figure
 from endo_process.runner import LOOP_STAGES, ProcessOptions, ProcessReport, process_bag
 from endo_process.summary import summary_document
@@ -147,8 +147,30 @@ def test_points_as_live_and_the_map_at_full_resolution(
     assert fused > 5 * len(vertices)
 
 
+def assert_same_accuracy(streamed: Accuracy, read_back: Accuracy) -> None:
+    """Every figure of two scorings equal, to the bit."""
+    assert streamed.truth_frames == read_back.truth_frames
+    for name in ("relative", "oracle", "metric", "cloud_rms_m"):
+        assert getattr(streamed, name) == getattr(read_back, name), name
+    assert streamed.oracle_scale == read_back.oracle_scale
+    assert streamed.poses is not None and read_back.poses is not None
+    assert (streamed.poses.compared, streamed.poses.missing) == (
+        read_back.poses.compared, read_back.poses.missing)  # fmt: skip
+    np.testing.assert_array_equal(streamed.poses.position_mm, read_back.poses.position_mm)
+    np.testing.assert_array_equal(streamed.poses.rotation_deg, read_back.poses.rotation_deg)
+    assert streamed.scale is not None and read_back.scale is not None
+    np.testing.assert_array_equal(streamed.scale.stamps_ns, read_back.scale.stamps_ns)
+    np.testing.assert_array_equal(streamed.scale.scale, read_back.scale.scale)
+    assert streamed.true_positions is not None and read_back.true_positions is not None
+    for mine, theirs in zip(streamed.true_positions, read_back.true_positions, strict=True):
+        np.testing.assert_array_equal(mine, theirs)
+
+
 def test_accuracy_against_the_ground_truth(full_run: tuple[ProcessReport, Path]) -> None:
     accuracy = score_recording(full_run[1])
+    # endo-process scored its output as it wrote it: the same figures as reading it back
+    assert full_run[0].accuracy is not None
+    assert_same_accuracy(full_run[0].accuracy, accuracy)
     assert len(accuracy.relative) == 3
     abs_rel = [e.abs_rel for e in accuracy.relative.values()]
     assert np.mean(abs_rel) <= 0.08 and max(abs_rel) <= 0.085, abs_rel

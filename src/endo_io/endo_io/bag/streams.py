@@ -234,7 +234,15 @@ class PoseStreamCollector:
             MessageDeserializationError: the payload is not a PoseStamped.
         """
         T, stamp_ns = pose_to_matrix(deserialize(message))
-        T[:3, 3] *= self.metres_per_unit
+        self.add_transform(stamp_ns, T)
+
+    def add_transform(self, stamp_ns: int, T: np.ndarray) -> None:
+        """Keep one pose already converted: (4, 4) float64 in the messages' units (scaled here).
+
+        ``T`` is taken over (scaled in place when ``metres_per_unit`` != 1).
+        """
+        if self.metres_per_unit != 1.0:
+            T[:3, 3] *= self.metres_per_unit
         self._stamps.append(stamp_ns)
         self._poses.append(T)
 

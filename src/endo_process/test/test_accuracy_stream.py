@@ -1,0 +1,67 @@
+"""RecordingScorer: the figures of known depth errors, and a truth that comes late."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from endo_io import topics
+from endo_io.bag import BagWriter
+from endo_io.image import array_to_image, array_to_image_cdr
+from endo_process.accuracy import RecordingScorer, score_recording
+
+STAMP = 1_000_000_000
+
+
+def truth_and_estimate() -> tuple[np.ndarray, np.ndarray]:
+    """A 40x50 true depth (m) and a relative estimate 10x too small, 5 % too deep on one half."""
+    truth = np.linspace(0.02, 0.06, 40 * 50, dtype=np.float32).reshape(40, 50)
+    estimate = truth / np.float32(10.0)
+    estimate[:, 25:] *= np.float32(1.05)
+    return truth, estimate
+
+
+def image(depth: np.ndarray, stamp_ns: int = STAMP) -> bytes:
+    return array_to_image_cdr(depth, "32FC1", stamp_ns, "endoscope_optical_frame")
+
+
+def test_truth_first_scores_the_frame_as_the_file_scorer_does(tmp_path: Path) -> None:
+    truth, estimate = truth_and_estimate()
+    metric = estimate * np.float32(10.0)
+    scorer = RecordingScorer()
+    scorer.add(topics.TRUE_DEPTH, image(truth))
+    scorer.add(topics.DEPTH_RELATIVE, image(estimate))
+    scorer.add(topics.DEPTH, image(metric))
+    assert scorer.complete
+    streamed = scorer.result()
+    assert streamed.truth_frames == 1
+    # half the pixels 5 % too deep: the unscaled metric error is their mean, 2.5 %
+    assert streamed.metric[STAMP].abs_rel == pytest.approx(0.025, rel=1e-5)
+    # one scale for the sequence: between the two halves' (ln-median over the pixels)
+    assert 10.0 / 1.05 <= streamed.oracle_scale <= 10.0
+    assert streamed.oracle[STAMP].abs_rel == pytest.approx(0.0244, abs=2e-4)
+    # the same messages in a file, read back: the same figures
+    path = tmp_path / "run.mcap"
+    with BagWriter(path) as writer:
+        for topic, depth in ((topics.DEPTH_RELATIVE, estimate), (topics.DEPTH, metric),
+                             (topics.TRUE_DEPTH, truth)):  # fmt: skip
+            writer.write_message(topic, array_to_image(depth, "32FC1", STAMP, "f"), STAMP)
+    read_back = score_recording(path)
+    assert read_back.relative == streamed.relative and read_back.metric == streamed.metric
+    assert read_back.oracle_scale == streamed.oracle_scale
+
+
+def test_a_truth_after_the_estimates_of_its_stamp_is_flagged() -> None:
+    truth, estimate = truth_and_estimate()
+    scorer = RecordingScorer()
+    scorer.add(topics.DEPTH_RELATIVE, image(estimate))
+    scorer.add(topics.TRUE_DEPTH, image(truth))
+    assert not scorer.complete  # the file is to be scored by score_recording instead
+    # another stamp's truth after this estimate is no such case
+    later = RecordingScorer()
+    later.add(topics.DEPTH_RELATIVE, image(estimate))
+    later.add(topics.TRUE_DEPTH, image(truth, STAMP + 1))
+    assert later.complete and later.result().truth_frames == 1
+    assert later.result().relative == {}
