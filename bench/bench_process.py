@@ -109,6 +109,10 @@ def one_run(args: argparse.Namespace) -> None:
     """One configuration in this process; prints its figures as one JSON line."""
     import endo_process
 
+    if (Path(endo_process.__file__).parent / "memory.py").exists():  # not in an older tree
+        from endo_process.memory import reuse_freed_memory
+
+        reuse_freed_memory()  # as endo-process's main() does
     workers = None
     # As endo-process does: the workers first, importing beside this process. An
     # older tree (--reference) has no worker_start (looked up by file: the editable
