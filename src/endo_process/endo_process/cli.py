@@ -34,7 +34,7 @@ from typing import TYPE_CHECKING
 from endo_io import topics
 from endo_io.cli import EXIT_BAD_INPUT, refuse_existing, report_error
 from endo_io.errors import Endo3dError
-from endo_process.memory import reuse_freed_memory
+from endo_process.runtime import one_blas_thread, reuse_freed_memory
 from endo_process.worker_start import StartedWorkers, start_workers
 
 if TYPE_CHECKING:
@@ -179,8 +179,9 @@ def exit_status(report: ProcessReport) -> int:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Console entry point of ``endo-process``."""
+    one_blas_thread()  # before numpy is imported (endo_process.runtime)
     args = build_parser().parse_args(argv)
-    reuse_freed_memory()  # fewer page faults per frame (endo_process.memory)
+    reuse_freed_memory()  # fewer page faults per frame (endo_process.runtime)
     # The shading workers first: they import their modules beside this
     # process's own imports below (~2 s), not after them.
     workers = start_workers(args.jobs) if args.jobs > 1 else None

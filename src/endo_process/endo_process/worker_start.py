@@ -20,7 +20,7 @@ from dataclasses import dataclass, field
 from multiprocessing.context import SpawnProcess
 from typing import Any
 
-from endo_process.memory import reuse_freed_memory
+from endo_process.runtime import reuse_freed_memory
 
 
 @dataclass
@@ -59,7 +59,7 @@ class StartedWorkers:
 def _run(inbox: Any, outbox: Any) -> None:
     """Worker process entry: ignore SIGINT, import the shading modules, then serve."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent decides when to stop
-    reuse_freed_memory()  # before the frames' arrays: endo_process.memory
+    reuse_freed_memory()  # before the frames' arrays: endo_process.runtime
     from endo_process.worker import serve  # the heavy imports, beside the parent's
 
     serve(inbox, outbox)

@@ -1,4 +1,4 @@
-"""endo_process.memory: freed frame-sized arrays are reused, not faulted in again."""
+"""endo_process.runtime: freed frame-sized arrays are reused, not faulted in again."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import sys
 CHURN = """
 import resource, sys
 import numpy as np
-from endo_process.memory import reuse_freed_memory
+from endo_process.runtime import reuse_freed_memory
 if sys.argv[1] == "tuned":
     assert reuse_freed_memory()
 def faults():
