@@ -30,6 +30,18 @@ CRCs are stored, default not: endo-process's defaults) and ``:cN``
 (``--cloud-decimation N``, default: the parameter file's, as live),
 e.g. ``--configs 0.5:2,0.5:2:lz4,0.5:2:lz4:crc,0.5:2:none:c4``.
 
+``--command`` times what a user times instead: the ``endo-process`` command
+itself, start to exit (imports, set-up, the loop, scoring the output against
+the ground truth when the recording carries it, the summary), on a long
+recording (``--bag``, e.g. the 60 s colon render), with the recording's true
+calibrations beside it (``.inverse_response.npy``, ``.light_map.npy``,
+``.ground_truth.yaml``: :func:`soak._setup`, as bench_graph builds them), at
+``--configs``' solve scales and jobs, alternating with ``--reference``'s tree
+if given; the output is deleted after each run. It reports wall seconds, ×
+real time over the whole command, the frame loop's (from ``--summary-json``),
+CPU seconds user + system of the command and its workers (``os.wait4``), minor
+page faults, and the accuracy figures (which must not change).
+
 Run by hand: ``.venv/bin/python bench/bench_process.py [--rounds 2] [--bag B]``;
 prints Markdown for docs/benchmarks.md ("endo-process").
 """
@@ -109,10 +121,10 @@ def one_run(args: argparse.Namespace) -> None:
     """One configuration in this process; prints its figures as one JSON line."""
     import endo_process
 
-    if (Path(endo_process.__file__).parent / "memory.py").exists():  # not in an older tree
-        from endo_process.memory import reuse_freed_memory
+    if (Path(endo_process.__file__).parent / "runtime.py").exists():  # not in an older tree
+        from endo_process.runtime import reuse_freed_memory
 
-        reuse_freed_memory()  # as endo-process's main() does
+        reuse_freed_memory()  # as endo-process's main() does (one_blas_thread: main())
     workers = None
     # As endo-process does: the workers first, importing beside this process. An
     # older tree (--reference) has no worker_start (looked up by file: the editable
@@ -263,6 +275,92 @@ def corrected_writing_table(bag: Path, rounds: int) -> list[str]:
     return lines
 
 
+def command_runs(args: argparse.Namespace) -> None:
+    """--command: the endo-process command, start to exit, on a long recording; prints Markdown."""
+    from soak import _setup
+
+    work = Path(tempfile.mkdtemp(prefix="bench_process_command_", dir=args.work))
+    configs = [Config.parse(c) for c in args.configs.split(",")]
+    trees = ["this tree"] + (["reference"] if args.reference else [])
+    runs = [(tree, config) for config in configs for tree in trees]
+    results: dict[tuple[str, Config], list[dict[str, Any]]] = {r: [] for r in runs}
+    loads = [load()]
+    for round_index in range(args.rounds):
+        for tree, config in runs if round_index % 2 == 0 else runs[::-1]:
+            photometric, handeye, params = _setup(work, config.scale, args.bag)
+            env = dict(os.environ)
+            if tree == "reference":
+                env["PYTHONPATH"] = reference_path(args.reference)
+            out, summary = work / "out.mcap", work / "summary.json"
+            argv = [sys.executable, "-c",
+                    "import sys; from endo_process.cli import main; sys.exit(main())",
+                    str(args.bag), "-o", str(out), "--calibration", str(photometric),
+                    "--handeye", str(handeye), "--params", str(params),
+                    "--solve-scale", f"{config.scale:g}", "--jobs", str(config.jobs), "-q",
+                    "--summary-json", str(summary)]  # fmt: skip
+            start = time.perf_counter()
+            process = subprocess.Popen(argv, env=env, stdout=subprocess.DEVNULL)
+            _, status, usage = os.wait4(process.pid, 0)
+            wall = time.perf_counter() - start
+            process.returncode = os.waitstatus_to_exitcode(status)
+            if process.returncode != 0:
+                raise SystemExit(f"endo-process exited with {process.returncode}")
+            document = json.loads(summary.read_text())
+            out.unlink()
+            speed, accuracy = document["speed"], document["accuracy"] or {}
+            row = {
+                "wall_s": wall, "recording_s": speed["recording_seconds"],
+                "loop_s": speed["seconds"], "setup_s": speed["setup_seconds"],
+                "user_s": usage.ru_utime, "sys_s": usage.ru_stime, "minflt": usage.ru_minflt,
+                "solve_ms": speed["median_solve_ms"],
+                "accuracy": {k: accuracy.get(k) for k in (
+                    "relative_abs_rel_mean", "metric_mae_m_mean", "metric_abs_rel_mean",
+                    "cloud_rms_m_mean", "oracle_scale")},
+            }  # fmt: skip
+            results[(tree, config)].append(row)
+            print(f"round {round_index + 1} {tree} {config.label}: whole {wall:.1f} s "
+                  f"({row['recording_s'] / wall:.2f}x), loop {row['loop_s']:.1f} s, CPU "
+                  f"{row['user_s']:.1f} + {row['sys_s']:.1f} s, {row['minflt']} minor faults, "
+                  f"load {load()}", flush=True)  # fmt: skip
+        loads.append(load())
+    frames = args.bag.name
+    print()
+    print(f"Machine: {machine()}; {datetime.datetime.now(datetime.UTC):%Y-%m-%d %H:%M} UTC; "
+          f"bag {frames}; the endo-process command start to exit; load average before/after "
+          f"each round: {' | '.join(loads)}")  # fmt: skip
+    print()
+    label = "tree | " if args.reference else ""
+    print(f"| {label}solve_scale | jobs | whole command s (× real time) | frame loop s "
+          "(× real time) | after the loop s | CPU s user + system | minor page faults | "
+          "median solve ms |")
+    print("|---" * (7 + bool(label)) + "|")
+    for tree, config in runs:
+        rows = results[(tree, config)]
+        whole = ", ".join(f"{r['wall_s']:.1f} ({r['recording_s'] / r['wall_s']:.2f})"
+                          for r in rows)  # fmt: skip
+        loop = ", ".join(f"{r['loop_s']:.1f} ({r['recording_s'] / r['loop_s']:.2f})"
+                         for r in rows)  # fmt: skip
+        after = ", ".join(f"{r['wall_s'] - r['loop_s'] - r['setup_s']:.1f}" for r in rows)
+        cpu = ", ".join(f"{r['user_s']:.1f} + {r['sys_s']:.1f}" for r in rows)
+        faults = ", ".join(f"{r['minflt'] / 1e6:.2f} M" for r in rows)
+        solve = ", ".join(f"{r['solve_ms']:.1f}" for r in rows)
+        first = f"{tree} | " if label else ""
+        print(f"| {first}{config.label} | {whole} | {loop} | {after} | {cpu} | {faults} | "
+              f"{solve} |")
+    print()
+    print("Accuracy of each run (relative AbsRel, metric MAE mm / AbsRel, cloud RMS mm, "
+          "oracle scale):")
+    for tree, config in runs:
+        for r in results[(tree, config)]:
+            a = r["accuracy"]
+            if a["relative_abs_rel_mean"] is None:
+                print(f"- {tree} {config.label}: no ground truth")
+                continue
+            print(f"- {tree} {config.label}: {a['relative_abs_rel_mean']:.4f}, "
+                  f"{a['metric_mae_m_mean'] * 1e3:.2f} / {a['metric_abs_rel_mean']:.4f}, "
+                  f"{a['cloud_rms_m_mean'] * 1e3:.2f}, {a['oracle_scale']:.6g}")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--bag", type=Path, default=BAGS / "phantom_colon.mcap")
@@ -276,6 +374,11 @@ def main() -> None:
     parser.add_argument("--writing-only", action="store_true", help="only the writing table")
     parser.add_argument("--corrected-only", action="store_true",
                         help="only the corrected image's writing table (32FC1 vs 16UC1)")
+    parser.add_argument("--command", action="store_true",
+                        help="time the endo-process command start to exit on --bag (a long "
+                        "render with its true calibrations beside it), scoring included")
+    parser.add_argument("--work", type=Path, default=None,
+                        help="--command: directory for the outputs (deleted after each run)")
     parser.add_argument("--one", action="store_true", help=argparse.SUPPRESS)
     for name in ("out", "photometric", "handeye", "params"):
         parser.add_argument(f"--{name}", type=Path, help=argparse.SUPPRESS)
@@ -288,6 +391,9 @@ def main() -> None:
     args = parser.parse_args()
     if args.one:
         one_run(args)
+        return
+    if args.command:
+        command_runs(args)
         return
     if args.corrected_only:
         print(f"Writing one frame's 640×480 corrected image (load {load()}):\n")
