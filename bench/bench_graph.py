@@ -68,7 +68,7 @@ from soak import _setup as true_calibrations
 
 from endo_bringup.dds_profile import with_large_frame_profile
 from endo_bringup.demo import GRAPH_SOLVE_SCALE, graph_settings_for
-from endo_bringup.graph import GraphProcess, run_live_graph
+from endo_bringup.graph import GraphProcess, recorder_lost, run_live_graph
 from endo_bringup.graph_monitor import (
     LISTEN_MODES,
     GraphFigures,
@@ -273,6 +273,9 @@ def run_once(bag: Path, configuration: Configuration, rate: float, work: Path,
         result.recording_figures = graph_figures(run.processes, monitor, sampler, run.played,
                                                  run.recording, timing="recording")
         result.offsets = _offsets(monitor, list(run.processes), run.recording)
+    lost = recorder_lost(run.log_dir)
+    if lost:  # the counts above are the recording's: these frames are the recorder's loss
+        print(f"   endo-record {lost}", flush=True)
     bad = {name: code for name, code in run.return_codes.items() if code != 0}
     if bad:
         print(f"  exit codes {bad}; logs in {run.log_dir}", flush=True)

@@ -66,6 +66,7 @@ from endo_bringup.graph import (
     ground_truth_of,
     node_outputs,
     play_and_record,
+    recorder_lost,
     recorder_process,
     replay_process,
     run_live_graph,
@@ -358,6 +359,9 @@ class GraphReport:
         per_frame = {t for p in self.run.processes for t in p.per_frame_outputs}
         skipped = {} if self.figures is None else {s.stage: s.skipped for s in self.figures.stages}
         problems = frame_shortfalls(stage_counts(self.run, self.counts), per_frame, skipped)
+        lost = recorder_lost(self.run.log_dir)
+        if lost:  # the frames above missing from the recording, not from the stage
+            problems.append(f"the recorder {lost}")
         if self.accuracy is not None:
             problems += accuracy_shortfalls(self.accuracy)
         if not self.depth_errors and self._skipped_frames():

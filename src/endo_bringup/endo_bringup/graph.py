@@ -267,6 +267,22 @@ def graph_nodes(
     ]
 
 
+def recorder_lost(log_dir: Path) -> str:
+    """The recorder's own ``lost:`` summary line from its log, stripped ("" when it lost nothing).
+
+    endo-record counts what it received but could not write (its write queue
+    full, a failed write: :class:`endo_io.record.RecordReport`): a run's
+    counts read from the recording would otherwise blame those frames on the
+    stage whose output they were.
+    """
+    try:
+        text = (log_dir / f"{RECORDER}.log").read_text(errors="replace")
+    except OSError:
+        return ""
+    lines = [line.strip() for line in text.splitlines() if line.strip().startswith("lost: ")]
+    return lines[-1] if lines else ""
+
+
 def recorder_process(
     topics: Sequence[str], output: Path, nice: int = RECORDER_NICENESS,
     compression: str = "lz4", writer_nice: int = 0,

@@ -161,3 +161,22 @@ def test_round_trip_through_the_process_group(tmp_path: Path) -> None:
     }
     assert "subscribed to /tool/pose" in (tmp_path / "logs/round_trip/endo-record.log").read_text()
     assert np.all([t.sent_bytes > 0 for t in result.topics.values()])
+
+
+def test_the_recorders_own_loss_line_is_read_from_its_log(tmp_path):
+    # a run's counts come from the recording: what the recorder could not write must be
+    # named as its loss, not a stage's (the line is endo_io.record's own summary)
+    from endo_bringup.graph import RECORDER, recorder_lost
+    from endo_io.record import RecordedTopic, RecordReport
+
+    report = RecordReport(topics={"/a": RecordedTopic("std_msgs/msg/String", messages=7,
+                                                      received=10)},
+                          write_error="3 refused: the write queue held 512 MB (--buffer-mb)")
+    (tmp_path / f"{RECORDER}.log").write_text(
+        "endo-record: wrote x.mcap\n" + "\n".join(report.summary_lines()) + "\n")
+    assert recorder_lost(tmp_path) == (
+        "lost: 3 of 10 received messages are not in the file "
+        "(3 refused: the write queue held 512 MB (--buffer-mb))")
+    (tmp_path / f"{RECORDER}.log").write_text("\n".join(RecordReport().summary_lines()))
+    assert recorder_lost(tmp_path) == ""
+    assert recorder_lost(tmp_path / "missing") == ""
