@@ -98,14 +98,14 @@ def global_shift(
         return 0.0
     # Every other node in each direction: the median of a quarter of the
     # nodes is as good a global shift and four times cheaper.
-    ratios = kernels.log_ratio_samples(
+    median = kernels.median_log_ratio(
         np.asarray(intensity, dtype=np.float64), np.asarray(valid, dtype=bool),
         np.asarray(previous, dtype=np.float64),
         np.asarray(previous_intensity, dtype=np.float64), 2,
     )
-    if ratios.size == 0:
+    if not np.isfinite(median):
         return 0.0
-    return -0.5 * float(np.median(ratios))
+    return -0.5 * float(median)
 
 
 def solve_near_light(

@@ -8,12 +8,14 @@ in endo_sfs.synthetic; the depth truth is analytic.
 from __future__ import annotations
 
 import functools
+import math
 
 import numpy as np
 import pytest
 
 from endo_sfs.errors import SfsInputError
 from endo_sfs.evaluation import depth_error
+from endo_sfs.near_light import global_shift
 from endo_sfs.options import SfsOptions
 from endo_sfs.relative_depth import reconstruct, solve
 from endo_sfs.synthetic import (
@@ -232,3 +234,29 @@ def test_a_poorly_predicted_order_switches_the_chain_to_sweeps_and_back():
     # Ordered, then sweeps until the retry, then ordered again.
     assert modes[0] and not modes[1] and modes[RETRY_FIRST_PASS]
     assert not any(modes[1:RETRY_FIRST_PASS])
+
+
+@pytest.mark.parametrize("count", [0, 1, 2, 7, 1000, 1001])
+def test_global_shift_is_minus_half_the_median_log_ratio(count):
+    # The shift logs only the middle ratio(s): the same value, bit for bit,
+    # as the median of every logged ratio over the same nodes.
+    rng = np.random.default_rng(count)
+    shape = (40, 50)
+    valid = np.zeros(shape, dtype=bool)
+    valid.ravel()[rng.choice(valid.size, size=count, replace=False)] = True
+    previous = rng.normal(-1.0, 0.1, shape)
+    intensity = rng.uniform(0.2, 2.0, shape)
+    before = intensity * rng.uniform(0.9, 1.1, shape)
+    # nodes that must not count: unknown before, or not positive and finite
+    previous[0, ::3] = np.nan
+    intensity[1, ::4] = 0.0
+    before[2, ::5] = np.inf
+    every = np.ones(shape, dtype=bool)
+    shift = global_shift(previous, every & valid, intensity, before)
+    sampled = (valid & np.isfinite(previous) & (intensity > 0) & (before > 0)
+               & np.isfinite(intensity) & np.isfinite(before))[::2, ::2]
+    # math.log is the C library's logarithm, as the kernels' np.log
+    ratios = [math.log(r) for r in intensity[::2, ::2][sampled] / before[::2, ::2][sampled]]
+    expected = -0.5 * float(np.median(ratios)) if ratios else 0.0
+    assert shift == expected
+    assert global_shift(previous, valid, intensity, None) == 0.0
