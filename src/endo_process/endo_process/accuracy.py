@@ -22,6 +22,9 @@ an error a second way.
 
 from __future__ import annotations
 
+from collections import deque
+from collections.abc import Callable
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -189,6 +192,9 @@ of the nearest-neighbour queries.
 """
 
 
+#: Metric depths and clouds a :class:`RecordingScorer` holds queued for scoring, at most.
+SCORING_QUEUE = 8
+
 #: The topics a :class:`RecordingScorer` reads: the ground truth and the
 #: camera_info (what the estimates are scored against), then the estimates.
 TRUTH_TOPICS = (topics.TRUE_DEPTH, topics.TRUE_CAMERA_POSE, topics.CAMERA_INFO)
@@ -221,10 +227,19 @@ class RecordingScorer:
     its outputs. A truth, true pose or camera_info that comes after an
     estimate of its stamp clears :attr:`complete`: the result may then lack
     that frame, and the file is to be scored with :func:`score_recording`.
+
+    The scoring of a metric depth and of a cloud (~10-150 ms each: the
+    error's medians, the nearest-neighbour search) runs on a thread of the
+    scorer's own, in the order they came (numpy and the KD-tree search
+    release the GIL): the caller's frame loop goes on meanwhile. At most
+    :data:`SCORING_QUEUE` of them wait; :meth:`result` waits for all, and
+    raises what one raised.
     """
 
     def __init__(self) -> None:
         self.complete = True
+        self._scoring = ThreadPoolExecutor(max_workers=1, thread_name_prefix="endo-score")
+        self._queued: deque[Future[None]] = deque()
         self._truths: dict[int, np.ndarray] = {}
         self._relative: dict[int, np.ndarray] = {}
         self._metric: dict[int, DepthError] = {}
@@ -272,13 +287,13 @@ class RecordingScorer:
             if topic == topics.DEPTH_RELATIVE:
                 self._relative.update(depth)
             else:
-                self._metric.pop(stamp, None)
-                self._metric.update(metric_errors(depth, self._truths))
+                self._later(self._score_metric, stamp, depth[stamp], self._truths[stamp])
         elif topic == topics.POINTS:
             stamp = _stamp(data, PointCloud2)
             self._estimated.add(stamp)
             if stamp in self._truths and stamp in self._infos and stamp in self._true_pose_at:
-                self._score_cloud(stamp, deserialize_with_rclpy(data, PointCloud2))
+                self._later(self._score_cloud, stamp, deserialize_with_rclpy(data, PointCloud2),
+                            self._infos[stamp], self._truths[stamp], self._true_pose_at[stamp])
         elif topic == topics.CAMERA_POSE:
             T, stamp = pose_to_matrix(pose_stamped_from_cdr(data))
             self._poses.add_transform(stamp, T)
@@ -286,7 +301,21 @@ class RecordingScorer:
             msg = deserialize_with_rclpy(data, Vector3Stamped)
             self._scale.append((stamp_to_ns(msg.header.stamp), msg.vector.x))
 
-    def _score_cloud(self, stamp: int, cloud: PointCloud2) -> None:
+    def _later(self, score: Callable[..., None], *args: Any) -> None:
+        """Queue ``score(*args)`` on the scoring thread (waiting while the queue is full)."""
+        while len(self._queued) >= SCORING_QUEUE:
+            self._queued.popleft().result()
+        while self._queued and self._queued[0].done():
+            self._queued.popleft().result()
+        self._queued.append(self._scoring.submit(score, *args))
+
+    def _score_metric(self, stamp: int, depth: np.ndarray, truth: np.ndarray) -> None:
+        """The unscaled error of one metric depth (a later one of the same stamp replaces it)."""
+        self._metric.pop(stamp, None)
+        self._metric.update(metric_errors({stamp: depth}, {stamp: truth}))
+
+    def _score_cloud(self, stamp: int, cloud: PointCloud2, info: CameraInfo,
+                     truth: np.ndarray, T_world_camera: np.ndarray) -> None:  # fmt: skip
         """RMS distance (m) of one cloud's points to its frame's true surface.
 
         At most :data:`CLOUD_SCORE_POINTS` points (an even stride over them),
@@ -294,16 +323,29 @@ class RecordingScorer:
         """
         points, _ = pointcloud2_to_xyz(cloud)
         stride = max(1, -(-len(points) // CLOUD_SCORE_POINTS))
-        camera = CameraModel.from_camera_info(self._infos[stamp])
-        distance = cloud_distances(points[::stride], self._truths[stamp], camera,
-                                   self._true_pose_at[stamp])  # fmt: skip
+        camera = CameraModel.from_camera_info(info)
+        distance = cloud_distances(points[::stride], truth, camera, T_world_camera)
         if len(distance):
             self._cloud[stamp] = float(np.sqrt(np.mean(distance**2)))
         else:
             self._cloud.pop(stamp, None)
 
+    def close(self) -> None:
+        """Drop what is queued and end the scoring thread (idempotent; no :meth:`add` after)."""
+        self._scoring.shutdown(wait=True, cancel_futures=True)
+        self._queued.clear()
+
     def result(self) -> Accuracy:
-        """Every figure of what was added (empty fields: no such topic, or no truth)."""
+        """Every figure of what was added (empty fields: no such topic, or no truth).
+
+        Waits for the queued scoring (and raises what it raised), then ends
+        the scoring thread: nothing can be added after.
+        """
+        try:
+            while self._queued:
+                self._queued.popleft().result()
+        finally:
+            self.close()
         accuracy = Accuracy(truth_frames=len(self._truths))
         truths = self._truths
         if truths:

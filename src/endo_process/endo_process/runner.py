@@ -705,6 +705,8 @@ def process_bag(
             report.accuracy = Accuracy()
         elif scorer.complete:
             report.accuracy = scorer.result()
+    if scorer is not None:
+        scorer.close()
     report.written = output.on_disk if report.write_failure else Counter(output.counts)
     report.lost = output.lost
     report.poses_written = report.written[topics.CAMERA_POSE]
