@@ -8,7 +8,9 @@ Exit status:
   frame gave a relative depth: what could be processed was, and was written;
   or writing the output failed (a full disk, a file size limit): the run
   stopped there, the output reads to its last complete chunk (as
-  endo-record's), and the summary counts what it holds;
+  endo-record's), and the summary counts what it holds; ``--ply`` is still
+  written from the map in memory (it may name another disk), and the same
+  line says whether it was;
   one line on stderr says what was wrong. Any run prints one line per cause
   of dropped frames and rejected tracker samples, with the first one's
   message (the table counts them);
@@ -192,6 +194,16 @@ def main(argv: Sequence[str] | None = None) -> int:
             workers.close()  # a no-op once the run took them
 
 
+def _ply_outcome(ply: Path | None, report: ProcessReport) -> str:
+    """What became of --ply after the output's writing failed (the map in memory)."""
+    if ply is None:
+        return ""
+    if report.ply_vertices:
+        return (f"; --ply {ply} written from the map in memory ({report.ply_vertices} "
+                "vertices, the frames processed)")  # fmt: skip
+    return f"; --ply {ply} not written ({report.ply_error or 'no map'})"
+
+
 def _run(args: argparse.Namespace, workers: StartedWorkers | None) -> int:
     """The run and its summary, with the workers started in :func:`main`."""
     from endo_io.bag import BagError
@@ -249,7 +261,7 @@ def _run(args: argparse.Namespace, workers: StartedWorkers | None) -> int:
     if report.write_failure and report.output is not None:
         print(f"{PROGRAM}: error: writing stopped after {report.frames_in} of "
               f"{report.frames_total} frames: {report.write_failure}"
-              + ("" if args.ply is None else f"; --ply {args.ply} not written"),
+              + _ply_outcome(args.ply, report),
               file=sys.stderr)  # fmt: skip
     if report.interrupted:
         print(f"{PROGRAM}: interrupted; {options.output} holds the "

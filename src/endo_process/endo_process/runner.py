@@ -139,7 +139,9 @@ class ProcessReport:
     file is to be scored with :func:`endo_process.accuracy.score_recording`.
     ``write_failure``: the output writer's error when a write failed (a full
     disk, a file size limit): the run stopped there, ``written`` counts what
-    the file holds and ``lost`` the messages that did not reach it.
+    the file holds and ``lost`` the messages that did not reach it;
+    ``--ply`` is still attempted from the map in memory (``ply_vertices``,
+    or ``ply_error``: why not).
     """
 
     frames_in: int = 0
@@ -177,6 +179,7 @@ class ProcessReport:
     output: Path | None = None
     write_failure: str = ""
     lost: int = 0
+    ply_error: str = ""
     accuracy: Accuracy | None = None
 
     def count(self, counter: Counter[str], cause: str, reason: str) -> None:
@@ -493,9 +496,26 @@ def _write_map(
 
 
 def _export_ply(flow: FlowStage, options: ProcessOptions, report: ProcessReport) -> None:
-    """--ply, once the output is finalised: a PLY that cannot be written costs only itself."""
-    if options.ply is not None and report.map_points and flow.pipeline.voxel_map is not None:
-        report.ply_vertices = flow.pipeline.voxel_map.export_ply(options.ply)
+    """--ply, once the output is finalised: a PLY that cannot be written costs only itself.
+
+    After the output's writing failed (a full disk) the map is still in
+    memory, fused up to the last frame processed: the PLY is written too
+    (``--ply`` may name another disk); if that fails as well,
+    ``report.ply_error`` says why.
+    """
+    voxel_map = flow.pipeline.voxel_map
+    if options.ply is None or voxel_map is None:
+        return
+    if report.write_failure:
+        if len(voxel_map):
+            try:
+                report.ply_vertices = voxel_map.export_ply(options.ply)
+            except OSError as error:
+                report.ply_error = error.strerror or str(error)
+        else:
+            report.ply_error = "the map was empty"
+    elif report.map_points:
+        report.ply_vertices = voxel_map.export_ply(options.ply)
 
 
 def process_bag(
@@ -697,8 +717,7 @@ def process_bag(
             streams.close()
         finally:
             pool.close()
-    if not report.write_failure:  # a full disk would refuse the PLY too
-        _export_ply(flow, options, report)
+    _export_ply(flow, options, report)
     report.interrupted = report.interrupted or stop.is_set()
     if not report.interrupted and not report.write_failure:
         if scorer is None:

@@ -22,6 +22,7 @@ from endo_process.cli import EXIT_DAMAGED, EXIT_INPUT, EXIT_INTERRUPTED, EXIT_OK
 from endo_process.runner import ProcessOptions, process_bag
 
 from .conftest import BAGS, PHANTOM
+from .test_phantom_run import read_ply_vertices
 
 
 def _subset(path: Path, keep: set[str], images: int, tracker_until_s: float = 1e9) -> Path:
@@ -444,6 +445,38 @@ def test_a_full_disk_stops_the_run_with_the_summary_and_a_readable_output(
             held[message.topic] = held.get(message.topic, 0) + 1
     assert sum(held.values()) == int(said.group(1)) and held[topics.DEPTH_RELATIVE] >= 1
     assert out.stat().st_size <= limit
+
+
+@pytest.mark.parametrize(("limit", "frames"), [(12_000_000, 12), (60_000_000, 60)])
+def test_a_full_disk_still_writes_the_ply_from_the_map_in_memory(
+    calibrations: tuple[Path, Path], tmp_path: Path, limit: int, frames: int
+) -> None:
+    # The review: after a failed output write, --ply was not even tried, though it may
+    # name another disk and the map is in memory. Here the same file size limit applies
+    # to the PLY, which is smaller than it.
+    import re
+    import resource
+
+    def limited() -> None:
+        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+        resource.setrlimit(resource.RLIMIT_FSIZE, (limit, limit))
+
+    out, ply = tmp_path / "out.mcap", tmp_path / "map.ply"
+    argv = _argv(PHANTOM, out, calibrations, "--max-frames", str(frames), "--ply", str(ply))
+    done = subprocess.run([str(Path(sys.executable).parent / "endo-process"), *argv],
+                          capture_output=True, text=True, timeout=300, preexec_fn=limited,
+                          check=False)  # fmt: skip
+    assert done.returncode == EXIT_DAMAGED, done.stderr
+    error = done.stderr.strip().splitlines()[-1]
+    assert "writing stopped after" in error, error
+    written = re.search(r"--ply \S+ written from the map in memory \((\d+) vertices", error)
+    if limit > 50_000_000:  # past the frames the map fuses first: a map to write
+        assert written is not None, error
+    if written is not None:
+        assert len(read_ply_vertices(ply)) == int(written.group(1)) > 1000
+    else:
+        assert error.endswith(f"--ply {ply} not written (the map was empty)"), error
+        assert not ply.exists()
 
 
 def test_an_output_name_without_mcap_is_a_rosbag2_directory(
