@@ -22,7 +22,16 @@ class ParameterFileError(ProcessInputError):
 
 
 class ImageStampBackError(Endo3dError):
-    """An image is stamped before an image already read (a clock jump back, frames out of order)."""
+    """An image is stamped before an image already read (a clock jump back, frames out of order).
+
+    Not an :class:`endo_io.errors.StampOrderError`: that one is the clock-jump
+    guard's verdict on a sample at or *shortly* before its stream's newest (a
+    late sample, dropped, while a far step back is a ClockJumpError that resets
+    the stream); this one is any step back of the recording's image stamps, far
+    or near, found by the frame loop when no camera_info pairs with the image.
+    A handler of either would take the other wrongly, so neither derives from
+    the other.
+    """
 
 
 class WorkerError(Endo3dError):
