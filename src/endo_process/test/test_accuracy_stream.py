@@ -65,3 +65,30 @@ def test_a_truth_after_the_estimates_of_its_stamp_is_flagged() -> None:
     later.add(topics.TRUE_DEPTH, image(truth, STAMP + 1))
     assert later.complete and later.result().truth_frames == 1
     assert later.result().relative == {}
+
+
+def test_the_pruned_cloud_search_finds_the_exact_nearest_true_points() -> None:
+    """cloud_distances' per-point bounds change the work, not one distance (to the bit)."""
+    from scipy.spatial import cKDTree
+
+    from endo_io.camera import CameraModel
+    from endo_io.pose import rigid_transform, transform_points
+    from endo_process.accuracy import cloud_distances
+
+    camera = CameraModel.pinhole(64, 48, 50.0, 50.0, 31.5, 23.5,
+                                 D=np.array([-0.1, 0.02, 0.0, 0.0, 0.0]))  # fmt: skip
+    v, u = np.mgrid[0:48, 0:64]
+    depth = (0.04 + 0.01 * np.sin(u / 9.0) * np.cos(v / 7.0)).astype(np.float32)
+    depth[:5, :7] = np.nan  # no truth there
+    T = rigid_transform(np.radians([10.0, -5.0, 30.0]), [0.01, -0.02, 0.03])
+    local = camera.depth_to_points(depth).reshape(-1, 3)
+    truth = transform_points(T, local[np.isfinite(local).all(axis=1)])
+    rng = np.random.default_rng(3)
+    # points near the surface, far from it, behind the camera and outside the view
+    points = np.concatenate([
+        truth[::3] + rng.normal(0.0, 0.002, (len(truth[::3]), 3)),
+        truth[:50] + rng.normal(0.0, 0.05, (50, 3)),
+        transform_points(T, np.array([[0.0, 0.0, -0.05], [1.0, 1.0, 0.04]])),
+    ])  # fmt: skip
+    expected, _ = cKDTree(truth).query(points)
+    np.testing.assert_array_equal(cloud_distances(points, depth, camera, T), expected)
