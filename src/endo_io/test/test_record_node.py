@@ -110,18 +110,21 @@ def test_the_last_take_writes_every_subscription_rclpy_still_gives(tmp_path):
     assert [t for _, t in written] == sorted(t for _, t in written)
 
 
-def _recorder_with_peer(output, topic, take_period, peer_name):
+def _recorder_with_peer(output, topic, take_period, peer_name, *, extra=(), writer=None,
+                        depth=10):
     """A RecordNode on ``topic`` into ``output`` beside a peer publishing there.
 
+    ``extra``: more endo-record arguments; ``writer``: the bag writer (an
+    uncompressed BagWriter by default); ``depth``: the peer's history.
     Returns (publisher, recording, recorder, executor), both nodes in the one
     executor, once the recorder has subscribed.
     """
     options = build_parser().parse_args(
-        ["--topics", topic, "-o", str(output), "--take-period", take_period])
+        ["--topics", topic, "-o", str(output), "--take-period", take_period, *extra])
     _check_options(options)
     peer = Node(peer_name)
-    publisher = peer.create_publisher(String, topic, reliable_qos(10))
-    recording = Recording(BagWriter(output, compression="none"))
+    publisher = peer.create_publisher(String, topic, reliable_qos(depth))
+    recording = Recording(BagWriter(output, compression="none") if writer is None else writer)
     recorder = RecordNode(recording, options)
     executor = SingleThreadedExecutor()
     executor.add_node(peer)
@@ -209,23 +212,13 @@ def test_a_stalled_disk_does_not_stop_the_taking_and_what_the_queue_refuses_is_r
     # logged once and reported as lost; everything queued is written once the disk goes on.
     output = tmp_path / "stalled.mcap"
     topic = "/rn_test/s"
-    options = build_parser().parse_args(
-        ["--topics", topic, "-o", str(output), "--buffer-mb", str(200 / 2**20)])
-    _check_options(options)
     go = threading.Event()
     rclpy.init()
     try:
-        peer = Node("record_node_test_peer_s")
-        publisher = peer.create_publisher(String, topic, reliable_qos(100))
-        recording = Recording(_StalledDisk(output, go))
-        recorder = RecordNode(recording, options)
-        executor = SingleThreadedExecutor()
-        executor.add_node(peer)
-        executor.add_node(recorder)
+        publisher, recording, recorder, executor = _recorder_with_peer(
+            output, topic, "0.02", "record_node_test_peer_s",
+            extra=("--buffer-mb", str(200 / 2**20)), writer=_StalledDisk(output, go), depth=100)
         deadline = time.monotonic() + 10.0
-        while publisher.get_subscription_count() == 0:
-            assert time.monotonic() < deadline, "recorder did not subscribe"
-            executor.spin_once(timeout_sec=0.05)
         for k in range(60):  # ~28 bytes of CDR each: ~7 fit the queue
             publisher.publish(String(data=f"stalled message {k:03d}"))
         refused = recorder._writer.refused
