@@ -114,8 +114,9 @@ def _recorder_with_peer(output, topic, take_period, peer_name, *, extra=(), writ
                         depth=10):
     """A RecordNode on ``topic`` into ``output`` beside a peer publishing there.
 
-    ``extra``: more endo-record arguments; ``writer``: the bag writer (an
-    uncompressed BagWriter by default); ``depth``: the peer's history.
+    ``extra``: more endo-record arguments; ``writer``: makes the bag writer
+    once the options are checked (an uncompressed BagWriter by default);
+    ``depth``: the peer's history.
     Returns (publisher, recording, recorder, executor), both nodes in the one
     executor, once the recorder has subscribed.
     """
@@ -124,7 +125,7 @@ def _recorder_with_peer(output, topic, take_period, peer_name, *, extra=(), writ
     _check_options(options)
     peer = Node(peer_name)
     publisher = peer.create_publisher(String, topic, reliable_qos(depth))
-    recording = Recording(BagWriter(output, compression="none") if writer is None else writer)
+    recording = Recording(BagWriter(output, compression="none") if writer is None else writer())
     recorder = RecordNode(recording, options)
     executor = SingleThreadedExecutor()
     executor.add_node(peer)
@@ -217,7 +218,8 @@ def test_a_stalled_disk_does_not_stop_the_taking_and_what_the_queue_refuses_is_r
     try:
         publisher, recording, recorder, executor = _recorder_with_peer(
             output, topic, "0.02", "record_node_test_peer_s",
-            extra=("--buffer-mb", str(200 / 2**20)), writer=_StalledDisk(output, go), depth=100)
+            extra=("--buffer-mb", str(200 / 2**20)), writer=lambda: _StalledDisk(output, go),
+            depth=100)
         deadline = time.monotonic() + 10.0
         for k in range(60):  # ~28 bytes of CDR each: ~7 fit the queue
             publisher.publish(String(data=f"stalled message {k:03d}"))
