@@ -133,4 +133,7 @@ def test_graph_on_the_sample_bags(tmp_path: Path) -> None:
     assert abs(error[np.isfinite(error)][-1]) < FINAL_SCALE_BOUND
     # the truth frames after the scale converged (none when SFS dropped them)
     assert all(e.mae < METRIC_MAE_BOUND_M for e in accuracy.metric.values())
+    # every truth frame with a metric depth has its cloud scored too (session 13's review:
+    # the live cloud went unscored and this line held over an empty dict)
+    assert accuracy.cloud_rms_m.keys() == accuracy.metric.keys()
     assert all(rms < CLOUD_RMS_BOUND_M for rms in accuracy.cloud_rms_m.values())

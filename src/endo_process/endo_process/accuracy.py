@@ -329,10 +329,12 @@ class RecordingScorer:
         elif topic == topics.CAMERA_INFO:
             info = camera_info_from_cdr(data)
             stamp = stamp_to_ns(info.header.stamp)
-            if stamp in self._truths:
-                self._truth_after_estimate(stamp)
-                # one model while the camera stays the same: it keeps its ray table (~0.1 s)
-                self._cameras[stamp] = self._camera_cache.model_of(info)[0]
+            self._truth_after_estimate(stamp)
+            # Kept at every stamp, not only at the truth's seen so far: a live recording
+            # logs the replay's camera_info before the true depth of its stamp as often as
+            # not (review, session 13: the live cloud went unscored). One model while the
+            # camera stays the same: it keeps its ray table (~0.1 s), the dict references it.
+            self._cameras[stamp] = self._camera_cache.model_of(info)[0]
         elif topic in (topics.DEPTH_RELATIVE, topics.DEPTH):
             image = image_from_cdr(data)
             stamp = stamp_to_ns(image.header.stamp)

@@ -92,3 +92,31 @@ def test_the_pruned_cloud_search_finds_the_exact_nearest_true_points() -> None:
     ])  # fmt: skip
     expected, _ = cKDTree(truth).query(points)
     np.testing.assert_array_equal(cloud_distances(points, depth, camera, T), expected)
+
+
+def test_a_camera_info_logged_before_its_truth_still_scores_the_cloud(tmp_path: Path) -> None:
+    """A live recording may log the camera_info before the true depth of the same stamp."""
+    from endo_io.camera import CameraModel
+    from endo_io.pointcloud import xyz_to_pointcloud2_cdr
+    from endo_io.pose import matrix_to_pose, rigid_transform, transform_points
+
+    truth, _ = truth_and_estimate()
+    camera = CameraModel.pinhole(50, 40, 45.0, 45.0, 24.5, 19.5)
+    T = rigid_transform(np.radians([5.0, 0.0, -10.0]), [0.01, 0.0, 0.02])
+    surface = transform_points(T, camera.depth_to_points(truth).reshape(-1, 3))
+    cloud = xyz_to_pointcloud2_cdr(surface + np.float32(0.001), STAMP, topics.WORLD_FRAME)
+    path = tmp_path / "live.mcap"
+    with BagWriter(path) as writer:
+        writer.write_message(topics.CAMERA_INFO, camera.to_camera_info(STAMP), STAMP)
+        writer.write_message(topics.TRUE_DEPTH, array_to_image(truth, "32FC1", STAMP, "f"),
+                             STAMP + 1)
+        writer.write_message(topics.TRUE_CAMERA_POSE,
+                             matrix_to_pose(T, STAMP, topics.WORLD_FRAME), STAMP + 2)
+        writer.write_message(topics.DEPTH, array_to_image(truth, "32FC1", STAMP, "f"),
+                             STAMP + 3)
+        writer.add_topic(topics.POINTS, "sensor_msgs/msg/PointCloud2")
+        writer.write(topics.POINTS, cloud, STAMP + 4)
+    accuracy = score_recording(path)
+    assert list(accuracy.metric) == [STAMP] and list(accuracy.cloud_rms_m) == [STAMP]
+    # every point 1 mm off along each axis: within sqrt(3) mm of the surface, never farther
+    assert 0.0 < accuracy.cloud_rms_m[STAMP] <= np.sqrt(3) * 1e-3 + 1e-6
