@@ -156,9 +156,20 @@ from endo_io.qos import (
 from endo_io.stamp import NS_PER_S, stamp_to_ns
 from endo_io.stamp_matching import StampMatcher
 
-#: After this long without a frame, the rest of a deferred map frame is fused at once
-#: (seconds; the node otherwise fuses it a band per frame).
+#: The frames have stopped after this long without one (seconds), or after
+#: :data:`STOPPED_AFTER_INTERVALS` of their usual interval when they come slower: the
+#: rest of a deferred map frame is then fused at once (the node otherwise fuses it a
+#: band per frame) and the whole map goes.
 MAP_FINISH_AFTER_S = 0.5
+#: Usual frame intervals without a frame that mean the frames stopped (review,
+#: session 13: at under 2 Hz every gap sent the whole map, and the live view flickered
+#: between thinned and whole).
+STOPPED_AFTER_INTERVALS = 3.0
+#: Weight of the newest interval in the usual one (an exponential average).
+INTERVAL_WEIGHT = 0.25
+#: Intervals longer than this count as this long in the usual one (seconds): frames
+#: slower than 1 every 2 s are taken as stopping between them.
+LONGEST_INTERVAL_S = 2.0
 
 #: The camera warmed up on when ``warm_up_camera_file`` is empty (small: only
 #: the map's kernels matter then).
@@ -351,6 +362,7 @@ class FlowNode(Node):
         self._map_schedule = MapPublishSchedule(values["map_period_s"],
                                                 values["map_bandwidth_mb_s"])
         self._last_frame_s = time.monotonic()
+        self._frame_interval_s = 0.0  # the usual interval between frames (smoothed)
         self._last_frame_ns = 0  # the stamp of the last frame published (map errors name it)
         self.get_logger().info(
             f"flow: {topics.IMAGE_CORRECTED} + {topics.DEPTH_RELATIVE} + {topics.CAMERA_INFO} "
@@ -412,8 +424,7 @@ class FlowNode(Node):
         if self._inputs_due and time.monotonic() >= self._inputs_due:
             self._wait_for_inputs(False)
         self._take_poses()
-        if (self.pipeline.map_pending
-                and time.monotonic() - self._last_frame_s > MAP_FINISH_AFTER_S):
+        if self.pipeline.map_pending and self._frames_stopped(time.monotonic()):
             self._fuse_map(1)
 
     def _wait_for_inputs(self, wait: bool) -> None:
@@ -515,7 +526,13 @@ class FlowNode(Node):
             return
         self.health.ok()
         self._publish(pending, out)
-        self._last_frame_s = now = time.monotonic()
+        now = time.monotonic()
+        if self._last_frame_ns:  # not the first frame: how long since the last one
+            # a long stop (a bag's end, a pause) is not a frame rate: at most LONGEST_INTERVAL_S
+            interval = min(now - self._last_frame_s, LONGEST_INTERVAL_S)
+            self._frame_interval_s = interval if not self._frame_interval_s else (
+                INTERVAL_WEIGHT * interval + (1.0 - INTERVAL_WEIGHT) * self._frame_interval_s)
+        self._last_frame_s = now
         self._last_frame_ns = pending.stamp_ns
         # After the frame's outputs, the longest wait for the next frame: either the map,
         # when its budget allows (this frame's slot then holds no band), or a band of rows
@@ -589,9 +606,13 @@ class FlowNode(Node):
         While frames come, the map goes after a frame instead (:meth:`_process`).
         """
         now = time.monotonic()
-        if ((self._map_changed or not self._published_whole)
-                and now - self._last_frame_s > MAP_FINISH_AFTER_S):
+        if (self._map_changed or not self._published_whole) and self._frames_stopped(now):
             self._publish_map(now, whole=True)
+
+    def _frames_stopped(self, now: float) -> bool:
+        """Whether the frames stopped: no frame for 0.5 s, or for 3 of their usual intervals."""
+        wait = max(MAP_FINISH_AFTER_S, STOPPED_AFTER_INTERVALS * self._frame_interval_s)
+        return now - self._last_frame_s > wait
 
     def _publish_map(self, now: float, *, whole: bool) -> None:
         """Publish the map (``now``: the monotonic clock, for the budget).
@@ -613,7 +634,9 @@ class FlowNode(Node):
         message = records_to_pointcloud2_cdr(
             records, stamp, self.parameters["world_frame"], is_dense=finite)
         self.map_pub.publish(message)
-        self._map_schedule.published(now, len(message))
+        # the budget is the stream's: a whole map sent while frames stopped does not
+        # hold back the next thinned one when they come again
+        self._map_schedule.published(now, 0 if whole else len(message))
         self._published_revision = voxel_map.revision
         self._published_whole = fraction == 1.0
 

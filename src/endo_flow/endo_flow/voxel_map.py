@@ -26,6 +26,7 @@ and the offline processor both call it.
 
 from __future__ import annotations
 
+import contextlib
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -480,5 +481,8 @@ def write_ply(
             stream.write(("\n".join(header) + "\n").encode("ascii"))
             stream.write(vertex.tobytes())
     except OSError as error:
+        # a PLY cut short (a full disk) claims vertices it does not hold: leave none
+        with contextlib.suppress(OSError):
+            Path(path).unlink()
         raise MapExportError(f"cannot write {path}: {error.strerror or error}") from error
     return m

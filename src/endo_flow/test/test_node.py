@@ -281,3 +281,41 @@ def test_without_depth_the_status_blames_the_depth_not_the_image_and_camera_info
     assert f"no message yet on {topics.DEPTH_RELATIVE}" in problems
     assert not any(topics.IMAGE_CORRECTED in p or topics.CAMERA_INFO in p for p in problems)
     assert counts()[f"received.{topics.DEPTH_RELATIVE}"] == "0"
+
+
+@pytest.mark.parametrize("graph", [{"map_bandwidth_mb_s": 0.0, "map_every": 1,
+                                    "map_period_s": 0.3,
+                                    "map_stream_max_points": STREAM_MAX_POINTS}],
+                         indirect=True)
+def test_frames_slower_than_2_hz_keep_the_thinned_map_and_a_stop_sends_it_whole(graph, moving):
+    # Review, session 13: "frames stopped" was 0.5 s without one, so at under 2 Hz every
+    # gap sent the whole map (and the live view flickered between thinned and whole).
+    # Now a stop is 3 of the frames' usual intervals: after a few slow frames the map
+    # stays thinned between them; when they stop, it goes whole once.
+    flow, _peer, pubs, got, spin_until = graph
+    frames = moving.frames(moving.poses)
+    step = frames[1].stamp_ns - frames[0].stamp_ns
+    slow_from, slow_widths = 20, []
+    for k, frame in enumerate(frames[:30]):
+        for dt in (0, step // 2):
+            T = moving.poses[min(k + (dt > 0), len(frames) - 1)] if dt else frame.T_world_camera
+            pubs["pose"].publish(matrix_to_pose(T, frame.stamp_ns + dt, topics.WORLD_FRAME))
+        before = len(got["map"])
+        _publish_frame(pubs, frame)
+        spin_until(lambda k=k: len(got["scale"]) > k, timeout=2.0)
+        if k >= slow_from:  # a 1.4 Hz camera from here on
+            spin_until(lambda: False, timeout=0.7)
+            if k >= slow_from + 4:  # the usual interval has followed the slower frames
+                slow_widths += [m.width for m in got["map"][before:]]
+    assert len(flow.pipeline.voxel_map) > 10 * STREAM_MAX_POINTS
+    assert slow_widths and max(slow_widths) <= 1.5 * STREAM_MAX_POINTS, slow_widths
+    # the frames stop: the whole map, once
+    assert spin_until(lambda: got["map"][-1].width == len(flow.pipeline.voxel_map), 8.0)
+    count = len(got["map"])
+    spin_until(lambda: False, timeout=1.0)
+    assert len(got["map"]) == count
+    # a thinned map sent last and the map unchanged since: it goes whole all the same
+    flow._publish_map(time.monotonic(), whole=False)
+    assert spin_until(lambda: len(got["map"]) == count + 2, 5.0)
+    assert got["map"][-2].width <= 1.5 * STREAM_MAX_POINTS
+    assert got["map"][-1].width == len(flow.pipeline.voxel_map)

@@ -66,6 +66,7 @@ from __future__ import annotations
 
 import argparse
 import functools
+import math
 import sys
 import time
 from collections.abc import Sequence
@@ -293,7 +294,7 @@ class RecordNode(Node):
             warning = mixed_offer_warning(choice.name, offers)
             if warning:
                 self.get_logger().warning(warning)
-            self._recording.add_topic(
+            self._writer.add_topic(  # written on the writer thread, in order with the messages
                 choice.name,
                 choice.msgtype,
                 qos_profiles_to_yaml(offers),
@@ -360,12 +361,15 @@ class RecordNode(Node):
         state = self._writer.state
         if state.error is not None:
             if not self._stopping:
-                self._write_failed(state.error)
+                error = state.error
+                self._write_failed(error if isinstance(error, (BagError, OSError)) else
+                                   RuntimeError(f"the writer thread failed: "
+                                                f"{type(error).__name__}: {error}"))
             return True
         if state.limit:
             self._stop()
             return True
-        for topic, tally in self._recording.report.topics.items():
+        for topic, tally in tuple(self._recording.report.topics.items()):  # the writer adds
             if tally.undecodable and topic not in self._undecodable_logged:
                 self._undecodable_logged.add(topic)
                 self.get_logger().warning(
@@ -439,8 +443,9 @@ def _check_options(options: argparse.Namespace) -> None:
         raise RecordOptionError(f"--max-messages must be >= 1, got {options.max_messages}")
     if options.queue_depth < 1:
         raise RecordOptionError(f"--queue-depth must be >= 1, got {options.queue_depth}")
-    if not options.buffer_mb > 0:
-        raise RecordOptionError(f"--buffer-mb must be > 0, got {options.buffer_mb}")
+    if not (math.isfinite(options.buffer_mb) and options.buffer_mb * 2**20 >= 1):
+        raise RecordOptionError(
+            f"--buffer-mb must be a finite size of at least one byte, got {options.buffer_mb}")
     if not 0 <= options.writer_nice <= 19:
         raise RecordOptionError(f"--writer-nice must be in 0-19, got {options.writer_nice}")
     if not (options.discovery_period > 0 and options.flush_period > 0):

@@ -19,9 +19,15 @@ first and the recorder keeps taking: the graph runs of ``endo-demo`` and the
 benches niced the whole recorder process before, and under sustained load
 its subscriptions overflowed (docs/benchmarks.md, "Session 13").
 
-Every call on the :class:`~endo_io.record.Recording` happens on the writer
-thread while it runs; :meth:`BackgroundWriter.close` drains the queue and
-joins it, after which the caller closes the recording.
+Every call that writes through the :class:`~endo_io.record.Recording`
+happens on the writer thread while it runs, a new topic's declaration
+included (:meth:`BackgroundWriter.add_topic` queues it in order with the
+messages: the schema and channel records go into the chunk being filled,
+and a bag directory's metadata.yaml is rewritten; from two threads at once
+that corrupted bags, found in review); :meth:`BackgroundWriter.close`
+drains the queue and joins it, after which the caller closes the recording.
+Any exception on the writer thread stops it with that error, as a failed
+write does: the thread never ends unseen.
 """
 
 from __future__ import annotations
@@ -30,10 +36,11 @@ import os
 import threading
 import time
 from collections import Counter, deque
+from collections.abc import Callable
 from dataclasses import dataclass
 
 from endo_io.errors import BagError
-from endo_io.record import Recording
+from endo_io.record import CdrCheck, RecordedTopic, Recording
 
 __all__ = ["BackgroundWriter", "WriterState"]
 
@@ -47,11 +54,12 @@ class WriterState:
     """Why the writer stopped taking messages (both empty: it has not).
 
     limit: the recording's stop reason (a message or duration limit);
-    error: the failed write's error (a full disk, a vanished file).
+    error: what stopped the writer thread: a failed write (a full disk, a
+    vanished file) or any other exception raised on it.
     """
 
     limit: str = ""
-    error: BagError | OSError | None = None
+    error: BaseException | None = None
 
 
 class BackgroundWriter:
@@ -80,7 +88,9 @@ class BackgroundWriter:
         self._max_bytes = max_bytes
         self._nice = nice
         self._flush_period_s = flush_period_s
-        self._queue: deque[tuple[str, bytes, int, int | None]] = deque()
+        # messages (topic, data, log time, publish time) and topic declarations, in order
+        self._queue: deque[tuple[str, bytes, int, int | None] | Callable[[], None]] = deque()
+        self._msgtypes: dict[str, str] = {}
         self._queued_bytes = 0
         self._lock = threading.Condition()
         self._closing = False
@@ -100,12 +110,26 @@ class BackgroundWriter:
         """Whether the writer stopped (a limit, a failed write); read by the taking thread."""
         return self._state
 
+    def add_topic(self, name: str, msgtype: str, offered_qos_profiles: str,
+                  check: CdrCheck | None = None) -> None:
+        """Declare a topic (:meth:`Recording.add_topic`) on the writer thread, before its data."""
+        with self._lock:
+            self._msgtypes[name] = msgtype
+            self._queue.append(lambda: self._recording.add_topic(name, msgtype,
+                                                                 offered_qos_profiles, check))
+            self._lock.notify()
+
     def put(self, topic: str, data: bytes, log_ns: int, publish_ns: int | None = None) -> bool:
-        """Queue one message; False when it is refused (queue full) or the writer stopped."""
+        """Queue one message; False when it is refused (queue full) or the writer stopped.
+
+        A message larger than the whole bound is taken only when nothing at
+        all is held (queued or being written), so the bound is exceeded by
+        at most that one message.
+        """
         with self._lock:
             if self._closing or self._state.limit or self._state.error is not None:
                 return False
-            if self._queued_bytes + len(data) > self._max_bytes and self._queue:
+            if self._queued_bytes + len(data) > self._max_bytes and self._queued_bytes > 0:
                 self.refused[topic] += 1
                 return False
             self._queue.append((topic, data, log_ns, publish_ns))
@@ -128,7 +152,13 @@ class BackgroundWriter:
         self._thread.join()
         report = self._recording.report
         for topic, count in (self._unwritten + self.refused).items():
-            report.topics[topic].received += count
+            # a topic whose declaration the stopped writer never reached is counted too
+            tally = report.topics.setdefault(topic, RecordedTopic(self._msgtypes.get(topic, "")))
+            tally.received += count
+        error = self._state.error
+        if error is not None and not isinstance(error, (BagError, OSError)):
+            report.write_error = report.write_error or (
+                f"the writer thread failed: {type(error).__name__}: {error}")
         if self.refused:
             reason = (f"{sum(self.refused.values())} refused: the write queue held "
                       f"{self._max_bytes / 2**20:.0f} MB (--buffer-mb) while the disk or "
@@ -136,6 +166,14 @@ class BackgroundWriter:
             report.write_error = "; ".join(r for r in (report.write_error, reason) if r)
 
     def _run(self) -> None:
+        try:
+            self._loop()
+        except BaseException as error:
+            with self._lock:
+                self._state = WriterState(error=error)
+                self._drop_queued()
+
+    def _loop(self) -> None:
         self.thread_nice = _lower_thread_priority(self._nice)
         next_flush = time.monotonic() + self._flush_period_s
         while True:
@@ -148,7 +186,7 @@ class BackgroundWriter:
                 closing = self._closing
             stopped = self._write(batch)
             with self._lock:
-                self._queued_bytes -= sum(len(m[1]) for m in batch)
+                self._queued_bytes -= sum(len(m[1]) for m in batch if isinstance(m, tuple))
             if not stopped and time.monotonic() >= next_flush:
                 stopped = self._flush()
                 next_flush = time.monotonic() + self._flush_period_s
@@ -159,17 +197,22 @@ class BackgroundWriter:
             if closing:
                 return
 
-    def _write(self, batch: list[tuple[str, bytes, int, int | None]]) -> bool:
+    def _write(self, batch: list[tuple[str, bytes, int, int | None] | Callable[[], None]]
+               ) -> bool:
         """Write a batch; True when the recording stopped (a limit or a failed write)."""
-        for k, (topic, data, log_ns, publish_ns) in enumerate(batch):
+        for k, item in enumerate(batch):
+            if not isinstance(item, tuple):
+                item()  # a topic's declaration
+                continue
+            topic, data, log_ns, publish_ns = item
             try:
                 if self._recording.write(topic, data, log_ns, publish_ns):
                     self._state = WriterState(limit=self._recording.report.stop_reason
                                               or "limit reached")
                     return True
-            except (BagError, OSError) as error:
+            except BaseException as error:
                 # the failed message is counted by the recording; the batch's rest here
-                self._unwritten.update(m[0] for m in batch[k + 1:])
+                self._unwritten.update(m[0] for m in batch[k + 1:] if isinstance(m, tuple))
                 self._state = WriterState(error=error)
                 return True
         return False
@@ -190,8 +233,9 @@ class BackgroundWriter:
         limit: not counted.
         """
         if self._state.error is not None:
-            for topic, _data, _log, _publish in self._queue:
-                self._unwritten[topic] += 1
+            for item in self._queue:
+                if isinstance(item, tuple):
+                    self._unwritten[item[0]] += 1
         self._queue.clear()
         self._queued_bytes = 0
 

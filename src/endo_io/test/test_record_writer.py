@@ -18,8 +18,10 @@ from endo_io.record_writer import BackgroundWriter
 class _SlowWriter:
     """A RawBagWriter that holds every write until ``go`` is set, and can fail."""
 
-    def __init__(self, fail_at: int | None = None) -> None:
+    def __init__(self, fail_at: int | None = None, error: Exception | None = None) -> None:
         self.go = threading.Event()
+        self.entered = threading.Event()  # a write has begun (and waits for go)
+        self.error = error or BagError("no space left on device")
         self.rows: list[tuple[str, bytes, int]] = []
         self.flushes = 0
         self.fail_at = fail_at
@@ -30,10 +32,11 @@ class _SlowWriter:
 
     def write(self, topic: str, data: bytes, log_time_ns: int,
               publish_time_ns: int | None = None) -> None:
+        self.entered.set()
         self.go.wait()
         self.threads.add(threading.get_ident())
         if self.fail_at is not None and len(self.rows) == self.fail_at:
-            raise BagError("no space left on device")
+            raise self.error
         self.rows.append((topic, data, log_time_ns))
 
     def flush(self) -> None:
@@ -83,7 +86,7 @@ def test_a_full_queue_refuses_counts_and_reports_what_it_refused():
     accepted = [writer.put("/a", b"x" * 100, k) for k in range(25)]
     # the first message may already be in the writer's hands (out of the queue's bytes)
     assert 10 <= sum(accepted) <= 11 and accepted[:10] == [True] * 10
-    assert writer.peak_bytes <= 1000
+    assert writer.peak_bytes <= 1000  # never over the bound (no message alone is larger)
     refused = 25 - sum(accepted)
     assert writer.refused["/a"] == refused
     sink.go.set()  # the disk catches up: everything queued is written
@@ -112,6 +115,64 @@ def test_a_failed_write_stops_the_writer_and_counts_what_was_queued():
     report = recording.close()
     assert report.messages == 3 and report.topics["/b"].received == 8
     assert report.lost == 5 and "no space left on device" in report.write_error
+
+
+def test_what_waits_behind_a_failed_write_is_counted_lost():
+    # the first write holds (the disk stalls) with the rest queued behind it, then fails
+    sink = _SlowWriter(fail_at=0)
+    recording = _recording(sink)
+    writer = BackgroundWriter(recording, flush_period_s=10.0)
+    writer.put("/a", b"first", 0)
+    assert sink.entered.wait(5.0)  # the writer holds the first message alone
+    for k in range(1, 6):
+        assert writer.put("/b" if k % 2 else "/a", b"queued", k)
+    sink.go.set()
+    writer.close()
+    report = recording.close()
+    assert report.messages == 0 and report.lost == 6
+    assert report.topics["/a"].received == 3 and report.topics["/b"].received == 3
+
+
+def test_any_exception_on_the_writer_thread_stops_it_counted_and_named():
+    sink = _SlowWriter(fail_at=2, error=RuntimeError("a bug in the writer"))
+    recording = _recording(sink)
+    writer = BackgroundWriter(recording, flush_period_s=10.0)
+    for k in range(6):
+        writer.put("/a", b"m", k)
+    sink.go.set()
+    deadline = time.monotonic() + 5.0
+    while writer.state.error is None and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert isinstance(writer.state.error, RuntimeError)
+    assert not writer.put("/a", b"after", 9)  # stopped: refused, not queued into nothing
+    writer.close()
+    report = recording.close()
+    assert report.messages == 2 and report.topics["/a"].received == 6 and report.lost == 4
+    assert "writer thread failed: RuntimeError: a bug in the writer" in report.write_error
+
+
+def test_topics_declared_while_writing_go_in_order_on_the_writer_thread(tmp_path):
+    # Review, session 13: add_topic on the node's thread wrote schema and channel records
+    # into the chunk the writer thread was filling: unreadable bags, "lost: 0"
+    from endo_io.bag import BagReader, BagWriter
+
+    path = tmp_path / "topics.mcap"
+    recording = Recording(BagWriter(path, compression="none", chunk_size=4096))
+    recording.start(0)
+    writer = BackgroundWriter(recording, flush_period_s=0.001)
+    count = 0
+    for k in range(120):
+        writer.add_topic(f"/t{k}", "std_msgs/msg/String", "")
+        for _ in range(20):
+            assert writer.put(f"/t{k}", bytes(range(20)) * 4, count)
+            count += 1
+    writer.close()
+    report = recording.close()
+    assert report.messages == count and report.lost == 0
+    with BagReader(path) as reader:
+        got = [(m.topic, m.log_time_ns) for m in reader.messages()]
+    assert len(got) == count and [t for _, t in got] == list(range(count))
+    assert {topic for topic, _ in got} == {f"/t{k}" for k in range(120)}
 
 
 def test_a_limit_stops_the_writer_without_counting_losses():

@@ -46,6 +46,7 @@ from sensor_msgs.msg import CameraInfo, Image
 
 from endo_calib.calibration import PhotometricCalibration
 from endo_calib.errors import CalibrationError
+from endo_flow.errors import MapExportError
 from endo_flow.messages import SCALE_TYPE, grey_cloud_cdr, scale_message_cdr
 from endo_flow.warm_up import warm_up_pipeline
 from endo_io import topics
@@ -510,8 +511,8 @@ def _export_ply(flow: FlowStage, options: ProcessOptions, report: ProcessReport)
         if len(voxel_map):
             try:
                 report.ply_vertices = voxel_map.export_ply(options.ply)
-            except OSError as error:
-                report.ply_error = error.strerror or str(error)
+            except (MapExportError, OSError) as error:  # write_ply removes a partial file
+                report.ply_error = str(error)
         else:
             report.ply_error = "the map was empty"
     elif report.map_points:

@@ -509,3 +509,26 @@ def test_a_summary_json_that_cannot_be_written_is_not_a_failure_of_the_output(
     assert "cannot write /proc/version" in error
     assert "writing stopped" not in error and "not written" not in error
     assert out.exists() and out.stat().st_size > 0
+
+
+def test_a_ply_that_cannot_be_written_after_a_full_disk_is_reported_not_raised(
+    tmp_path: Path,
+) -> None:
+    # Review, session 13: write_ply's MapExportError escaped _export_ply after a full
+    # disk (--ply on the same disk), and the run lost its summary and exit status.
+    from types import SimpleNamespace
+
+    import numpy as np
+
+    from endo_flow.voxel_map import VoxelMap
+    from endo_process.runner import ProcessReport, _export_ply
+
+    voxel_map = VoxelMap(1e-3)
+    voxel_map.insert(np.random.default_rng(0).uniform(0.0, 0.05, (1000, 3)), np.zeros(1000))
+    flow = SimpleNamespace(pipeline=SimpleNamespace(voxel_map=voxel_map))
+    ply = tmp_path / "missing_dir" / "map.ply"
+    report = ProcessReport()
+    report.write_failure = "out.mcap: cannot write (disk full)"
+    _export_ply(flow, SimpleNamespace(ply=ply), report)  # type: ignore[arg-type]
+    assert report.ply_vertices == 0 and f"cannot write {ply}" in report.ply_error
+    assert not ply.exists()
