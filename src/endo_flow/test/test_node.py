@@ -161,6 +161,15 @@ def test_frames_become_metric_depth_points_map_and_scale(graph, moving, kit):
 STREAM_MAX_POINTS = 100  # the first map holds ~400 voxels: it goes thinned
 
 
+def _publish_poses_around(pubs, moving, frames, k):
+    """Frame k's pose at its stamp and the next one half a frame later (the frame can go)."""
+    frame = frames[k]
+    step = frames[1].stamp_ns - frames[0].stamp_ns
+    for dt in (0, step // 2):
+        T = moving.poses[min(k + (dt > 0), len(frames) - 1)] if dt else frame.T_world_camera
+        pubs["pose"].publish(matrix_to_pose(T, frame.stamp_ns + dt, topics.WORLD_FRAME))
+
+
 @pytest.mark.parametrize("graph", [{"map_bandwidth_mb_s": 0.001, "map_every": 8,
                                      "map_stream_max_points": STREAM_MAX_POINTS}],
                          indirect=True)
@@ -172,13 +181,10 @@ def test_the_map_keeps_its_budget_and_goes_whole_once_the_frames_stop(graph, mov
     # the emptied map after ~/reset_map.
     flow, peer, pubs, got, spin_until = graph
     frames = moving.frames(moving.poses)
-    step = frames[1].stamp_ns - frames[0].stamp_ns
     pauses = 0  # a frame sent MAP_FINISH_AFTER_S after the last: frames stopped, a map may go
     sent = time.monotonic()
     for k, frame in enumerate(frames[:60]):
-        for dt in (0, step // 2):
-            T = moving.poses[min(k + (dt > 0), len(frames) - 1)] if dt else frame.T_world_camera
-            pubs["pose"].publish(matrix_to_pose(T, frame.stamp_ns + dt, topics.WORLD_FRAME))
+        _publish_poses_around(pubs, moving, frames, k)
         pauses += time.monotonic() - sent > 0.8 * MAP_FINISH_AFTER_S
         _publish_frame(pubs, frame)
         sent = time.monotonic()
@@ -294,12 +300,9 @@ def test_frames_slower_than_2_hz_keep_the_thinned_map_and_a_stop_sends_it_whole(
     # stays thinned between them; when they stop, it goes whole once.
     flow, _peer, pubs, got, spin_until = graph
     frames = moving.frames(moving.poses)
-    step = frames[1].stamp_ns - frames[0].stamp_ns
     slow_from, slow_widths = 20, []
     for k, frame in enumerate(frames[:30]):
-        for dt in (0, step // 2):
-            T = moving.poses[min(k + (dt > 0), len(frames) - 1)] if dt else frame.T_world_camera
-            pubs["pose"].publish(matrix_to_pose(T, frame.stamp_ns + dt, topics.WORLD_FRAME))
+        _publish_poses_around(pubs, moving, frames, k)
         before = len(got["map"])
         _publish_frame(pubs, frame)
         spin_until(lambda k=k: len(got["scale"]) > k, timeout=2.0)
