@@ -688,7 +688,8 @@ def load_reference(tree: str) -> Any:
 
 def breakdown(bag: str, calibration: str, frames: int, threads: list[int], downsample: int,
               reference: str | None, fov_radius: float = 240.0,
-              scales: tuple[float, ...] = (1.0, 0.5)) -> None:
+              scales: tuple[float, ...] = (1.0, 0.5),
+              tolerances: tuple[float, ...] = ()) -> None:
     """Where the wall and CPU time of a warm phantom frame go, by stage, at solve_scale 1 and 0.5.
 
     Every frame of the bag in order, warm-started as the node does, highlights
@@ -704,15 +705,23 @@ def breakdown(bag: str, calibration: str, frames: int, threads: list[int], downs
     relative depth difference to the reference. fov_radius: the field-of-view
     mask's radius in pixels (0: no mask, as the sfs node and endo-process
     solve by default; highlight detection then fills the NaN holes). scales:
-    the solve_scale values, in turn.
+    the solve_scale values, in turn. tolerances: instead of a reference, one
+    chain of this tree per stopping tolerance (``SfsOptions.tolerance``) and
+    thread count, each compared with the first tolerance's chain as with a
+    reference.
     """
     sequence, camera, _ = phantom_sequence(bag, calibration, np.random.default_rng(0))
     sequence = sequence[:frames]
     mask = camera.fov_mask(fov_radius) if fov_radius > 0.0 else None
     trees: dict[str, Any] = {"this tree": relative_depth}
+    tolerance_of: dict[str, float] = {}
     if reference:
         trees["reference"] = load_reference(reference)
+    elif tolerances:
+        tolerance_of = {f"tolerance {tolerance:g}": tolerance for tolerance in tolerances}
+        trees = dict.fromkeys(tolerance_of, relative_depth)
     chains = {(tree, count): module for tree, module in trees.items() for count in threads}
+    first = next(iter(trees))
 
     def label(chain: tuple[str, int]) -> str:
         return f"{chain[0]}, {chain[1]} thread{'s' if chain[1] > 1 else ''}"
@@ -726,6 +735,8 @@ def breakdown(bag: str, calibration: str, frames: int, threads: list[int], downs
             extra: dict[str, int] = {}
             if downsample and "highlight_downsample" in module.SfsOptions.__dataclass_fields__:
                 extra["highlight_downsample"] = downsample  # 0: each tree's default
+            if chain[0] in tolerance_of:
+                extra["tolerance"] = tolerance_of[chain[0]]
             options[chain] = module.SfsOptions(roughness=0.3, solve_scale=scale,
                                                mask_highlights=True, threads=chain[1], **extra)
         previous = {chain: module.solve(sequence[0][0], camera, options[chain], mask=mask)
@@ -734,7 +745,7 @@ def breakdown(bag: str, calibration: str, frames: int, threads: list[int], downs
         cpus: dict[tuple[str, int], list[float]] = {chain: [] for chain in chains}
         work: dict[tuple[str, int], list[float]] = {chain: [] for chain in chains}
         stages: dict[int, dict[str, list[float]]] = {count: {} for count in threads}
-        differences: dict[int, list[np.ndarray]] = {count: [] for count in threads}
+        differences: dict[tuple[str, int], list[np.ndarray]] = {chain: [] for chain in chains}
         for k, (irradiance, _, _) in enumerate(sequence[1:]):
             names = list(chains) if k % 2 == 0 else list(chains)[::-1]
             for chain in names:
@@ -748,14 +759,16 @@ def breakdown(bag: str, calibration: str, frames: int, threads: list[int], downs
                 work[chain].append(solution.info.updates
                                    / np.isfinite(solution.node_solution).sum())
             for count in threads:
-                ours = previous[("this tree", count)]
+                ours = previous[(first, count)]
                 for stage, seconds in ours.timings.items():
                     stages[count].setdefault(stage, []).append(seconds)
-                if reference:
-                    theirs = previous[("reference", count)].depth
+                for chain in chains:
+                    if chain[1] != count or chain[0] == first:
+                        continue
+                    theirs = previous[chain].depth
                     both = np.isfinite(theirs) & np.isfinite(ours.depth)
-                    differences[count].append(np.abs(ours.depth[both] / theirs[both] - 1.0))
-        nodes = int(np.isfinite(previous[("this tree", threads[0])].node_solution).sum())
+                    differences[chain].append(np.abs(theirs[both] / ours.depth[both] - 1.0))
+        nodes = int(np.isfinite(previous[(first, threads[0])].node_solution).sum())
         print(f"solve_scale {scale:g}: {nodes} nodes")
         for chain in chains:
             print(f"  {label(chain)}: whole solve median {1e3 * np.median(walls[chain]):.1f} ms "
@@ -770,24 +783,32 @@ def breakdown(bag: str, calibration: str, frames: int, threads: list[int], downs
             return f"wall {np.median(wall):.3f}, CPU {np.median(cpu):.3f}"
 
         for count in threads[1:]:
-            print(f"  {count} / {threads[0]} threads (this tree), median of per-frame ratios: "
-                  + ratios(("this tree", count), ("this tree", threads[0])))
+            print(f"  {count} / {threads[0]} threads ({first}), median of per-frame ratios: "
+                  + ratios((first, count), (first, threads[0])))
         for count in threads if reference else []:
             print(f"  this tree / reference, {count} thread(s), median of per-frame ratios: "
                   + ratios(("this tree", count), ("reference", count)))
-            pooled = np.concatenate(differences[count])
+            pooled = np.concatenate(differences[("reference", count)])
             print(f"  relative depth difference to the reference, every pixel of every frame: "
                   f"largest {pooled.max(initial=0.0):.1e}, 99.9th percentile "
                   f"{np.percentile(pooled, 99.9):.1e}")
+        for tree in list(tolerance_of)[1:]:
+            for count in threads:
+                pooled = np.concatenate(differences[(tree, count)])
+                print(f"  {tree} / {first}, {count} thread(s), median of per-frame ratios: "
+                      + ratios((tree, count), (first, count))
+                      + f"; relative depth difference, every pixel of every frame: largest "
+                      f"{pooled.max(initial=0.0):.1e}, 99.9th percentile "
+                      f"{np.percentile(pooled, 99.9):.1e}, median {np.median(pooled):.1e}")
         for count in threads:
-            print(f"this tree, {count} thread(s):")
+            print(f"{first}, {count} thread(s):")
             print("| stage | median ms | p90 ms |")
             print("|---|---|---|")
             for stage, values in stages[count].items():
                 print(f"| {stage} | {1e3 * np.median(values):.2f} | "
                       f"{1e3 * np.percentile(values, 90):.2f} |")
             total = np.sum([np.array(v) for v in stages[count].values()], axis=0)
-            rest = np.array(walls[("this tree", count)]) - total
+            rest = np.array(walls[(first, count)]) - total
             print(f"| (rest: checks, warm-start lookup, Python) | {1e3 * np.median(rest):.2f} | "
                   f"{1e3 * np.percentile(rest, 90):.2f} |")
 
@@ -833,6 +854,9 @@ def main() -> None:
     parser.add_argument("--highlight-downsample", type=int, default=0,
                         help="--breakdown, --phantom: SfsOptions.highlight_downsample (0: each "
                         "tree's default)")
+    parser.add_argument("--tolerances", default="",
+                        help="--breakdown: comma-separated SfsOptions.tolerance values, one chain "
+                        "each, compared with the first's (instead of --reference)")
     parser.add_argument("--reference", metavar="TREE",
                         help="--breakdown: also solve with the endo_sfs of this older checkout, "
                         "frame by frame in one process (ratios)")
@@ -844,7 +868,8 @@ def main() -> None:
         breakdown(args.phantom_bag, args.calibration, args.frames,
                   [int(count) for count in args.threads.split(",")], args.highlight_downsample,
                   args.reference, args.fov_radius,
-                  tuple(float(scale) for scale in args.scales.split(",")))
+                  tuple(float(scale) for scale in args.scales.split(",")),
+                  tuple(float(value) for value in args.tolerances.split(",") if value))
         print(f"machine after: {machine()}")
         return
     if args.workers:

@@ -27,6 +27,7 @@ from endo_process.accuracy import Accuracy, messages_at, read_scale_stream, scor
 from endo_process.report import headline, write_report_figure
 from endo_process.runner import LOOP_STAGES, ProcessOptions, ProcessReport, process_bag
 from endo_process.summary import summary_document
+from endo_sfs.options import DEFAULT_TOLERANCE, agreement_bound
 
 from .conftest import PHANTOM, process_first_frames
 
@@ -60,6 +61,7 @@ def one_chain(
 
 def assert_same_depth_to_the_solver_tolerance(one: Path, other: Path) -> None:
     """Every relative depth of ``one`` matches ``other``'s to the solver's tolerance."""
+    bound = agreement_bound(DEFAULT_TOLERANCE)
     first = read_depth_frames(one, topics.DEPTH_RELATIVE)
     second = read_depth_frames(other, topics.DEPTH_RELATIVE, set(first))
     assert sorted(first) == sorted(second)
@@ -68,10 +70,12 @@ def assert_same_depth_to_the_solver_tolerance(one: Path, other: Path) -> None:
         np.testing.assert_array_equal(np.isfinite(a), np.isfinite(b))
         valid = np.isfinite(a)
         relative = np.abs(a[valid] - b[valid]) / a[valid]
-        # Sweeps stop at 1e-5 in ln r; isolated nodes unlocked by smaller
-        # changes may differ by ~5e-4 (docs/sfs.md), measured up to 2e-3.
-        assert np.percentile(relative, 99.9) < 2e-3 and relative.max() < 1e-2
-        assert np.median(relative) < 1e-5
+        # The sweeps stop at the default tolerance τ in ln r; two solves of a
+        # frame from other starts differ within its documented spread
+        # (endo_sfs.options.agreement_bound; docs/sfs.md, "Speed").
+        assert np.percentile(relative, 99.9) <= bound.p999
+        assert relative.max() <= bound.largest
+        assert np.median(relative) <= bound.median
 
 
 def test_every_frame_is_processed_and_the_truth_copied(full_run: tuple[ProcessReport, Path]):

@@ -22,8 +22,17 @@ MODELS: tuple[str, ...] = ("near_light", "orthographic")
 #: Upwind schemes: 1 first-order Godunov, 2 second-order, 3 WENO3 Godunov.
 ORDERS: tuple[int, ...] = (1, 2, 3)
 #: Default stopping tolerance of the near-light sweeps: largest change of
-#: ln r in a full iteration (a relative depth change of 1e-5).
-DEFAULT_TOLERANCE = 1e-5
+#: ln r in a full iteration (a relative depth change of 1e-4). 1e-5 until
+#: session 14: 1e-4 does 0.83 of the node solves on the phantom, with the
+#: same AbsRel to 1e-4 on the phantom and on held-out renders, and two
+#: solves of a frame still agree within :func:`agreement_bound` (docs/sfs.md,
+#: "Speed").
+DEFAULT_TOLERANCE = 1e-4
+#: :func:`agreement_bound`'s factors: median ≤ AGREEMENT_MEDIAN·τ, 99.9th
+#: percentile ≤ AGREEMENT_P999·τ, every pixel ≤ AGREEMENT_LARGEST·√τ.
+AGREEMENT_MEDIAN = 0.5
+AGREEMENT_P999 = 30.0
+AGREEMENT_LARGEST = 10.0
 DEFAULT_MAX_ITERATIONS = 60
 #: Largest irradiance a frame may hold (image units). endo_calib's correction
 #: gives g(v)/L(x) with g ≤ 1 and the light map L normalised to ≤ 1, so its
@@ -184,6 +193,55 @@ class SfsOptions:
             return self.highlight_downsample
         halved = self.solve_scale <= HALVED_DETECTION_SCALE or height >= HALVED_DETECTION_ROWS
         return 2 if halved else 1
+
+
+@dataclass(frozen=True)
+class AgreementBound:
+    """How far apart two solves of one frame, stopped at one tolerance, may be.
+
+    Relative depth differences |d₁/d₂ − 1| over the pixels both solved.
+
+    Attributes:
+        median: bound on the median over the pixels.
+        p999: bound on the 99.9th percentile.
+        largest: bound on the largest, at any single pixel.
+    """
+
+    median: float
+    p999: float
+    largest: float
+
+
+def agreement_bound(tolerance: float = DEFAULT_TOLERANCE) -> AgreementBound:
+    """The documented spread of near-light solves stopped at ``tolerance``.
+
+    Two solves of one frame from different starts (warm or cold, one or two
+    threads, another worker's chain) reach the same fixed point only to the
+    stopping tolerance τ: the sweeps stop when no node changed ln r by more
+    than τ in an iteration, and a node is solved again only when an upwind
+    neighbour changed by more than τ, so each node may lag the last sub-τ
+    changes of its stencil, and the upwind scheme carries such lags down
+    the characteristics (monotone: carried, not amplified). Beside singular
+    points (surface facing the light, slope ~0) the node equation is
+    quadratic in the slope, so a residual τ there moves the slope by ~√τ:
+    rare single pixels differ by several √τ, more the more pixels are
+    compared. Measured (docs/sfs.md, "Speed", session 14) on the phantom, a
+    held-out render and noisy synthetic frames at τ = 1e-5 … 3e-4: median
+    ≤ 0.24·τ, 99.9th percentile ≤ 11·τ (20·τ in an earlier measurement at
+    1e-5), largest ≤ 5.8·√τ over the phantom's 90 frames (13.9 M pixels;
+    7.5·√τ at 3e-4, full resolution). The bound is that worst case with
+    room: :data:`AGREEMENT_MEDIAN`·τ, :data:`AGREEMENT_P999`·τ and
+    :data:`AGREEMENT_LARGEST`·√τ.
+
+    Args:
+        tolerance: the sweeps' stopping tolerance τ in ln r, > 0.
+
+    Returns:
+        The bounds on the median, 99.9th percentile and largest relative
+        depth difference (dimensionless).
+    """
+    return AgreementBound(AGREEMENT_MEDIAN * tolerance, AGREEMENT_P999 * tolerance,
+                          AGREEMENT_LARGEST * math.sqrt(tolerance))
 
 
 _FLOATS = ("roughness", "solve_scale", "tolerance", "dark_level", "max_irradiance",
