@@ -138,6 +138,7 @@ def configurations(scales: list[float]) -> list[Configuration]:
         found.append(Configuration("corrected 32FC1", scale,
                                    {CORRECTION: {"output_encoding": "32FC1"}}))
         found += [Configuration("sfs threads 1", scale, {SFS: {"threads": "1"}}),
+                  Configuration("sfs threads 2", scale, {SFS: {"threads": "2"}}),
                   Configuration("sfs 2 workers x 1 thread", scale, {SFS: {"threads": "1"}},
                                 sfs_workers=2),
                   Configuration("recorder nice 0", scale, recorder_nice=0),

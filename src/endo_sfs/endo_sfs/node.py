@@ -134,12 +134,13 @@ PARAMETERS: tuple[ParameterSpec, ...] = (
         range=(1, 3),
     ),
     ParameterSpec(
-        "threads", 2,
+        "threads", 0,
         "CPU threads per frame (resampling; highlight detection's two halves and the "
         "validity pass at once; near_light on grids of 20000+ nodes: the first pass, or the "
         "sweeps when the predicted order is poor, as two halves at once); 1 leaves the other "
-        "cores to the rest of the graph and makes the output bit-reproducible",
-        range=(1, 64),
+        "cores to the rest of the graph and makes the output bit-reproducible; 0: two on "
+        "solve grids of 150000+ nodes (640x480 at solve_scale 1), else one",
+        range=(0, 64),
     ),
     ParameterSpec(
         "warm_start", True, "seed each near_light solve with the previous frame's solution"

@@ -51,6 +51,14 @@ HALVED_DETECTION_SCALE = 0.5
 #: that costs about half, and the AbsRel moved by at most 0.0002 (docs/sfs.md,
 #: "Cost per frame", session 8).
 HALVED_DETECTION_ROWS = 480
+#: With ``threads`` 0 (auto), solve grids of at least this many nodes get two
+#: threads, smaller ones one. 640×480 at solve_scale 0.5 is 76 800 nodes: one
+#: thread solves it in ~17 ms, within a 30 fps frame interval, for ~10 % less
+#: CPU, and kept every frame of the 60 s colon at 30 fps where two threads
+#: skipped (their parallel regions wait for a descheduled thread on a busy
+#: machine); full resolution (307 200) needs both to pass 15 Hz
+#: (docs/benchmarks.md, "Session 14: one SFS thread at solve_scale 0.5").
+TWO_THREAD_NODES = 150_000
 
 
 @dataclass(frozen=True)
@@ -97,7 +105,8 @@ class SfsOptions:
             (two independent halves of its baseline at once,
             :func:`endo_sfs.highlights.detect_highlights`) and, with the
             near-light model on large grids, for the first pass of the
-            solver (two halves at once), ≥ 1. 1 gives bit-identical results run to
+            solver (two halves at once), ≥ 1; or 0: as the solve grid needs,
+            :meth:`solve_threads`. 1 gives bit-identical results run to
             run; 2 gives results equal to those to the tolerance.
         first_sweeps: near-light, warm-started frames solved by sweeps
             alone (no first pass): each node is first solved in the sweep
@@ -168,13 +177,27 @@ class SfsOptions:
                 f"singular_tolerance must be in [0, 1), got {self.singular_tolerance}"
             )
         _check_range("smoothing", self.smoothing, 0.0, math.inf, "pixels")
-        if self.threads < 1:
-            raise InvalidOptionError(f"threads must be >= 1, got {self.threads}")
+        if self.threads < 0:
+            raise InvalidOptionError(
+                f"threads must be >= 1, or 0 (as the solve grid needs), got {self.threads}"
+            )
         if not 0 <= self.highlight_downsample <= MAX_HIGHLIGHT_DOWNSAMPLE:
             raise InvalidOptionError(
                 f"highlight_downsample must be in [0, {MAX_HIGHLIGHT_DOWNSAMPLE}] "
                 f"(0: as the solve grid needs), got {self.highlight_downsample}"
             )
+
+    def solve_threads(self, height: int, width: int) -> int:
+        """The threads a solve of an image of ``height`` × ``width`` pixels runs on.
+
+        ``threads`` when set, else 2 when the solve grid (the image at
+        ``solve_scale``) has at least :data:`TWO_THREAD_NODES` nodes and 1
+        below.
+        """
+        if self.threads:
+            return self.threads
+        nodes = round(height * self.solve_scale) * round(width * self.solve_scale)
+        return 2 if nodes >= TWO_THREAD_NODES else 1
 
     def detection_downsample(self, height: int) -> int:
         """The factor by which highlight detection reduces an image of ``height`` rows.

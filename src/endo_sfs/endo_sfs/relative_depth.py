@@ -311,6 +311,10 @@ def solve(
     """
     if not isinstance(options, SfsOptions):
         raise SfsInputError(f"options must be an SfsOptions, got {type(options).__name__}")
+    if not options.threads:
+        shape = np.shape(irradiance)
+        if len(shape) >= 2:  # otherwise _check_inputs names the bad shape below
+            options = replace(options, threads=options.solve_threads(shape[0], shape[1]))
     model = options.model
     if model == "near_light" and warm_start is None and (
         options.solve_scale >= COARSE_START_MIN_SCALE

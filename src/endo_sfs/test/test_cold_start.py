@@ -168,7 +168,8 @@ with BagReader(bag) as reader:
 camera = CameraModel.from_camera_info(info)
 from endo_sfs.node import PARAMETERS, _solver_options  # the node's defaults, as the demo runs it
 options = _solver_options({**{p.name: p.default for p in PARAMETERS}, "roughness": 0.3})
-assert options.mask_highlights and options.threads == 2 and options.solve_scale == 1.0
+assert options.mask_highlights and options.threads == 0 and options.solve_scale == 1.0
+assert options.solve_threads(info.height, info.width) == 2  # two threads at 640x480
 warm_up_kernels()
 warm_up_frame(camera, options)
 before = {k: len(f.signatures) for k, f in kernels.items()}

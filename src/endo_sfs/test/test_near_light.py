@@ -13,7 +13,7 @@ import math
 import numpy as np
 import pytest
 
-from endo_sfs.errors import SfsInputError
+from endo_sfs.errors import InvalidOptionError
 from endo_sfs.evaluation import depth_error
 from endo_sfs.near_light import global_shift
 from endo_sfs.options import SfsOptions
@@ -205,10 +205,9 @@ def test_two_threads_reach_the_same_depth_as_one():
     assert depth_error(warm.depth, rendering.depth, mask).abs_rel < 0.01
 
 
-def test_threads_must_be_positive():
-    camera, mask, rendering = _scene("sphere", 0.0)
-    with pytest.raises(SfsInputError, match="threads"):
-        solve(rendering.irradiance, camera, SfsOptions(threads=0), mask=mask)
+def test_threads_must_be_positive_or_zero_for_auto():
+    with pytest.raises(InvalidOptionError, match="threads must be >= 1, or 0"):
+        SfsOptions(threads=-1)
 
 
 def test_a_poorly_predicted_order_switches_the_chain_to_sweeps_and_back():

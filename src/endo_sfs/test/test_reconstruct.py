@@ -96,6 +96,38 @@ def test_options_are_frozen_validated_when_built_and_take_integers_for_floats():
         endo_sfs.solve(np.ones((SIZE, SIZE)), scene_camera(SIZE), {"roughness": 0.3})
 
 
+def test_threads_zero_takes_two_threads_only_on_large_solve_grids(scene, monkeypatch):
+    from endo_sfs import relative_depth
+    from endo_sfs.options import TWO_THREAD_NODES
+
+    auto = endo_sfs.SfsOptions(threads=0)
+    assert TWO_THREAD_NODES == 150_000
+    assert auto.solve_threads(480, 640) == 2  # 307 200 nodes
+    assert dataclasses.replace(auto, solve_scale=0.5).solve_threads(480, 640) == 1  # 76 800
+    assert auto.solve_threads(300, 500) == 2 and auto.solve_threads(300, 499) == 1
+    assert endo_sfs.SfsOptions(threads=3).solve_threads(480, 640) == 3  # set: as given
+    with pytest.raises(InvalidOptionError, match=r"threads must be >= 1, or 0 .*got -1"):
+        endo_sfs.SfsOptions(threads=-1)
+    # solve() runs a small grid given threads 0 on one thread: the one-thread
+    # solve, bit for bit.
+    counts: list[int] = []
+    numba_threads = relative_depth._numba_threads
+
+    def recording(threads: int):  # type: ignore[no-untyped-def]
+        counts.append(threads)
+        return numba_threads(threads)
+
+    monkeypatch.setattr(relative_depth, "_numba_threads", recording)
+    camera, mask, rendering = scene
+    image = rendering.irradiance.astype(np.float32)
+    solved = endo_sfs.solve(image, camera, dataclasses.replace(auto, mask_highlights=True),
+                            mask=mask)
+    assert counts and set(counts) == {1}, counts
+    one = endo_sfs.solve(image, camera, endo_sfs.SfsOptions(threads=1, mask_highlights=True),
+                         mask=mask)
+    np.testing.assert_array_equal(solved.depth, one.depth)
+
+
 def test_non_float_and_colour_images_are_rejected(scene):
     camera, _, _ = scene
     with pytest.raises(SfsInputError, match="linear float"):
