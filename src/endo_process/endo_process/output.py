@@ -11,6 +11,12 @@ The writer is flushed every ``flush_every`` frames: after a crash (SIGKILL,
 power cut) every flushed chunk reads back. Ctrl-C and SIGTERM finalise the
 file normally (:mod:`endo_process.cli`).
 
+The file is written with ``O_DIRECT``, past the page cache (``BagWriter``'s
+``direct``): the kernel's part of writing ~6 GB per minute of 640x480 video,
+not the copy but filling, writing back and reclaiming the page cache, cost
+~3-5 system-CPU ms per frame buffered against ~1 (docs/benchmarks.md,
+"endo-process, session 14"); the file is the same byte for byte.
+
 The :class:`BagWriter` runs in a thread of its own (:class:`_WriterThread`):
 the frame loop serialises each message and hands the bytes over, and the
 thread makes the chunks, compresses them and writes them, which is mostly
@@ -153,7 +159,7 @@ class OutputBag:
         crcs: bool = True,
         tap: Callable[[str, bytes], None] | None = None,
     ) -> None:
-        writer = BagWriter(path, compression=compression, crcs=crcs)
+        writer = BagWriter(path, compression=compression, crcs=crcs, direct=True)
         self.path = Path(path)
         self._tap = tap
         self.counts: Counter[str] = Counter()
