@@ -2,20 +2,21 @@
 
 A frame gives two clouds: the live topic's, every ``cloud_decimation``-th
 pixel along each axis, and the map's, every ``map_decimation``-th (1: full
-resolution). Both come from one back-projection (:func:`world_clouds`): the
-pixels of the grid at the decimations' greatest common divisor are
-back-projected once by :meth:`endo_io.camera.CameraModel.depth_to_points` of
-the binned camera model (:func:`binned_camera`: the same rays at those
-pixels, cached by the model), and each cloud takes every n-th node of that
-organised grid. Each cloud's camera-facing normals come from central
+resolution). Both come from the grid at the decimations' greatest common
+divisor (:func:`world_clouds`) and the unit rays of the binned camera model
+(:func:`binned_camera`: the same rays at those pixels, cached by the model);
+each cloud takes every n-th node of that organised grid and back-projects
+only its nodes, in the pass below, with the arithmetic of
+:meth:`endo_io.camera.CameraModel.depth_to_points` (the same bits, without
+its (h, w, 3) float64 grid). Each cloud's camera-facing normals come from central
 differences of its own grid (neighbours ``decimation`` pixels apart, so the
 live cloud's normals do not depend on whether the map took a cloud this
 frame), and its points within the depth range are moved into ``world`` as
 :func:`endo_io.pose.transform_points` moves them; normals are rotated alike.
-The range test, the grid's normals and the transform are one numba pass over
-the grid (:func:`_kept_normals`; the numpy version made ~10 full-grid
-temporaries, and at full resolution the transform's matrix product alone
-cost ~10 ms per 640×480 frame).
+The back-projection, the range test, the grid's normals and the transform are
+one numba pass over the grid (:func:`_kept_normals`; the numpy version made
+~10 full-grid temporaries, and at full resolution the transform's matrix
+product alone cost ~10 ms per 640×480 frame).
 """
 
 from __future__ import annotations
@@ -74,30 +75,63 @@ def binned_camera(camera: CameraModel, factor: int) -> CameraModel:
 
 
 @numba.njit(cache=True, nogil=True)
-def _grid_normal(points: np.ndarray, r: int, c: int) -> tuple[np.float32, np.float32, np.float32]:
-    """The unit normal at interior node (r, c) of an (h, w, 3) point grid, facing the origin.
+def _normal_of(
+    left: tuple[float, float, float], right: tuple[float, float, float],
+    up: tuple[float, float, float], down: tuple[float, float, float],
+    centre: tuple[float, float, float],
+) -> tuple[np.float32, np.float32, np.float32]:
+    """The unit normal of a node from its four neighbours' points and its own, facing the origin.
 
     The arithmetic is the numpy version's, operation for operation: float32
     differences and cross products, the length in float32 and the division
     by length × sign in float64, stored as float32. NaN where a neighbour is
-    missing or the cross product vanishes. The one implementation both
-    :func:`_grid_normals` and :func:`_kept_normals` call.
+    missing or the cross product vanishes. The one implementation
+    :func:`_grid_normals` (through :func:`_grid_normal`) and
+    :func:`_kept_normals` call.
     """
-    dux = np.float32(points[r, c + 1, 0]) - np.float32(points[r, c - 1, 0])
-    duy = np.float32(points[r, c + 1, 1]) - np.float32(points[r, c - 1, 1])
-    duz = np.float32(points[r, c + 1, 2]) - np.float32(points[r, c - 1, 2])
-    dvx = np.float32(points[r + 1, c, 0]) - np.float32(points[r - 1, c, 0])
-    dvy = np.float32(points[r + 1, c, 1]) - np.float32(points[r - 1, c, 1])
-    dvz = np.float32(points[r + 1, c, 2]) - np.float32(points[r - 1, c, 2])
+    dux = np.float32(right[0]) - np.float32(left[0])
+    duy = np.float32(right[1]) - np.float32(left[1])
+    duz = np.float32(right[2]) - np.float32(left[2])
+    dvx = np.float32(down[0]) - np.float32(up[0])
+    dvy = np.float32(down[1]) - np.float32(up[1])
+    dvz = np.float32(down[2]) - np.float32(up[2])
     nx = duy * dvz - duz * dvy
     ny = duz * dvx - dux * dvz
     nz = dux * dvy - duy * dvx
-    facing = (nx * np.float32(points[r, c, 0]) + ny * np.float32(points[r, c, 1])
-              + nz * np.float32(points[r, c, 2]))
+    facing = (nx * np.float32(centre[0]) + ny * np.float32(centre[1])
+              + nz * np.float32(centre[2]))
     length = np.sqrt(nx * nx + ny * ny + nz * nz)
     denom = np.float64(length) * (-1.0 if facing > 0.0 else 1.0)
     return (np.float32(np.float64(nx) / denom), np.float32(np.float64(ny) / denom),
             np.float32(np.float64(nz) / denom))
+
+
+@numba.njit(cache=True, nogil=True)
+def _grid_point(points: np.ndarray, r: int, c: int) -> tuple[float, float, float]:
+    """Node (r, c) of an (h, w, 3) point grid."""
+    return points[r, c, 0], points[r, c, 1], points[r, c, 2]
+
+
+@numba.njit(cache=True, nogil=True)
+def _grid_normal(points: np.ndarray, r: int, c: int) -> tuple[np.float32, np.float32, np.float32]:
+    """The unit normal at interior node (r, c) of an (h, w, 3) point grid (:func:`_normal_of`)."""
+    return _normal_of(_grid_point(points, r, c - 1), _grid_point(points, r, c + 1),
+                      _grid_point(points, r - 1, c), _grid_point(points, r + 1, c),
+                      _grid_point(points, r, c))
+
+
+@numba.njit(cache=True, nogil=True)
+def _ray_point(depth: np.ndarray, rays: np.ndarray, r: int, c: int) -> tuple[float, float, float]:
+    """The camera-frame point of node (r, c): :meth:`CameraModel.depth_to_points`'s arithmetic.
+
+    ``depth / ray_z · ray`` in float64 where the depth is > 0, NaN elsewhere
+    (the same operations in the same order, so the same bits).
+    """
+    z = np.float64(depth[r, c])
+    if z > 0.0:
+        length = z / rays[r, c, 2]
+        return length * rays[r, c, 0], length * rays[r, c, 1], length * rays[r, c, 2]
+    return np.nan, np.nan, np.nan
 
 
 @numba.njit(cache=True, nogil=True)
@@ -132,17 +166,21 @@ def surface_normals(points: np.ndarray) -> np.ndarray:
 
 @numba.njit(cache=True, nogil=True)
 def _kept_normals(
-    points: np.ndarray, depth: np.ndarray, lo: float, hi: float, R: np.ndarray,
+    depth: np.ndarray, rays: np.ndarray, lo: float, hi: float, R: np.ndarray,
     t: np.ndarray, index: np.ndarray, world: np.ndarray, normals: np.ndarray,
     row_start: int, row_stop: int,
 ) -> int:
     """The grid nodes kept, their world points and normals, in one pass; returns how many.
 
-    Only rows ``row_start`` to ``row_stop`` (excluded) of the grid are
-    visited; a node's normal still reads its neighbours in the rows around
-    (the grid's border is the whole grid's), so bands of rows give, end to
-    end, what the whole grid gives. A node is kept when its depth is in
-    [lo, hi] and its point is finite;
+    Each node is back-projected in the pass (:func:`_ray_point`: ``depth`` by
+    the unit ``rays`` of the same (h, w) grid, as
+    :meth:`endo_io.camera.CameraModel.depth_to_points` does it, bit for bit),
+    so no (h, w, 3) float64 point grid is made (at full resolution 7.4 MB
+    written and read again per map frame). Only rows ``row_start`` to
+    ``row_stop`` (excluded) of the grid are visited; a node's normal still
+    reads its neighbours in the rows around (the grid's border is the whole
+    grid's), so bands of rows give, end to end, what the whole grid gives. A
+    node is kept when its depth is in [lo, hi] and its point is finite;
     ``index[:n]`` receives the kept nodes' flat indices (row-major),
     ``world[:n]`` their points moved by (R, t) as
     :func:`endo_io.pose.transform_points` moves them (R @ p + t in float64,
@@ -159,11 +197,12 @@ def _kept_normals(
     for r in range(row_start, row_stop):
         for c in range(w):
             z = depth[r, c]
-            if not (z >= lo and z <= hi and np.isfinite(points[r, c, 0])
-                    and np.isfinite(points[r, c, 1]) and np.isfinite(points[r, c, 2])):
+            if not (z >= lo and z <= hi):
+                continue
+            px, py, pz = _ray_point(depth, rays, r, c)
+            if not (np.isfinite(px) and np.isfinite(py) and np.isfinite(pz)):
                 continue
             index[n] = r * w + c
-            px, py, pz = points[r, c, 0], points[r, c, 1], points[r, c, 2]
             world[n, 0] = np.float32(R[0, 0] * px + R[0, 1] * py + R[0, 2] * pz + t[0])
             world[n, 1] = np.float32(R[1, 0] * px + R[1, 1] * py + R[1, 2] * pz + t[1])
             world[n, 2] = np.float32(R[2, 0] * px + R[2, 1] * py + R[2, 2] * pz + t[2])
@@ -173,7 +212,10 @@ def _kept_normals(
                 normals[n, 2] = np.nan
                 n += 1
                 continue
-            gx, gy, gz = _grid_normal(points, r, c)
+            gx, gy, gz = _normal_of(_ray_point(depth, rays, r, c - 1),
+                                    _ray_point(depth, rays, r, c + 1),
+                                    _ray_point(depth, rays, r - 1, c),
+                                    _ray_point(depth, rays, r + 1, c), (px, py, pz))
             ax, ay, az = np.float64(gx), np.float64(gy), np.float64(gz)
             normals[n, 0] = np.float32(R[0, 0] * ax + R[0, 1] * ay + R[0, 2] * az)
             normals[n, 1] = np.float32(R[1, 0] * ax + R[1, 1] * ay + R[1, 2] * az)
@@ -227,19 +269,21 @@ def world_clouds(
         raise ValueError(f"decimations must be >= 1, got {list(decimations)}")
     step = math.gcd(*(int(k) for k in decimations))
     sub, grey_grid = _grid(depth, image, camera, step)
-    local = camera.depth_to_points(sub)
+    rays = camera.unit_rays()
     clouds: dict[int, Cloud] = {}
     for k in decimations:
         if int(k) in clouds:
             continue
         s = int(k) // step
         if s == 1:
-            clouds[int(k)] = _grid_cloud(local, sub, grey_grid, T_world_camera, min_depth_m,
+            clouds[int(k)] = _grid_cloud(rays, sub, grey_grid, T_world_camera, min_depth_m,
                                          max_depth_m, white, gamma)
             continue
         h, w = camera.height // s * s, camera.width // s * s
+        every = np.ascontiguousarray(rays[:h:s, :w:s])
+        every.setflags(write=False)  # as the table itself: one numba signature for both
         clouds[int(k)] = _grid_cloud(
-            np.ascontiguousarray(local[:h:s, :w:s]), sub[:h:s, :w:s], grey_grid[:h:s, :w:s],
+            every, sub[:h:s, :w:s], grey_grid[:h:s, :w:s],
             T_world_camera, min_depth_m, max_depth_m, white, gamma)
     return [clouds[int(k)] for k in decimations]
 
@@ -257,13 +301,14 @@ def _grid(
 
 
 def _grid_cloud(
-    local: np.ndarray, depth: np.ndarray, image: np.ndarray, T_world_camera: np.ndarray,
+    rays: np.ndarray, depth: np.ndarray, image: np.ndarray, T_world_camera: np.ndarray,
     min_depth_m: float, max_depth_m: float, white: float, gamma: float,
     rows: tuple[int, int] | None = None,
 ) -> Cloud:
-    """The world cloud of an organised (h, w, 3) camera-frame grid (see :func:`world_clouds`).
+    """The world cloud of an organised (h, w) depth grid and its (h, w, 3) unit rays.
 
-    ``rows``: only the grid rows from the first to the second (excluded); None: all.
+    See :func:`world_clouds`. ``rows``: only the grid rows from the first to
+    the second (excluded); None: all.
     """
     h, w = depth.shape
     T = np.asarray(T_world_camera, np.float64)
@@ -274,7 +319,7 @@ def _grid_cloud(
     index = np.empty(size, np.int64)
     world = np.empty((size, 3), np.float32)
     normals = np.empty((size, 3), np.float32)
-    n = _kept_normals(np.ascontiguousarray(local), np.ascontiguousarray(depth),
+    n = _kept_normals(np.ascontiguousarray(depth), np.ascontiguousarray(rays),
                       float(min_depth_m), float(max_depth_m), np.ascontiguousarray(T[:3, :3]),
                       np.ascontiguousarray(T[:3, 3]), index, world, normals, start, stop)
     index, world, normals = index[:n], world[:n], normals[:n]
@@ -291,7 +336,7 @@ class BandedCloud:
     node's normal reads the rows around its band. The live flow node fuses
     a frame's full-resolution map cloud this way over the frames that
     follow, so that no one frame carries the whole cloud and its insert.
-    The grid is back-projected when the first band is taken.
+    Each band's nodes are back-projected as it is taken (in the pass).
 
     Args:
         depth, image, camera, T_world_camera, decimation, min_depth_m,
@@ -319,7 +364,6 @@ class BandedCloud:
         self._T = np.asarray(T_world_camera, np.float64)
         self._range = (float(min_depth_m), float(max_depth_m))
         self._grey = (float(white), float(gamma))
-        self._local: np.ndarray | None = None
         #: grid rows of the decimated grid, and the first not yet taken
         self.rows = camera.height
         self.next_row = 0
@@ -333,12 +377,10 @@ class BandedCloud:
         """The cloud of the next ``rows`` grid rows (fewer at the end; empty when done)."""
         if rows < 1:
             raise ValueError(f"rows must be >= 1, got {rows}")
-        if self._local is None:
-            self._local = self._camera.depth_to_points(self._depth)
         start = self.next_row
         self.next_row = min(start + int(rows), self.rows)
-        return _grid_cloud(self._local, self._depth, self._image, self._T, *self._range,
-                           *self._grey, rows=(start, self.next_row))
+        return _grid_cloud(self._camera.unit_rays(), self._depth, self._image, self._T,
+                           *self._range, *self._grey, rows=(start, self.next_row))
 
 
 def world_cloud(

@@ -140,3 +140,26 @@ def test_binned_models_are_shared_by_cameras_of_one_geometry():
         np.testing.assert_allclose(rays, first.unit_rays()[::factor, ::factor], atol=1e-12)
     other = CameraModel.pinhole(640, 480, 500.0, 515.0, 322.0, 238.5)
     assert binned_camera(other, 4) is not binned_camera(first, 4)
+
+
+def test_the_pass_back_projects_as_depth_to_points_bit_for_bit():
+    """The points made in the pass are CameraModel.depth_to_points's, to the last bit."""
+    camera = CameraModel(width=64, height=48, K=np.array([[50.0, 0, 31.5], [0, 52.0, 23.5],
+                                                          [0, 0, 1.0]]),
+                         D=np.array([-0.2, 0.05, 0.001, -0.002, 0.0]), distortion_model="plumb_bob")
+    rng = np.random.default_rng(5)
+    depth = rng.uniform(0.01, 0.08, (48, 64)).astype(np.float32)
+    depth[rng.random(depth.shape) < 0.05] = np.nan
+    depth[:3, :5] = -0.01  # below the range: not kept, and no neighbour's point
+    image = rng.random(depth.shape).astype(np.float32)
+    kw = {"min_depth_m": 1e-3, "max_depth_m": 0.3, "white": 1.0, "gamma": 1.0}
+    for decimation in (1, 2):
+        model = binned_camera(camera, decimation)
+        sub = depth[::decimation, ::decimation]
+        # identity pose: R @ p + t is p itself, stored as float32
+        world, _, normals = world_cloud(depth, image, model, np.eye(4), decimation=decimation,
+                                        **kw)
+        points = model.depth_to_points(sub)
+        kept = (sub >= 1e-3) & (sub <= 0.3) & np.isfinite(points).all(axis=2)
+        np.testing.assert_array_equal(world, points[kept].astype(np.float32))
+        np.testing.assert_array_equal(normals, surface_normals(points)[kept])
