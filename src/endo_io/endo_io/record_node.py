@@ -180,6 +180,14 @@ def build_parser() -> argparse.ArgumentParser:
         "--compression", choices=COMPRESSIONS, default="zstd", help="chunk compression"
     )
     parser.add_argument(
+        "--direct",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="write the file with O_DIRECT, past the page cache (BagWriter(direct=True): a "
+        "file system that refuses it is written as usual); --no-direct writes through the "
+        "page cache",
+    )
+    parser.add_argument(
         "--max-duration", type=float, default=None, metavar="SECONDS", help="stop after this long"
     )
     parser.add_argument(
@@ -466,7 +474,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     _check_options(options)
     max_duration_ns = seconds_to_ns(options.max_duration)  # checked before a file exists
     recording = Recording(
-        BagWriter(options.output, compression=options.compression),
+        BagWriter(options.output, compression=options.compression, direct=options.direct),
         max_messages=options.max_messages,
         max_duration_ns=max_duration_ns,
     )
