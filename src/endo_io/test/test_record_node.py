@@ -257,12 +257,12 @@ def test_endo_record_writes_past_the_page_cache_unless_told_not_to(tmp_path, mon
     assert build_parser().parse_args(["-a", "--no-direct"]).direct is False
     given: list[bool] = []
 
-    class Stop(Endo3dError):
+    class StopError(Endo3dError):
         pass
 
     def writer(path, *, compression, direct):  # type: ignore[no-untyped-def]
         given.append(direct)
-        raise Stop("stop here")
+        raise StopError("stop here")
 
     monkeypatch.setattr(record_node, "BagWriter", writer)
     for extra, expected in (([], True), (["--no-direct"], False)):
