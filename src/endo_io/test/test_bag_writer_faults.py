@@ -218,7 +218,7 @@ class FailingWrite:
         return self.real_write(fd, data)
 
 
-def record(path: Path, write: FailingWrite, compression: str):
+def record(path: Path, write: FailingWrite, compression: str, direct: bool = False):
     """A small recording; returns (the writer, sent per topic, written counts before the failure).
 
     Every message handed to ``write`` counts as sent; the counts before are
@@ -228,7 +228,8 @@ def record(path: Path, write: FailingWrite, compression: str):
     sent: dict[str, list[bytes]] = {"/image": [], "/value": []}
     before: dict[str, int] = {}
     split = None if path.suffix == ".mcap" else 4_000
-    writer = BagWriter(path, compression=compression, chunk_size=1_500, split_size_bytes=split)
+    writer = BagWriter(path, compression=compression, chunk_size=1_500, split_size_bytes=split,
+                       direct=direct)
     failed = False
 
     def call(function, *args) -> None:
@@ -261,11 +262,11 @@ def record(path: Path, write: FailingWrite, compression: str):
     return writer, sent, before if failed else None
 
 
-def clean_writes(path: Path, compression: str) -> int:
+def clean_writes(path: Path, compression: str, direct: bool = False) -> int:
     counter = FailingWrite(0, RuntimeError)
     with pytest.MonkeyPatch.context() as patch:
         patch.setattr(writer_module, "os", with_write(counter))
-        writer, _, _ = record(path, counter, compression)
+        writer, _, _ = record(path, counter, compression, direct)
     assert len(writer.file_paths) == (1 if path.suffix == ".mcap" else 7)
     return counter.calls
 
@@ -273,9 +274,10 @@ def clean_writes(path: Path, compression: str) -> int:
 @pytest.mark.parametrize(("suffix", "compression"),
                          [(".mcap", "zstd"), (".mcap", "none"), ("_dir", "lz4")])
 @pytest.mark.parametrize("error", [KeyboardInterrupt, MemoryError])
+@pytest.mark.parametrize("direct", [False, True])  # review, session 14: O_DIRECT left no summary
 def test_a_failure_at_any_write_leaves_a_file_every_reader_opens(
-        tmp_path, suffix, compression, error):
-    writes = clean_writes(tmp_path / f"clean{suffix}", compression)
+        tmp_path, suffix, compression, error, direct):
+    writes = clean_writes(tmp_path / f"clean{suffix}", compression, direct)
     assert writes > 20  # headers, several chunks and their indexes, summaries
     for fail_at in range(1, writes + 1):
         path = tmp_path / f"fail_{fail_at}{suffix}"
@@ -283,7 +285,7 @@ def test_a_failure_at_any_write_leaves_a_file_every_reader_opens(
         with pytest.MonkeyPatch.context() as patch:
             patch.setattr(writer_module, "os", with_write(failing))
             try:
-                writer, sent, before = record(path, failing, compression)
+                writer, sent, before = record(path, failing, compression, direct)
             except error:
                 # the constructor's header: no file rather than one no reader opens
                 assert fail_at <= 2 and not path.exists(), fail_at

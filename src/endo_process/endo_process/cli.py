@@ -94,6 +94,10 @@ def build_parser() -> argparse.ArgumentParser:
                         help="output chunk compression (default none, as rosbag2 records: "
                         "~3.7 MB per 640x480 frame; lz4 ~2.1 MB for ~1.5 CPU-ms more per "
                         "frame, zstd ~1.8 MB)")
+    parser.add_argument("--direct", action=argparse.BooleanOptionalAction, default=True,
+                        help="write the output with O_DIRECT, past the page cache (default; "
+                        "a file system that refuses it is written as usual); --no-direct "
+                        "writes through the page cache (slow or network storage)")
     parser.add_argument("--chunk-crc", action="store_true",
                         help="store each output chunk's CRC-32 (off by default, as in "
                         "rosbag2's MCAP writer: it costs CPU on every byte written)")
@@ -165,7 +169,7 @@ def _options(args: argparse.Namespace) -> ProcessOptions:
         camera_info=args.camera_info, ply=args.ply, cloud_decimation=args.cloud_decimation,
         jobs=args.jobs,
         chunk_frames=args.chunk_frames, compression=args.compression,
-        chunk_crcs=args.chunk_crc, progress=not args.quiet, max_frames=args.max_frames,
+        chunk_crcs=args.chunk_crc, direct=args.direct, progress=not args.quiet, max_frames=args.max_frames,
         overwrite=args.overwrite,
     )  # fmt: skip
 

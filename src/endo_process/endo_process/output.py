@@ -143,6 +143,8 @@ class OutputBag:
             given, as rosbag2's MCAP plugin does by default (``noChunkCRC``):
             zlib's CRC over ~4 MB per 640×480 frame is CPU the two cores
             need for the solve (docs/process.md, "Output").
+        direct: write with ``O_DIRECT`` (:class:`BagWriter`'s ``direct``);
+            ``endo-process --no-direct`` turns it off.
         tap: called with (topic, CDR bytes) of every message as it is handed
             to the writer, in the file's order (``endo-process`` scores its
             output with it, :class:`endo_process.accuracy.RecordingScorer`,
@@ -157,9 +159,10 @@ class OutputBag:
         *,
         threaded: bool = True,
         crcs: bool = True,
+        direct: bool = True,
         tap: Callable[[str, bytes], None] | None = None,
     ) -> None:
-        writer = BagWriter(path, compression=compression, crcs=crcs, direct=True)
+        writer = BagWriter(path, compression=compression, crcs=crcs, direct=direct)
         self.path = Path(path)
         self._tap = tap
         self.counts: Counter[str] = Counter()

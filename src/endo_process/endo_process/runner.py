@@ -101,6 +101,7 @@ class ProcessOptions:
     chunk_frames: int = DEFAULT_CHUNK_FRAMES
     compression: str = "zstd"
     chunk_crcs: bool = False
+    direct: bool = True
     progress: bool = True
     flush_every: int = DEFAULT_FLUSH_EVERY
     max_frames: int | None = None
@@ -554,7 +555,11 @@ def process_bag(
                          settings.mask_extrapolated, settings.output_encoding)  # fmt: skip
     stage = None
     if options.jobs == 1:  # the calibration loaded above, not a second time
-        stage = ShadingStage(photometric, settings.channel, settings.sfs,
+        # One chain in this process: its solve takes two threads unless the
+        # params set a count (the node's 0 gives one thread at solve_scale
+        # 0.5, to leave a live graph's other nodes the second core).
+        sfs = settings.sfs if settings.sfs.get("threads") else dict(settings.sfs, threads=2)
+        stage = ShadingStage(photometric, settings.channel, sfs,
                              mask_extrapolated=settings.mask_extrapolated,
                              output_encoding=settings.output_encoding)  # fmt: skip
     camera = None
@@ -583,6 +588,7 @@ def process_bag(
         scorer = RecordingScorer() if copied else None
         output = OutputBag(options.output, options.compression, copied,
                            threaded=pool.worker_count == 0, crcs=options.chunk_crcs,
+                           direct=options.direct,
                            tap=None if scorer is None else scorer.add)  # fmt: skip
         world_frame = str(settings.flow["world_frame"])
         poses = iter_camera_poses(iter_tracker_poses(streams), settings, handeye, report)

@@ -78,3 +78,29 @@ def _check_crcs(path: Path, compression: str, crcs: bool) -> None:
     with BagReader(path) as reader:
         read = [image_to_array(deserialize(m)) for m in reader.messages(["/depth"])]
     assert all(np.array_equal(a, b) for a, b in zip(read, frames, strict=True))
+
+
+def test_the_output_goes_past_the_page_cache_unless_told_not_to(tmp_path: Path) -> None:
+    """--no-direct (review, session 14: slow or network storage) writes the same file."""
+    from endo_process.cli import _options, build_parser
+    from endo_process.runner import ProcessOptions
+
+    assert ProcessOptions(Path("a"), Path("b"), Path("c"), Path("d")).direct is True
+    for name in ("in.mcap", "p.yaml", "h.yaml"):
+        (tmp_path / name).touch()
+    argv = [str(tmp_path / "in.mcap"), "-o", str(tmp_path / "out.mcap"),
+            "--calibration", str(tmp_path / "p.yaml"), "--handeye", str(tmp_path / "h.yaml")]
+    assert _options(build_parser().parse_args(argv)).direct is True
+    assert _options(build_parser().parse_args([*argv, "--no-direct"])).direct is False
+    written = []
+    for direct in (True, False):
+        path = tmp_path / f"direct_{direct}.mcap"
+        output = OutputBag(path, "none", crcs=False, direct=direct)
+        for k in range(3):
+            frame = np.linspace(0.0, k + 1.0, 640 * 480, dtype=np.float32).reshape(480, 640)
+            output.write_image("/depth", frame, "32FC1", 1_000 + k, "optical")
+        output.close()
+        with BagReader(path) as reader:  # the same messages (the file's metadata holds times)
+            assert reader.damage is None
+            written.append([(m.topic, m.log_time_ns, bytes(m.data)) for m in reader.messages()])
+    assert len(written[0]) == 3 and written[0] == written[1]

@@ -65,6 +65,7 @@ def assert_same_depth_to_the_solver_tolerance(one: Path, other: Path) -> None:
     first = read_depth_frames(one, topics.DEPTH_RELATIVE)
     second = read_depth_frames(other, topics.DEPTH_RELATIVE, set(first))
     assert sorted(first) == sorted(second)
+    compared = beyond = 0
     for stamp in first:
         a, b = first[stamp], second[stamp]
         np.testing.assert_array_equal(np.isfinite(a), np.isfinite(b))
@@ -76,6 +77,13 @@ def assert_same_depth_to_the_solver_tolerance(one: Path, other: Path) -> None:
         assert np.percentile(relative, 99.9) <= bound.p999
         assert relative.max() <= bound.largest
         assert np.median(relative) <= bound.median
+        compared += relative.size
+        beyond += int(np.count_nonzero(relative > 1e-2))
+    # bound.largest (10·√τ = 0.1) holds for any single pixel; beyond 1 % only a
+    # rare few may go: 12 of 6.9 M pixels over the phantom's 90 frames at 0.5
+    # (docs/sfs.md, "Speed", session 14), so a defect that puts one pixel per
+    # frame a few % off fails here (review, session 14).
+    assert beyond <= 1e-5 * compared, (beyond, compared)
 
 
 def test_every_frame_is_processed_and_the_truth_copied(full_run: tuple[ProcessReport, Path]):

@@ -139,7 +139,7 @@ PARAMETERS: tuple[ParameterSpec, ...] = (
         "validity pass at once; near_light on grids of 20000+ nodes: the first pass, or the "
         "sweeps when the predicted order is poor, as two halves at once); 1 leaves the other "
         "cores to the rest of the graph and makes the output bit-reproducible; 0: two on "
-        "solve grids of 150000+ nodes (640x480 at solve_scale 1), else one",
+        "images of 150000+ pixels at solve_scale (640x480 at 1), else one",
         range=(0, 64),
     ),
     ParameterSpec(

@@ -24,7 +24,7 @@ ORDERS: tuple[int, ...] = (1, 2, 3)
 #: Default stopping tolerance of the near-light sweeps: largest change of
 #: ln r in a full iteration (a relative depth change of 1e-4). 1e-5 until
 #: session 14: 1e-4 does 0.83 of the node solves on the phantom, with the
-#: same AbsRel to 1e-4 on the phantom and on held-out renders, and two
+#: same AbsRel to 1e-5 on the phantom and on held-out renders, and two
 #: solves of a frame still agree within :func:`agreement_bound` (docs/sfs.md,
 #: "Speed").
 DEFAULT_TOLERANCE = 1e-4
@@ -33,6 +33,13 @@ DEFAULT_TOLERANCE = 1e-4
 AGREEMENT_MEDIAN = 0.5
 AGREEMENT_P999 = 30.0
 AGREEMENT_LARGEST = 10.0
+#: The tolerances :func:`agreement_bound` holds for: measured from 1e-9 (where
+#: the float32 depth's rounding, :data:`FLOAT32_SPACING`, dominates) to 1e-3;
+#: at 1e-2 the median reached 0.7·τ (review, session 14).
+AGREEMENT_TOLERANCES = (1e-9, 1e-3)
+#: Relative spacing of float32 numbers near 1 (2⁻²³): two depths rounded to
+#: float32 may differ by that much whatever the solver did.
+FLOAT32_SPACING = 2.0**-23
 DEFAULT_MAX_ITERATIONS = 60
 #: Largest irradiance a frame may hold (image units). endo_calib's correction
 #: gives g(v)/L(x) with g ≤ 1 and the light map L normalised to ≤ 1, so its
@@ -51,14 +58,16 @@ HALVED_DETECTION_SCALE = 0.5
 #: that costs about half, and the AbsRel moved by at most 0.0002 (docs/sfs.md,
 #: "Cost per frame", session 8).
 HALVED_DETECTION_ROWS = 480
-#: With ``threads`` 0 (auto), solve grids of at least this many nodes get two
-#: threads, smaller ones one. 640×480 at solve_scale 0.5 is 76 800 nodes: one
+#: With ``threads`` 0 (auto), images of at least this many pixels at
+#: ``solve_scale`` get two threads, smaller ones one (the solve grid inside the
+#: field of view is smaller still: 67 032 nodes at 640×480 and 0.5, 267 672 at
+#: 1). 640×480 at solve_scale 0.5 is 76 800 pixels: one
 #: thread solves it in ~17 ms, within a 30 fps frame interval, for ~10 % less
 #: CPU, and kept every frame of the 60 s colon at 30 fps where two threads
 #: skipped (their parallel regions wait for a descheduled thread on a busy
-#: machine); full resolution (307 200) needs both to pass 15 Hz
+#: machine); full resolution (307 200 pixels) needs both to pass 15 Hz
 #: (docs/benchmarks.md, "Session 14: one SFS thread at solve_scale 0.5").
-TWO_THREAD_NODES = 150_000
+TWO_THREAD_PIXELS = 150_000
 
 
 @dataclass(frozen=True)
@@ -190,14 +199,13 @@ class SfsOptions:
     def solve_threads(self, height: int, width: int) -> int:
         """The threads a solve of an image of ``height`` × ``width`` pixels runs on.
 
-        ``threads`` when set, else 2 when the solve grid (the image at
-        ``solve_scale``) has at least :data:`TWO_THREAD_NODES` nodes and 1
-        below.
+        ``threads`` when set, else 2 when the image at ``solve_scale`` has
+        at least :data:`TWO_THREAD_PIXELS` pixels and 1 below.
         """
         if self.threads:
             return self.threads
         nodes = round(height * self.solve_scale) * round(width * self.solve_scale)
-        return 2 if nodes >= TWO_THREAD_NODES else 1
+        return 2 if nodes >= TWO_THREAD_PIXELS else 1
 
     def detection_downsample(self, height: int) -> int:
         """The factor by which highlight detection reduces an image of ``height`` rows.
@@ -254,17 +262,32 @@ def agreement_bound(tolerance: float = DEFAULT_TOLERANCE) -> AgreementBound:
     1e-5), largest ≤ 5.8·√τ over the phantom's 90 frames (13.9 M pixels;
     7.5·√τ at 3e-4, full resolution). The bound is that worst case with
     room: :data:`AGREEMENT_MEDIAN`·τ, :data:`AGREEMENT_P999`·τ and
-    :data:`AGREEMENT_LARGEST`·√τ.
+    :data:`AGREEMENT_LARGEST`·√τ, each plus two float32 spacings (the
+    depth's rounding: at τ = 1e-9 the 99.9th percentile was 1.2e-7). It is
+    an envelope of measurements, not a derivation, so it is given only
+    within :data:`AGREEMENT_TOLERANCES`: beyond 1e-3 the spread grows faster
+    than these terms (median 0.7·τ at 1e-2).
 
     Args:
-        tolerance: the sweeps' stopping tolerance τ in ln r, > 0.
+        tolerance: the sweeps' stopping tolerance τ in ln r, within
+            :data:`AGREEMENT_TOLERANCES`.
 
     Returns:
         The bounds on the median, 99.9th percentile and largest relative
         depth difference (dimensionless).
+
+    Raises:
+        InvalidOptionError: ``tolerance`` outside :data:`AGREEMENT_TOLERANCES`.
     """
-    return AgreementBound(AGREEMENT_MEDIAN * tolerance, AGREEMENT_P999 * tolerance,
-                          AGREEMENT_LARGEST * math.sqrt(tolerance))
+    low, high = AGREEMENT_TOLERANCES
+    if not low <= tolerance <= high:  # also False for NaN
+        raise InvalidOptionError(
+            f"agreement_bound is measured for tolerances in [{low:g}, {high:g}], got {tolerance}"
+        )
+    rounding = 2.0 * FLOAT32_SPACING
+    return AgreementBound(AGREEMENT_MEDIAN * tolerance + rounding,
+                          AGREEMENT_P999 * tolerance + rounding,
+                          AGREEMENT_LARGEST * math.sqrt(tolerance) + rounding)
 
 
 _FLOATS = ("roughness", "solve_scale", "tolerance", "dark_level", "max_irradiance",

@@ -313,8 +313,9 @@ def solve(
         raise SfsInputError(f"options must be an SfsOptions, got {type(options).__name__}")
     if not options.threads:
         shape = np.shape(irradiance)
-        if len(shape) >= 2:  # otherwise _check_inputs names the bad shape below
-            options = replace(options, threads=options.solve_threads(shape[0], shape[1]))
+        # Not an image: one thread, and _check_inputs names the bad shape below.
+        height, width = shape if len(shape) == 2 else (0, 0)
+        options = replace(options, threads=options.solve_threads(height, width))
     model = options.model
     if model == "near_light" and warm_start is None and (
         options.solve_scale >= COARSE_START_MIN_SCALE

@@ -196,3 +196,17 @@ def test_the_warm_ups_leave_no_kernel_for_the_first_real_frames() -> None:
                             capture_output=True, text=True, timeout=600, check=False)  # fmt: skip
     assert result.returncode == 0, result.stderr
     assert result.stdout.strip().splitlines()[-1] == "[]"
+
+
+def test_the_agreement_bound_is_given_only_where_it_was_measured() -> None:
+    # Review, session 14: at 1e-9 the float32 depth's rounding (1.2e-7 at the 99.9th
+    # percentile) exceeded 30·τ; at 1e-2 the median reached 0.7·τ.
+    from endo_sfs.errors import InvalidOptionError
+    from endo_sfs.options import AGREEMENT_TOLERANCES, FLOAT32_SPACING
+
+    assert AGREEMENT_TOLERANCES == (1e-9, 1e-3)
+    assert agreement_bound(1e-9).p999 >= 1.2e-7 > 30 * 1e-9
+    assert agreement_bound(1e-4).median == pytest.approx(0.5e-4 + 2 * FLOAT32_SPACING)
+    for outside in (1e-2, 1e-10, float("nan")):
+        with pytest.raises(InvalidOptionError, match="measured for tolerances"):
+            agreement_bound(outside)

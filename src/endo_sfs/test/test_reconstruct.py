@@ -98,14 +98,17 @@ def test_options_are_frozen_validated_when_built_and_take_integers_for_floats():
 
 def test_threads_zero_takes_two_threads_only_on_large_solve_grids(scene, monkeypatch):
     from endo_sfs import relative_depth
-    from endo_sfs.options import TWO_THREAD_NODES
+    from endo_sfs.options import TWO_THREAD_PIXELS
 
     auto = endo_sfs.SfsOptions(threads=0)
-    assert TWO_THREAD_NODES == 150_000
+    assert TWO_THREAD_PIXELS == 150_000
     assert auto.solve_threads(480, 640) == 2  # 307 200 nodes
     assert dataclasses.replace(auto, solve_scale=0.5).solve_threads(480, 640) == 1  # 76 800
     assert auto.solve_threads(300, 500) == 2 and auto.solve_threads(300, 499) == 1
     assert endo_sfs.SfsOptions(threads=3).solve_threads(480, 640) == 3  # set: as given
+    for bad in (np.ones(SIZE), np.ones((SIZE, SIZE, 3))):  # named, as with threads 1 (review)
+        with pytest.raises(SfsInputError, match="single-channel|2-D|shape"):
+            endo_sfs.solve(bad, scene_camera(SIZE), auto)
     with pytest.raises(InvalidOptionError, match=r"threads must be >= 1, or 0 .*got -1"):
         endo_sfs.SfsOptions(threads=-1)
     # solve() runs a small grid given threads 0 on one thread: the one-thread

@@ -133,7 +133,9 @@ class _OsFileSink:
 
     def __init__(self, path: Path, *, direct: bool = False) -> None:
         try:
-            self._fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o644)
+            # Read-write: after a cut, O_DIRECT writes read the file's last partial
+            # block back (_DirectWrites.reload_tail).
+            self._fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_EXCL, 0o644)
         except FileExistsError as exc:
             raise BagError(f"{path}: already exists, will not overwrite a bag") from exc
         except OSError as exc:
@@ -218,9 +220,11 @@ class _OsFileSink:
         """Nothing is buffered here."""
 
     def close(self) -> None:
-        if self._direct is not None:
-            self._direct.close()
-        os.close(self._fd)
+        try:
+            if self._direct is not None:
+                self._direct.close()
+        finally:
+            os.close(self._fd)
 
 
 #: Alignment of ``O_DIRECT`` writes: file offset, length and buffer address
@@ -332,7 +336,8 @@ class _DirectWrites:
         if self._direct_fd is not None:
             os.close(self._direct_fd)
             self._direct_fd = None
-        self._stage.close()
+        with contextlib.suppress(BufferError):  # a traceback may still hold a view of it
+            self._stage.close()
 
 
 def _chunk_index(record: memoryview, offset: int) -> ChunkIndex:
