@@ -169,7 +169,8 @@ def _options(args: argparse.Namespace) -> ProcessOptions:
         camera_info=args.camera_info, ply=args.ply, cloud_decimation=args.cloud_decimation,
         jobs=args.jobs,
         chunk_frames=args.chunk_frames, compression=args.compression,
-        chunk_crcs=args.chunk_crc, direct=args.direct, progress=not args.quiet, max_frames=args.max_frames,
+        chunk_crcs=args.chunk_crc, direct=args.direct, progress=not args.quiet,
+        max_frames=args.max_frames,
         overwrite=args.overwrite,
     )  # fmt: skip
 

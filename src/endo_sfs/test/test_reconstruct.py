@@ -107,7 +107,7 @@ def test_threads_zero_takes_two_threads_only_on_large_solve_grids(scene, monkeyp
     assert auto.solve_threads(300, 500) == 2 and auto.solve_threads(300, 499) == 1
     assert endo_sfs.SfsOptions(threads=3).solve_threads(480, 640) == 3  # set: as given
     for bad in (np.ones(SIZE), np.ones((SIZE, SIZE, 3))):  # named, as with threads 1 (review)
-        with pytest.raises(SfsInputError, match="single-channel|2-D|shape"):
+        with pytest.raises(SfsInputError, match=r"single-channel|2-D|shape"):
             endo_sfs.solve(bad, scene_camera(SIZE), auto)
     with pytest.raises(InvalidOptionError, match=r"threads must be >= 1, or 0 .*got -1"):
         endo_sfs.SfsOptions(threads=-1)
