@@ -104,3 +104,14 @@ def test_the_output_goes_past_the_page_cache_unless_told_not_to(tmp_path: Path) 
             assert reader.damage is None
             written.append([(m.topic, m.log_time_ns, bytes(m.data)) for m in reader.messages()])
     assert len(written[0]) == 3 and written[0] == written[1]
+
+
+def test_jobs_1_solves_on_two_threads_unless_the_parameters_set_a_count() -> None:
+    """--jobs 1's one chain has the process: the node's threads 0 is taken as 2 (review, s14)."""
+    from endo_process.runner import one_chain_parameters
+
+    assert one_chain_parameters({"threads": 0, "solve_scale": 0.5}) == {
+        "threads": 2, "solve_scale": 0.5}
+    assert one_chain_parameters({"solve_scale": 0.5})["threads"] == 2
+    assert one_chain_parameters({"threads": 1})["threads"] == 1
+    assert one_chain_parameters({"threads": 3})["threads"] == 3
