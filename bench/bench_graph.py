@@ -125,11 +125,15 @@ def configurations(scales: list[float]) -> list[Configuration]:
     whole" publishes the whole map while frames come (map_stream_max_points 0,
     as before 2026-12-03's thinned live map); "sfs threads 1"
     one endo-sfs on one thread; "sfs 2 workers x 1 thread" two endo-sfs
-    processes (worker_count 2) of one thread each.
+    processes (worker_count 2) of one thread each; "frame backlog 0" skips
+    every frame that has a newer one waiting (frame_backlog_s 0), as before
+    session 15.
     """
     off = {
         "newest_frame off": {n: {"newest_frame": "false"} for n in (CORRECTION, SFS, FLOW)},
         "warm_start off": {SFS: {"warm_start": "false"}},
+        # every frame with a newer one behind it skipped, as before 2026-12-03 (session 15)
+        "frame backlog 0": {n: {"frame_backlog_s": "0.0"} for n in (CORRECTION, SFS, FLOW)},
     }
     found = []
     for scale in scales:

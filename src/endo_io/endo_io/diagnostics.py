@@ -37,11 +37,20 @@ further copy.
 
 Newest frame: a subscription made with ``newest=True`` (the frame a node
 processes, through :data:`endo_io.qos.NEWEST_FRAME_QOS`) takes, before each
-frame, every frame that waits behind it in the subscription and processes
-only the newest; the others are received and **skipped** (counted under
-``skipped``, not as dropped or lost: the node chose the present over a
-backlog, nothing was wrong with them). The ``newest_frame`` parameter
-(false) processes every frame in arrival order instead, as before.
+stale frame, the frames that wait behind it in the subscription and
+processes the first that is not stale, or the newest; the others are
+received and **skipped** (counted under ``skipped``, not as dropped or
+lost: the node chose the present over a backlog, nothing was wrong with
+them). The ``newest_frame`` parameter (false) processes every frame in
+arrival order instead, as before.
+
+Stale means older than ``frame_backlog_s`` (:data:`DEFAULT_FRAME_BACKLOG_S`)
+since the middleware received it: a younger frame is processed in order,
+even when newer ones wait behind it, so a stall of the node or of the
+machine shorter than that delays a few frames instead of skipping them.
+With 0 every frame that has a newer one behind it is skipped. A node slower
+than its input on average still keeps to the present: its backlog ages past
+the limit and is skipped.
 
 Taken by stamp: a subscription made with :meth:`InputHealth.subscribe_passive`
 is never waited on by the executor (no wake-up, no callback per message); its
@@ -89,6 +98,14 @@ DIAGNOSTICS_TOPIC = "/diagnostics"
 DEFAULT_STALE_S = 2.0
 #: Default of ``status_window_s``: a drop, loss or jump keeps WARN this long (s).
 DEFAULT_WINDOW_S = 5.0
+#: Default of ``frame_backlog_s``: the age (seconds since the middleware
+#: received it) up to which a frame is processed in order though newer ones
+#: wait. 0.1 s is three frames at 30 fps: longer than the stalls of the whole
+#: machine seen in bench_graph's passes (in one, even the correction node
+#: skipped 5 frames), well inside issue 15's 150 ms end-to-end p99, and
+#: inside what :data:`endo_io.qos.NEWEST_FRAME_DEPTH` (8 frames) holds at up
+#: to 60 fps.
+DEFAULT_FRAME_BACKLOG_S = 0.1
 #: Events remembered per kind for the window's counts (memory bound).
 _MAX_EVENTS = 10_000
 
@@ -104,6 +121,13 @@ HEALTH_PARAMETERS: tuple[ParameterSpec, ...] = (
         "newest_frame", True,
         "process only the newest waiting frame of the node's frame input and skip (count) the "
         "stale ones; false: every frame in arrival order",
+    ),
+    ParameterSpec(
+        "frame_backlog_s", DEFAULT_FRAME_BACKLOG_S,
+        "newest_frame: a frame received at most this long ago is not stale: it is processed in "
+        "order though newer ones wait (a stall shorter than this delays frames instead of "
+        "skipping them); 0: always the newest, seconds",
+        range=(0.0, 0.25),
     ),
     ParameterSpec(
         "status_window_s", DEFAULT_WINDOW_S,
@@ -127,6 +151,12 @@ class _Input:
     received: int = 0
     last_arrival: float | None = None
     gaps: SequenceGapCounter | None = None
+
+
+def _age_ns(info: Any) -> float:
+    """How long ago the middleware received a message, ns (inf when its info does not say)."""
+    received = info.get("received_timestamp") if isinstance(info, dict) else None
+    return time.time_ns() - received if received else float("inf")
 
 
 @dataclass
@@ -293,6 +323,11 @@ class InputHealth:
             except KeyError:
                 pass
         return True
+
+    @property
+    def frame_backlog_ns(self) -> int:
+        """Age past which a waiting frame is stale (``frame_backlog_s``), integer ns."""
+        return round(self._setting("frame_backlog_s", DEFAULT_FRAME_BACKLOG_S) * 1e9)
 
     def _setting(self, key: str, default: float) -> float:
         if self._settings is not None:
@@ -468,9 +503,11 @@ class InputHealth:
             qos: the subscription's QoS.
             processed: as in :meth:`guard`.
             gaps: count frames missing from the header stamps (image topics).
-            newest: before each message, take the ones waiting behind it and
-                process only the newest; the others are counted as skipped
-                (unless the ``newest_frame`` setting is false).
+            newest: before each stale message (older than
+                ``frame_backlog_s``), take the ones waiting behind it and
+                process the first that is not stale, or the newest; the others
+                are counted as skipped (unless the ``newest_frame`` setting is
+                false).
             decode: turns the serialized bytes into what ``callback`` takes
                 (:func:`endo_io.image.image_from_cdr` for images: no copy of
                 the pixels); rclpy's ``deserialize_message`` by default. Any
@@ -482,9 +519,9 @@ class InputHealth:
         name = self._node.resolve_topic_name(topic)
         self.watch(name, gaps=gaps)
 
-        def decode_and_call(data: Any) -> None:
+        def decode_and_call(data: Any, info: Any) -> None:
             if newest and isinstance(data, bytes) and self.newest_frame:
-                data = self._take_newest(subscription, msg_type, name, data)
+                data = self._take_newest(subscription, msg_type, name, data, info)
             # a message given directly (tests, offline drivers) needs no decoding
             msg = data if isinstance(data, msg_type) else self._decode(data, msg_type, name,
                                                                           decode)
@@ -492,8 +529,9 @@ class InputHealth:
             self.received(name, stamp_to_ns(header.stamp) if header is not None else None)
             callback(msg)
 
-        def guarded(data: Any) -> Any:
-            return self._call(decode_and_call, processed, data)
+        def guarded(data: Any, info: Any) -> Any:
+            # two arguments: rclpy then passes the message's info (its receive time)
+            return self._call(decode_and_call, processed, data, info)
 
         subscription = self._node.create_subscription(msg_type, topic, guarded, qos, raw=True)
         return subscription
@@ -540,17 +578,23 @@ class InputHealth:
         return passive
 
     def _take_newest(
-        self, subscription: Subscription, msg_type: Any, name: str, data: bytes
+        self, subscription: Subscription, msg_type: Any, name: str, data: bytes, info: Any
     ) -> bytes:
-        """The newest serialized message waiting behind ``data``; the rest received and skipped."""
-        while True:
+        """The first serialized message from ``data`` on that is not stale, or the newest.
+
+        The ones passed over are received and skipped. ``info`` is rclpy's
+        message info of ``data`` (None: its age is unknown, so it is stale).
+        """
+        backlog_ns = self.frame_backlog_ns
+        while _age_ns(info) > backlog_ns:
             with subscription.handle:
                 taken = subscription.handle.take_message(msg_type, True)
             if taken is None:
                 return data
             self.received(name, serialized_header_stamp_ns(data))
             self.skip(name)
-            data = taken[0]
+            data, info = taken
+        return data
 
     def _decode(self, data: bytes, msg_type: Any, name: str,
                 decode: Callable[[bytes], Any] | None) -> Any:

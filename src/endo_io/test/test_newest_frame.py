@@ -2,8 +2,11 @@
 
 Frames are published while the subscriber does not spin (a node busy with an
 earlier frame); one spin then delivers only the newest, and /diagnostics says
-how many were skipped (not dropped, not lost). With ``newest_frame`` false
-every frame comes, in order. Also the header stamp read from the CDR bytes.
+how many were skipped (not dropped, not lost). A frame younger than
+``frame_backlog_s`` is not stale: a short stall delays frames instead of
+skipping them, and past it the node skips to the first frame that is not
+stale. With ``newest_frame`` false every frame comes, in order. Also the
+header stamp read from the CDR bytes.
 """
 
 from __future__ import annotations
@@ -43,8 +46,11 @@ def _frame(k: int) -> Image:
 
 
 def _deliver(node: Node, health: InputHealth, topic: str, frames: int, got: list[Image],
-             expected_calls: int) -> None:
-    """Publish ``frames`` frames while not spinning, then spin until ``expected_calls`` came."""
+             expected_calls: int, *, wait_after: int = -1, wait_s: float = 0.0) -> None:
+    """Publish ``frames`` frames while not spinning, then spin until ``expected_calls`` came.
+
+    ``wait_s`` seconds pass after publishing frame ``wait_after`` (a stall upstream).
+    """
     publisher = node.create_publisher(Image, topic, reliable_qos(NEWEST_FRAME_DEPTH))
     executor = SingleThreadedExecutor(context=node.context)
     executor.add_node(node)
@@ -54,6 +60,8 @@ def _deliver(node: Node, health: InputHealth, topic: str, frames: int, got: list
         assert time.monotonic() < deadline, "no subscription matched"
     for k in range(frames):
         publisher.publish(_frame(k))
+        if k == wait_after:
+            time.sleep(wait_s)
     time.sleep(0.3)  # every frame has reached the subscription's queue
     deadline = time.monotonic() + 10.0
     while len(got) < expected_calls:
@@ -79,6 +87,49 @@ def test_a_busy_node_gets_the_newest_frame_and_counts_the_stale_ones_as_skipped(
     assert values["received"] == "5" and values["processed"] == "1"
     assert values["skipped"] == values["skipped./newest_test/image"] == "4"
     assert values["dropped"] == "0" and values["lost"] == "0"
+
+
+def _stamps(got: list[Image]) -> list[int]:
+    return [(stamp_to_ns(m.header.stamp) - START_NS) // PERIOD_NS for m in got]
+
+
+def test_frames_younger_than_the_backlog_limit_are_processed_in_order_not_skipped(node):
+    # the limit above the test's 0.3 s: a stall that short delays every frame, skips none
+    health = InputHealth(node, "image input", settings={"newest_frame": True,
+                                                        "frame_backlog_s": 5.0})
+    got: list[Image] = []
+    health.subscribe(Image, "/newest_test/young", got.append, NEWEST_FRAME_QOS, gaps=True,
+                     newest=True)
+    _deliver(node, health, "/newest_test/young", 5, got, 5)
+    assert _stamps(got) == [0, 1, 2, 3, 4]
+    values = _values(health)
+    assert values["processed"] == "5" and values["skipped"] == "0"
+
+
+def test_past_the_limit_the_node_skips_to_the_first_frame_that_is_not_stale(node):
+    # frames 0-2 wait 1.0 s longer than 3-4: at spin time they are ~1.3 s old, past
+    # the 0.8 s limit, and 3-4 ~0.3 s, inside it
+    health = InputHealth(node, "image input", settings={"newest_frame": True,
+                                                        "frame_backlog_s": 0.8})
+    got: list[Image] = []
+    health.subscribe(Image, "/newest_test/stale", got.append, NEWEST_FRAME_QOS, gaps=True,
+                     newest=True)
+    _deliver(node, health, "/newest_test/stale", 5, got, 2, wait_after=2, wait_s=1.0)
+    assert _stamps(got) == [3, 4]
+    values = _values(health)
+    assert values["received"] == "5" and values["processed"] == "2"
+    assert values["skipped"] == "3" and values["dropped"] == "0" and values["lost"] == "0"
+
+
+def test_a_zero_limit_skips_every_frame_that_has_a_newer_one_behind_it(node):
+    health = InputHealth(node, "image input", settings={"newest_frame": True,
+                                                        "frame_backlog_s": 0.0})
+    got: list[Image] = []
+    health.subscribe(Image, "/newest_test/zero", got.append, NEWEST_FRAME_QOS, gaps=True,
+                     newest=True)
+    _deliver(node, health, "/newest_test/zero", 5, got, 1)
+    assert _stamps(got) == [4]
+    assert _values(health)["skipped"] == "4"
 
 
 def test_with_newest_frame_false_every_frame_comes_in_order(node):

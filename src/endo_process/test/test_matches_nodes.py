@@ -12,6 +12,7 @@ metric depth and scale bit for bit.
 
 from __future__ import annotations
 
+import inspect
 from pathlib import Path
 from typing import Any
 
@@ -54,7 +55,10 @@ def _capture(publisher: Any) -> list[Any]:
 def _callback(node: Any, topic: str) -> Any:
     name = node.resolve_topic_name(topic)
     (subscription,) = [s for s in node.subscriptions if s.topic_name == name]
-    return subscription.callback
+    callback = subscription.callback
+    if len(inspect.signature(callback).parameters) == 2:  # (message, rclpy's message info)
+        return lambda msg: callback(msg, None)  # no middleware here: no receive time
+    return callback
 
 
 def _live_outputs(photometric: Path, handeye: Path, params: Path) -> dict[str, dict[int, Any]]:
