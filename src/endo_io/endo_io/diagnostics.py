@@ -75,7 +75,7 @@ import time
 from collections import Counter, deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any, Protocol, TypeVar
+from typing import Any, Protocol, TypeVar, cast
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rclpy.node import Node
@@ -533,7 +533,10 @@ class InputHealth:
             # two arguments: rclpy then passes the message's info (its receive time)
             return self._call(decode_and_call, processed, data, info)
 
-        subscription = self._node.create_subscription(msg_type, topic, guarded, qos, raw=True)
+        # rclpy's annotation names one-argument callbacks only; it inspects the
+        # signature and passes (message, info) to a two-argument one
+        subscription = self._node.create_subscription(
+            msg_type, topic, cast(Callable[[Any], None], guarded), qos, raw=True)
         return subscription
 
     def subscribe_passive(
