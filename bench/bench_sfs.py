@@ -772,7 +772,8 @@ def breakdown(bag: str, calibration: str, frames: int, threads: list[int], downs
         print(f"solve_scale {scale:g}: {nodes} nodes")
         for chain in chains:
             print(f"  {label(chain)}: whole solve median {1e3 * np.median(walls[chain]):.1f} ms "
-                  f"wall (p90 {1e3 * np.percentile(walls[chain], 90):.1f}), "
+                  f"wall (p90 {1e3 * np.percentile(walls[chain], 90):.1f}, mean "
+                  f"{1e3 * np.mean(walls[chain]):.1f}, max {1e3 * np.max(walls[chain]):.1f}), "
                   f"{1e3 * np.median(cpus[chain]):.1f} ms CPU "
                   f"(p90 {1e3 * np.percentile(cpus[chain], 90):.1f}), "
                   f"{np.mean(work[chain]):.2f} node solves per node")

@@ -237,6 +237,7 @@ def predict_warm_start(
         grid=previous.grid,
         ordered_work=previous.ordered_work,
         frames_since_ordered=previous.frames_since_ordered,
+        ordered_retries=previous.ordered_retries,
     )
 
 

@@ -71,7 +71,8 @@ class SfsSolution:
     Newton seeds.
     ordered_work: near-light only, node solves per node the last time a
     frame of this warm-start chain was solved with the value-ordered first
-    pass; frames_since_ordered: frames since then (see
+    pass; frames_since_ordered: frames since then; ordered_retries: retries
+    of the ordered pass in a row that cost more than the limit (see
     :func:`_use_first_pass`). timings: wall seconds of the solve's stages
     (:data:`STAGES`; near-light only, empty otherwise).
     """
@@ -86,6 +87,7 @@ class SfsSolution:
     node_slope: np.ndarray | None = None
     ordered_work: float | None = None
     frames_since_ordered: int = 0
+    ordered_retries: int = 0
     timings: dict[str, float] = field(default_factory=dict)
 
 
@@ -113,8 +115,8 @@ class PredictedStart:
     irradiance moved with it (and scaled by the distance change), for the
     solver's global shift. node_slope: (ny, nx) float64 the previous tan θ
     moved with it (Newton seeds), or None. grid: the solve grid.
-    ordered_work, frames_since_ordered: the warm-start chain's bookkeeping,
-    carried over from the previous :class:`SfsSolution`.
+    ordered_work, frames_since_ordered, ordered_retries: the warm-start
+    chain's bookkeeping, carried over from the previous :class:`SfsSolution`.
     """
 
     node_solution: np.ndarray
@@ -123,6 +125,7 @@ class PredictedStart:
     grid: SolveGrid
     ordered_work: float | None = None
     frames_since_ordered: int = 0
+    ordered_retries: int = 0
 
 
 def valid_pixels(
@@ -260,9 +263,25 @@ def log_distance_nodes(depth: np.ndarray, grid: SolveGrid) -> np.ndarray:
 #: most this many node solves per node; above it (a poorly predicted order:
 #: noisy texture, fast motion) frames are swept from the start, which costs
 #: about 3.3-3.9 solves per node whatever the order, and the ordered pass is
-#: tried again every RETRY_FIRST_PASS frames.
+#: tried again RETRY_FIRST_PASS frames later. Each retry that costs more than
+#: the limit again doubles the wait, up to RETRY_FIRST_PASS_MAX frames (2.7 s
+#: at 30 fps): on the phantom video every retry fails (9 of 9 over its 90
+#: frames) and costs 1.7-2.5x a swept frame at full resolution on two threads
+#: (the split first pass mostly falls back to one thread there; docs/sfs.md,
+#: "Sweeps alone when the order is poor").
 FIRST_PASS_WORK_LIMIT = 2.5
 RETRY_FIRST_PASS = 10
+RETRY_FIRST_PASS_MAX = 80
+
+
+def retry_interval(ordered_retries: int) -> int:
+    """Frames from an ordered pass that cost too much to the next try, after ``ordered_retries``.
+
+    ordered_retries: the retries in a row that cost more than
+    :data:`FIRST_PASS_WORK_LIMIT` (0 after the pass that started the sweeps).
+    Returns RETRY_FIRST_PASS·2^ordered_retries, at most RETRY_FIRST_PASS_MAX.
+    """
+    return min(RETRY_FIRST_PASS << min(ordered_retries, 16), RETRY_FIRST_PASS_MAX)
 
 
 def _use_first_pass(warm_start: WarmStart | None) -> bool:
@@ -279,7 +298,8 @@ def _use_first_pass(warm_start: WarmStart | None) -> bool:
         return True
     if warm_start.ordered_work <= FIRST_PASS_WORK_LIMIT:
         return True
-    return warm_start.frames_since_ordered + 1 >= RETRY_FIRST_PASS
+    interval = retry_interval(warm_start.ordered_retries)
+    return warm_start.frames_since_ordered + 1 >= interval
 
 
 @contextmanager
@@ -444,11 +464,22 @@ def _solve_near_light(
     )
     ordered_work: float | None = None
     frames_since_ordered = 0
+    ordered_retries = 0
     if first_pass:
         ordered_work = info.updates / max(1, int(node_valid.sum()))
+        if (
+            isinstance(warm_start, SfsSolution | PredictedStart)
+            and warm_start.grid is grid
+            and warm_start.ordered_work is not None
+            and warm_start.ordered_work > FIRST_PASS_WORK_LIMIT
+            and ordered_work > FIRST_PASS_WORK_LIMIT
+        ):
+            # A retry from sweeps that did not pay either: wait longer for the next.
+            ordered_retries = warm_start.ordered_retries + 1
     elif isinstance(warm_start, SfsSolution | PredictedStart):
         ordered_work = warm_start.ordered_work
         frames_since_ordered = warm_start.frames_since_ordered + 1
+        ordered_retries = warm_start.ordered_retries
     start = time.perf_counter()
     depth, overflowed = depth_from_log_distance(
         log_r, grid.pixel_node_x, grid.pixel_node_y, valid, grid.pixel_ray_z
@@ -470,6 +501,7 @@ def _solve_near_light(
         node_slope=node_slope,
         ordered_work=ordered_work,
         frames_since_ordered=frames_since_ordered,
+        ordered_retries=ordered_retries,
         timings=timings,
     )
 

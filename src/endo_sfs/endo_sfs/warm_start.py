@@ -246,6 +246,7 @@ class WarmStartChain:
             solution = dataclasses.replace(
                 solution, ordered_work=newest.ordered_work,
                 frames_since_ordered=newest.frames_since_ordered,
+                ordered_retries=newest.ordered_retries,
             )
         self._frames[stamp_ns] = solution
         return solution

@@ -7,6 +7,7 @@ in endo_sfs.synthetic; the depth truth is analytic.
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import math
 
@@ -211,28 +212,53 @@ def test_threads_must_be_positive_or_zero_for_auto():
 
 
 def test_a_poorly_predicted_order_switches_the_chain_to_sweeps_and_back():
-    from endo_sfs.relative_depth import FIRST_PASS_WORK_LIMIT, RETRY_FIRST_PASS
+    from endo_sfs.relative_depth import (
+        FIRST_PASS_WORK_LIMIT,
+        RETRY_FIRST_PASS,
+        RETRY_FIRST_PASS_MAX,
+        retry_interval,
+    )
 
     camera, mask, rendering = _scene("bumpy", 0.3)
     rng = np.random.default_rng(5)
-    previous = solve(rendering.irradiance, camera, SfsOptions(roughness=0.3), mask=mask)
+    previous = clean = solve(rendering.irradiance, camera, SfsOptions(roughness=0.3), mask=mask)
     assert previous.ordered_work is not None and previous.ordered_work < FIRST_PASS_WORK_LIMIT
     # A previous frame whose order says nothing about this one: new noise
     # on every frame scrambles the order of neighbouring nodes.
-    modes = []
-    for _ in range(RETRY_FIRST_PASS + 2):
+    modes, retries = [], []
+    second_retry = 3 * RETRY_FIRST_PASS
+    for k in range(second_retry + 2):
         image = rendering.irradiance * np.exp(rng.normal(0.0, 0.05, rendering.irradiance.shape))
         solution = solve(image, camera, SfsOptions(roughness=0.3, threads=2, tolerance=1e-8),
                          mask=mask, warm_start=previous)
         modes.append(solution.frames_since_ordered == 0)
-        fresh = solve(image, camera, SfsOptions(roughness=0.3, tolerance=1e-8), mask=mask)
+        retries.append(solution.ordered_retries)
         assert solution.info.converged
-        np.testing.assert_allclose(solution.depth, fresh.depth, rtol=1e-5)
+        if k <= RETRY_FIRST_PASS + 1 or k == second_retry:
+            fresh = solve(image, camera, SfsOptions(roughness=0.3, tolerance=1e-8), mask=mask)
+            np.testing.assert_allclose(solution.depth, fresh.depth, rtol=1e-5)
         previous = solution
     assert previous.ordered_work > FIRST_PASS_WORK_LIMIT
-    # Ordered, then sweeps until the retry, then ordered again.
+    # Ordered, then sweeps until the retry, then ordered again; that retry
+    # cost too much as well, so the next waits twice as long.
     assert modes[0] and not modes[1] and modes[RETRY_FIRST_PASS]
     assert not any(modes[1:RETRY_FIRST_PASS])
+    assert retries[0] == 0 and retries[RETRY_FIRST_PASS] == 1
+    assert not any(modes[RETRY_FIRST_PASS + 1:second_retry]) and modes[second_retry]
+    assert retries[second_retry] == 2 and retries[-1] == 2
+    assert [retry_interval(n) for n in range(5)] == [
+        RETRY_FIRST_PASS, 2 * RETRY_FIRST_PASS, 4 * RETRY_FIRST_PASS,
+        min(8 * RETRY_FIRST_PASS, RETRY_FIRST_PASS_MAX), RETRY_FIRST_PASS_MAX,
+    ]
+    # A chain whose ordered pass pays again is back to the first interval.
+    chain = dataclasses.replace(
+        clean, ordered_work=previous.ordered_work, ordered_retries=previous.ordered_retries,
+        frames_since_ordered=10**6,
+    )
+    ordered = solve(rendering.irradiance, camera, SfsOptions(roughness=0.3), mask=mask,
+                    warm_start=chain)
+    assert ordered.frames_since_ordered == 0
+    assert ordered.ordered_work < FIRST_PASS_WORK_LIMIT and ordered.ordered_retries == 0
 
 
 @pytest.mark.parametrize("count", [0, 1, 2, 7, 1000, 1001])
