@@ -3,7 +3,9 @@
 What a user measures or registers on a real rig, the simulator knows: the
 tissue's Oren–Nayar roughness (the SFS node's ``roughness``) and the
 tracker-to-world registration (the bridge's ``T_world_tracker``, so that
-``/endoscope/pose`` lands in the frame of ``/ground_truth/camera_pose``).
+``/endoscope/pose`` lands in the frame of ``/ground_truth/camera_pose``) and
+the unit of ``/tracker/pose`` (the bridge's ``ros_unit``: ``endo-sim render
+--tracker-units mm`` records millimetres).
 The same settings ``endo-demo`` gives the live graph
 (``endo_bringup.demo.graph_settings_for``).
 
@@ -14,6 +16,7 @@ The same settings ``endo-demo`` gives the live graph
 from __future__ import annotations
 
 import argparse
+import shlex
 import sys
 from collections.abc import Sequence
 from pathlib import Path
@@ -41,11 +44,14 @@ def simulated_parameters(bag: Path, **sfs: Any) -> dict[str, Any]:
     truth: dict[str, Any] = ground_truth_of(Path(bag))
     T_tracker_world = np.asarray(truth["tracker"]["T_tracker_world"], dtype=np.float64)
     roughness = float(truth["photometry"]["roughness_rad"])
+    # endo_sim's ground truth names the unit of /tracker/pose (absent before it did: metres)
+    unit = str(truth["tracker"].get("units", "m"))
     return {
         SFS_NODE: {"ros__parameters": {"roughness": roughness, **sfs}},
         BRIDGE_NODE: {
             "ros__parameters": {
-                "T_world_tracker": [float(v) for v in np.linalg.inv(T_tracker_world).ravel()]
+                "ros_unit": unit,
+                "T_world_tracker": [float(v) for v in np.linalg.inv(T_tracker_world).ravel()],
             }
         },
     }
@@ -78,7 +84,7 @@ def registration_mismatch(bag: Path, T_world_tracker: np.ndarray) -> str | None:
         f"the ground truth beside {Path(bag).name} is in the simulator's world, "
         f"{distance * 1e3:.0f} mm / {np.rad2deg(angle):.0f}° from this run's world "
         "(tracker_bridge T_world_tracker): pose and cloud errors compare different frames; "
-        f"`python -m endo_process.simulated {bag} -o sim.yaml` writes the simulator's "
+        f"`python -m endo_process.simulated {shlex.quote(str(bag))} -o sim.yaml` writes the simulator's "
         "registration and roughness, then pass --params sim.yaml"
     )
 

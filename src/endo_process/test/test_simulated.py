@@ -34,6 +34,16 @@ def test_the_simulators_registration_and_a_bag_without_truth_raise_nothing(tmp_p
     assert registration_mismatch(tmp_path / "own_rig.mcap", np.eye(4)) is None
 
 
+def test_the_suggested_command_quotes_a_path_with_spaces(tmp_path):
+    # the warning's command is meant to be pasted into a shell as it stands
+    rig = tmp_path / "rig 642"
+    rig.mkdir()
+    (rig / "colon16.ground_truth.yaml").write_text(
+        PHANTOM.with_name("phantom_colon.ground_truth.yaml").read_text())
+    message = registration_mismatch(rig / "colon16", np.eye(4)) or ""
+    assert f"simulated '{rig / 'colon16'}' -o sim.yaml" in message
+
+
 def test_the_written_file_loads_as_endo_process_settings(tmp_path, capsys):
     out = tmp_path / "sim.yaml"
     assert main([str(PHANTOM), "-o", str(out)]) == 0
@@ -44,3 +54,21 @@ def test_the_written_file_loads_as_endo_process_settings(tmp_path, capsys):
     assert settings.sfs["roughness"] == truth["photometry"]["roughness_rad"]
     assert main([str(tmp_path / "none.mcap"), "-o", str(out)]) == 2
     assert capsys.readouterr().err.count("\n") == 1
+
+
+def test_a_millimetre_tracker_recording_gets_the_bridges_unit(tmp_path):
+    # `endo-sim render --tracker-units mm` records /tracker/pose in mm and says so in its
+    # truth; without ros_unit: mm every sample after the first moved "metres" per frame
+    # and the speed gate rejected 239 of 240 (a 642x481 render at 120 Hz)
+    assert simulated_parameters(PHANTOM)["tracker_bridge"]["ros__parameters"]["ros_unit"] == "m"
+    truth = yaml.safe_load(PHANTOM.with_name("phantom_colon.ground_truth.yaml").read_text())
+    truth["tracker"]["units"] = "mm"
+    (tmp_path / "rig_mm.ground_truth.yaml").write_text(yaml.safe_dump(truth))
+    out = tmp_path / "sim.yaml"
+    assert main([str(tmp_path / "rig_mm.mcap"), "-o", str(out)]) == 0
+    assert load_settings(out).tracker_unit.value == "mm"
+    # a truth file from before endo_sim named the unit: metres, as it recorded them
+    del truth["tracker"]["units"]
+    (tmp_path / "rig_mm.ground_truth.yaml").write_text(yaml.safe_dump(truth))
+    assert main([str(tmp_path / "rig_mm.mcap"), "-o", str(out)]) == 0
+    assert load_settings(out).tracker_unit.value == "m"
