@@ -260,6 +260,11 @@ def _run(args: argparse.Namespace, workers: StartedWorkers | None) -> int:
         skipped = ", ".join(f"{n} on {topic}" for topic, n in report.undecodable.most_common())
         print(f"{PROGRAM}: error: skipped {skipped}, undecodable; the first: "
               f"{report.first_undecodable}", file=sys.stderr)  # fmt: skip
+    if report.frames_shaded and not report.frames_with_pose and not report.interrupted:
+        # every frame shaded, none placed: a run that makes no metric surface says why
+        print(f"{PROGRAM}: warning: none of the {report.frames_shaded} frames with a relative "
+              "depth had a camera pose, so no metric depth, points or map were made (the "
+              "tracker's causes above)", file=sys.stderr)  # fmt: skip
     if report.frames_in > 0 and report.frames_shaded == 0 and not report.interrupted:
         print(f"{PROGRAM}: error: none of the {report.frames_in} frames read gave a relative "
               "depth (the causes above)", file=sys.stderr)  # fmt: skip

@@ -157,6 +157,37 @@ def test_frames_without_a_pose_are_counted_and_skipped(
     assert report.without_pose["PoseNotYetError"] >= 5
 
 
+def test_a_tracker_in_millimetres_read_as_metres_is_named_and_set_by_ros_unit(
+    calibrations: tuple[Path, Path], tmp_path: Path, capsys: pytest.CaptureFixture
+) -> None:
+    # an NDI driver's PoseStamped in mm, processed with the bridge's default ros_unit m
+    from endo_io.bag import deserialize, serialize
+
+    source = _subset(tmp_path / "m.mcap", ALL, images=4)
+    bag = tmp_path / "mm.mcap"
+    with BagReader(source) as reader, BagWriter(bag) as writer:
+        for name, info in reader.topics.items():
+            writer.add_topic(name, info.msgtype)
+        for message in reader.messages():
+            data = message.data
+            if message.topic == topics.TRACKER_POSE:
+                pose = deserialize(message)
+                position = pose.pose.position
+                position.x, position.y, position.z = (1e3 * position.x, 1e3 * position.y,
+                                                      1e3 * position.z)  # fmt: skip
+                data = serialize(pose)
+            writer.write(message.topic, data, message.log_time_ns)
+    assert main(_argv(bag, tmp_path / "out.mcap", calibrations)) == EXIT_OK
+    err = capsys.readouterr().err
+    assert "millimetres read as metres? (the bridge's ros_unit" in err, err
+    assert "none of the 4 frames with a relative depth had a camera pose" in err, err
+    params = tmp_path / "mm.yaml"
+    params.write_text("/**/tracker_bridge:\n  ros__parameters:\n    ros_unit: mm\n")
+    assert main(_argv(bag, tmp_path / "out2.mcap", calibrations, "--params", str(params))) == 0
+    err = capsys.readouterr().err
+    assert "millimetres" not in err and "camera pose" not in err, err
+
+
 @pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM])
 def test_a_signal_finalises_the_output(
     signum: int, calibrations: tuple[Path, Path], tmp_path: Path

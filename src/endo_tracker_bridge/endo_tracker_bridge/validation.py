@@ -109,6 +109,30 @@ def check_rotation_matrix(R: np.ndarray, tolerance: float = DEFAULT_TOLERANCE) -
     return u @ vt
 
 
+#: A tracked tool this far from the tracker's origin, in metres, is no
+#: tracker's working volume (optical trackers reach ~3 m, motion capture rooms
+#: ~10 m): its positions are millimetres read as metres.
+MILLIMETRE_SUSPECT_M = 20.0
+
+
+def millimetres_hint(translation_m: np.ndarray) -> str:
+    """A clause naming the unit setting when a position looks like millimetres, else "".
+
+    Args:
+        translation_m: (3,) float64, the tool's position as read, metres.
+
+    Returns:
+        ``"; the tool is 1312 m from the tracker: millimetres read as metres?
+        (the bridge's ros_unit / igtl_unit / csv_unit: mm)"`` when the position
+        is beyond :data:`MILLIMETRE_SUSPECT_M`, else ``""``.
+    """
+    distance_m = float(np.linalg.norm(translation_m))
+    if not distance_m > MILLIMETRE_SUSPECT_M:
+        return ""
+    return (f"; the tool is {distance_m:.0f} m from the tracker: millimetres read as metres? "
+            "(the bridge's ros_unit / igtl_unit / csv_unit: mm)")
+
+
 @dataclass(frozen=True)
 class SpeedLimits:
     """Largest plausible motion of the marker between two accepted samples.
@@ -207,6 +231,7 @@ class SampleGate:
                     f"tool '{sample.tool_id}' moved {distance_m * 1e3:.1f} mm "
                     f"in {dt_s * 1e3:.1f} ms "
                     f"({distance_m / dt_s:.2f} m/s > limit {self.limits.linear_m_s:g} m/s)"
+                    + millimetres_hint(sample.translation_m)
                 )
             angle_deg = math.degrees(rotation_angle(previous.rotation.T @ sample.rotation))
             if angle_deg / dt_s > self.limits.angular_deg_s:

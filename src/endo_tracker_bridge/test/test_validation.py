@@ -120,6 +120,25 @@ def test_speed_jumps_are_rejected():
     assert gate.check(_sample(48, x_m=0.012, angle_deg=2.0)).stamp_ns == 48 * MS
 
 
+def test_millimetres_read_as_metres_are_named_in_the_rejection():
+    # an NDI driver publishing mm with the bridge left at ros_unit m: a scope 1.3 m from
+    # the camera moving 0.5 mm per 8.3 ms (60 mm/s) is read as 1300 m moving 60 m/s
+    gate = SampleGate()
+    gate.check(_sample(0, x_m=1300.0))
+    with pytest.raises(SpeedLimitError) as caught:
+        gate.check(_sample(8, x_m=1300.5))
+    assert str(caught.value) == (
+        "tool 'scope' moved 500.0 mm in 8.0 ms (62.50 m/s > limit 2 m/s); the tool is 1300 m "
+        "from the tracker: millimetres read as metres? (the bridge's ros_unit / igtl_unit / "
+        "csv_unit: mm)")
+    # the same stream in metres passes, and a glitch 1.3 m away gets no hint
+    gate = SampleGate()
+    assert [gate.check(_sample(8 * k, x_m=1.3 + 0.0005 * k)).stamp_ns for k in range(3)] == [
+        0, 8 * MS, 16 * MS]
+    with pytest.raises(SpeedLimitError, match=r"m/s\)$"):
+        gate.check(_sample(24, x_m=1.4))
+
+
 def _run(gate, samples):
     """Feed samples; return (accepted stamps, clock jumps, causes of drops)."""
     accepted, jumps, causes = [], [], []
