@@ -84,8 +84,8 @@ def registration_mismatch(bag: Path, T_world_tracker: np.ndarray) -> str | None:
         f"the ground truth beside {Path(bag).name} is in the simulator's world, "
         f"{distance * 1e3:.0f} mm / {np.rad2deg(angle):.0f}° from this run's world "
         "(tracker_bridge T_world_tracker): pose and cloud errors compare different frames; "
-        f"`python -m endo_process.simulated {shlex.quote(str(bag))} -o sim.yaml` writes the simulator's "
-        "registration and roughness, then pass --params sim.yaml"
+        f"`python -m endo_process.simulated {shlex.quote(str(bag))} -o sim.yaml` writes the "
+        "simulator's registration, tracker unit and roughness, then pass --params sim.yaml"
     )
 
 
