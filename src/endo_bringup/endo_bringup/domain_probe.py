@@ -43,7 +43,9 @@ def graph_conflicts(
     from rclpy.context import Context
 
     context = Context()
-    rclpy.init(context=context)
+    # not the launcher's own command line (rclpy's default): its `--remap FROM:=TO`
+    # reads to rcl as the deprecated remap syntax, applied here with a warning each
+    rclpy.init(args=["endo-launch"], context=context)
     try:
         probe = rclpy.create_node(f"endo_launch_probe_{os.getpid()}", context=context)
         found: list[str] = []

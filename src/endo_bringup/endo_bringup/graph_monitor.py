@@ -246,6 +246,7 @@ class GraphMonitor:
 
         self._context = rclpy.Context()
         rclpy.init(
+            args=["graph_monitor"],  # not the caller's command line (rclpy's default)
             context=self._context,
             domain_id=self.domain_id,
             signal_handler_options=SignalHandlerOptions.NO,  # Ctrl-C is the caller's
