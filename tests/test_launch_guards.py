@@ -298,6 +298,33 @@ def test_a_second_graph_in_the_same_domain_is_refused(tmp_path: Path) -> None:
     assert graph_conflicts(["/rig2" + topics.DEPTH_RELATIVE], ["/rig2/sfs"], discovery_s=1.0) == []
 
 
+def test_a_parameter_file_section_for_no_node_is_named_and_a_misspelt_one_refused(
+    tmp_path: Path,
+) -> None:
+    # rcl ignores both without a word: the graph started with the defaults
+    params = tmp_path / "p.yaml"
+    params.write_text("/**/sfss:\n  ros__parameters: {solve_scale: 0.5}\n")
+    done = _launch("live", "--params", str(params), "--dry-run")
+    assert done.returncode == 2 and done.stdout == "", (done.stdout, done.stderr)
+    assert done.stderr == (f"endo-launch: LaunchError: --params {params}: section /**/sfss of "
+                           "the parameter file applies to no node (did you mean sfs?)\n")
+    params.write_text("/rig1/sfs:\n  ros__parameters: {solve_scale: 0.5}\n"
+                      "v4l2_camera:\n  ros__parameters: {video_device: /dev/video0}\n")
+    done = _launch("live", "--params", str(params), "--calibration", str(tmp_path / "none.yaml"),
+                   "--dry-run")  # fmt: skip
+    assert done.returncode == 2  # (the calibration is checked after the sections are read)
+    done = _launch("live", "--params", str(params), "--dry-run")
+    assert done.returncode == 0 and len(done.stdout.splitlines()) == 4, done.stderr
+    warned = [line for line in done.stderr.splitlines() if "--params " in line]
+    nodes = "/flow, /photometric_correction, /sfs, /tracker_bridge"
+    assert warned == [f"endo-launch: warning: --params {params}: section {key} applies to none "
+                      f"of the graph's nodes ({nodes}): ignored"
+                      for key in ("/rig1/sfs", "v4l2_camera")]  # fmt: skip
+    # in the namespace /rig1 the section is the SFS node's
+    done = _launch("live", "--params", str(params), "--namespace", "/rig1", "--dry-run")
+    assert done.returncode == 0 and "/rig1/sfs applies" not in done.stderr, done.stderr
+
+
 # ---------------------------------------------------------------- outputs at the end
 
 

@@ -383,7 +383,7 @@ def check_nodes(nodes: Sequence[GraphProcess]) -> list[str]:
         LaunchError: one line naming the node and the cause.
     """
     from endo_bringup.params_file import node_parameters
-    from endo_io.parameters import check_start_values, file_overrides
+    from endo_io.parameters import check_start_values, file_overrides, sections_for_no_node
     from endo_io.process import check_ros_arguments
 
     document: Any = None
@@ -407,6 +407,15 @@ def check_nodes(nodes: Sequence[GraphProcess]) -> list[str]:
             if not values[name]:
                 warnings.append(f"no {name} for {node.name}: it {effect} (pass {flag} FILE, "
                                 f"or set {name} in --params)")  # fmt: skip
+    files = {node.params_file for node in nodes if node.params_file}
+    fqns = [f"{node.remaps.get('__ns', '').rstrip('/')}/{node.node_name}" for node in nodes]
+    for path in sorted(files):  # rcl ignores a section for no node without a word
+        try:
+            ignored = sections_for_no_node(document, fqns)
+        except Endo3dError as error:
+            raise LaunchError(f"--params {path}: {error}") from None
+        warnings += [f"--params {path}: section {key} applies to none of the graph's nodes "
+                     f"({', '.join(sorted(fqns))}): ignored" for key in ignored]  # fmt: skip
     return warnings
 
 
@@ -627,6 +636,8 @@ def run(options: argparse.Namespace) -> int:
         options.log_dir = Path(tempfile.mkdtemp(prefix="endo-launch-"))
     plan = plan_launch(options)
     if options.dry_run:
+        for warning in plan.warnings:  # what a start would say, on stderr
+            print(f"endo-launch: warning: {warning}", file=sys.stderr)
         for process in plan.processes:
             print(" ".join(process.command()))
         return 0

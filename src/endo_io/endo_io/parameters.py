@@ -37,7 +37,7 @@ from __future__ import annotations
 
 import contextlib
 import re
-from collections.abc import Callable, Iterable, Mapping, Sequence
+from collections.abc import Callable, Collection, Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -86,7 +86,7 @@ def _edit_distance(a: str, b: str) -> int:
     return previous[-1]
 
 
-def _is_near_miss(name: str, row: str) -> bool:
+def is_near_miss(name: str, row: str) -> bool:
     """Whether ``name`` is a typo of ``row``: one edit away, two for names of 8+ letters."""
     return 0 < _edit_distance(name, row) <= (2 if len(row) >= 8 else 1)
 
@@ -232,12 +232,12 @@ def refuse_near_misses(
         node_name: the node, for the message.
 
     Raises:
-        ParameterValidationError: a name is a near miss (:func:`_is_near_miss`)
+        ParameterValidationError: a name is a near miss (:func:`is_near_miss`)
             of a row's: ``parameter solve_scal: sfs has no such parameter (did
             you mean solve_scale?)``.
     """
     for name in names:
-        close = [row for row in specs if _is_near_miss(name, row)]
+        close = [row for row in specs if is_near_miss(name, row)]
         if close:
             raise ParameterValidationError(
                 f"parameter {name}: {node_name} has no such parameter (did you mean {close[0]}?)"
@@ -285,6 +285,58 @@ def _flatten(prefix: str, values: Mapping[Any, Any], into: dict[str, Any]) -> No
             into[name] = value
 
 
+def section_applies(key: object, fqn: str) -> bool:
+    """Whether a parameter file's section ``key`` applies to the node ``fqn``, as rcl decides.
+
+    ``/**``, ``/**/sfs``, ``sfs``, ``/rig1/sfs``: ``*`` stands for one name,
+    ``**`` for any number; a key without a leading ``/`` is from the root.
+
+    Args:
+        key: the section's key as parsed from YAML.
+        fqn: the node's fully qualified name (``/sfs``, ``/rig1/sfs``).
+    """
+    pattern = "/" + str(key).lstrip("/")
+    regex = re.escape(pattern).replace(r"/\*\*", "(/[^/]+)*").replace(r"\*", "[^/]*")
+    return re.fullmatch(regex, fqn) is not None
+
+
+def sections_for_no_node(document: Any, fqns: Collection[str]) -> list[str]:
+    """The keys of a parameter file's sections that apply to none of the nodes ``fqns``.
+
+    Such a section is ignored by rcl without a word: another program's (a
+    camera driver's), another namespace's, or a misspelt node name.
+
+    Args:
+        document: the parsed YAML (``yaml.safe_load``).
+        fqns: the fully qualified names of the nodes the file is given to.
+
+    Returns:
+        The keys (as strings), in the file's order.
+
+    Raises:
+        ParameterValidationError: a key's node name is a near miss
+            (:func:`is_near_miss`) of one of the nodes' names: ``section
+            /**/sfss of the parameter file applies to no node (did you mean
+            sfs?)``.
+    """
+    if not isinstance(document, Mapping):
+        return []
+    names = sorted({fqn.rsplit("/", 1)[-1] for fqn in fqns})
+    unmatched = []
+    for key in document:
+        if any(section_applies(key, fqn) for fqn in fqns):
+            continue
+        last = str(key).rsplit("/", 1)[-1]
+        close = [name for name in names if is_near_miss(last, name)]
+        if close:
+            raise ParameterValidationError(
+                f"section {key} of the parameter file applies to no node "
+                f"(did you mean {close[0]}?)"
+            )
+        unmatched.append(str(key))
+    return unmatched
+
+
 def file_overrides(document: Any, node_name: str, namespace: str = "") -> dict[str, Any]:
     """The values a ROS 2 parameter file gives one node, as rcl applies them at start.
 
@@ -306,9 +358,7 @@ def file_overrides(document: Any, node_name: str, namespace: str = "") -> dict[s
     if not isinstance(document, Mapping):
         return values
     for key, section in document.items():
-        pattern = "/" + str(key).lstrip("/")
-        regex = re.escape(pattern).replace(r"/\*\*", "(/[^/]+)*").replace(r"\*", "[^/]*")
-        if not re.fullmatch(regex, fqn) or not isinstance(section, Mapping):
+        if not section_applies(key, fqn) or not isinstance(section, Mapping):
             continue
         parameters = section.get("ros__parameters")
         if isinstance(parameters, Mapping):
@@ -357,7 +407,7 @@ class NodeParameters:
 
         Raises:
             ParameterValidationError: an override's name is a near miss of a
-                row's (:func:`_is_near_miss`) but is not one.
+                row's (:func:`is_near_miss`) but is not one.
         """
         # rclpy keeps the --ros-args / --params-file values the node was given.
         given = getattr(node, "_parameter_overrides", {})

@@ -224,3 +224,28 @@ def test_file_overrides_apply_the_sections_rcl_applies_to_the_node():
         "a": 1, "b": 2, "qos.depth": 5, "d": 4, "e": 5
     }
     assert file_overrides("just a string", "filter") == {}
+
+
+def test_sections_for_no_node_are_listed_and_a_misspelt_node_refused():
+    from endo_io.errors import ParameterValidationError
+    from endo_io.parameters import section_applies, sections_for_no_node
+
+    fqns = ["/sfs", "/flow"]
+    assert [section_applies(key, "/sfs") for key in ("/**", "/**/sfs", "sfs", "/sfs", "/*")] == [
+        True] * 5
+    assert not section_applies("/rig1/sfs", "/sfs") and section_applies("/rig1/sfs", "/rig1/sfs")
+    document = {
+        "/**": {"ros__parameters": {}},
+        "/**/sfs": {"ros__parameters": {}},
+        "/rig1/sfs": {"ros__parameters": {}},  # another namespace's
+        "v4l2_camera": {"ros__parameters": {}},  # the camera driver's, in a shared file
+    }
+    assert sections_for_no_node(document, fqns) == ["/rig1/sfs", "v4l2_camera"]
+    assert sections_for_no_node(document, ["/rig1/sfs", "/rig1/flow"]) == ["v4l2_camera"]
+    assert sections_for_no_node("just a string", fqns) == []
+    # rcl ignores these without a word; a near miss of a node's name is a typo
+    for key, node in (("/**/sfss", "sfs"), ("flw", "flow"), ("/rig1/folw", "flow")):
+        with pytest.raises(ParameterValidationError) as caught:
+            sections_for_no_node({key: {"ros__parameters": {}}}, fqns)
+        assert str(caught.value) == (
+            f"section {key} of the parameter file applies to no node (did you mean {node}?)")

@@ -214,12 +214,16 @@ def _run(args: argparse.Namespace, workers: StartedWorkers | None) -> int:
     from endo_io.bag import BagError
     from endo_process.accuracy import Accuracy, score_recording
     from endo_process.runner import process_bag
-    from endo_process.settings import load_settings
+    from endo_process.settings import NODES, load_settings
     from endo_process.simulated import registration_mismatch
     from endo_process.summary import drop_lines, format_report, summary_document
 
     try:
         options = _options(args)
+        for key in load_settings(options.params, solve_scale=options.solve_scale).ignored_sections:
+            print(f"{PROGRAM}: warning: {options.params}: section {key} applies to none of the "
+                  f"nodes ({', '.join(NODES)}, in the root namespace; /**/NODE applies in "
+                  "any): ignored", file=sys.stderr)  # fmt: skip
         with _StopOnSignal() as stop:
             report = process_bag(options, stop, workers)
     except (Endo3dError, BagError) as error:

@@ -14,16 +14,23 @@ to the nodes (``ros2 run ... --ros-args --params-file endo3d.yaml``)::
     flow:
       ros__parameters: {...}
 
-A ``/**`` section applies to every node. Each node's defaults are the live
+A section applies to the nodes rcl would give it in the root namespace
+(``endo_io.parameters.section_applies``: ``sfs``, ``/sfs``, ``/**/sfs``;
+``/**`` to every node), in the file's order. Each node's defaults are the live
 node's own (``endo_sfs.node.PARAMETERS`` for the SFS node), so a run
 without a file processes exactly what the nodes started without parameters
-would. Names a node does not have are refused, with the node and the name.
+would. Names a node does not have are refused, with the node and the name
+(in a section for several nodes, such as ``/**``, they are another node's and
+skipped). A section that applies to none of the nodes (another namespace's
+``/rig1/sfs``, a camera driver's) is listed in
+:attr:`ProcessSettings.ignored_sections`; one whose node name is a near
+miss of a node's (``sfss``) is refused.
 """
 
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -33,7 +40,8 @@ import yaml
 
 from endo_calib.node import PARAMETERS as CORRECTION_PARAMETERS
 from endo_flow.node import PARAMETERS as FLOW_PARAMETERS
-from endo_io.errors import yaml_error_line
+from endo_io.errors import ParameterValidationError, yaml_error_line
+from endo_io.parameters import is_near_miss, section_applies, sections_for_no_node
 from endo_process.errors import ParameterFileError
 from endo_sfs.errors import SfsError
 from endo_sfs.node import PARAMETERS as SFS_PARAMETERS
@@ -76,17 +84,43 @@ LIVE_ONLY: dict[str, frozenset[str]] = {
     CORRECTION_NODE: frozenset(s.name for s in CORRECTION_PARAMETERS) - set(CORRECTION_DEFAULTS),
     BRIDGE_NODE: frozenset(s.name for s in BRIDGE_PARAMETERS) - set(BRIDGE_DEFAULTS),
 }
+#: Every parameter name of the four nodes, live-only ones too.
+ALL_NAMES = frozenset(
+    spec.name
+    for table in (CORRECTION_PARAMETERS, SFS_PARAMETERS, BRIDGE_PARAMETERS, FLOW_PARAMETERS)
+    for spec in table
+)
 SFS_OPTION_PARAMETERS = tuple(
     f.name for f in dataclasses.fields(SfsOptions) if f.name in SFS_DEFAULTS
 )
 
 
-def read_parameter_file(path: Path) -> dict[str, dict[str, Any]]:
-    """Node name -> its ``ros__parameters`` mapping from a ROS 2 parameter file.
+#: The offline run's nodes, in the root namespace.
+NODES = (CORRECTION_NODE, SFS_NODE, BRIDGE_NODE, FLOW_NODE)
+
+
+@dataclass(frozen=True)
+class ParameterSection:
+    """One section of a parameter file.
+
+    Attributes:
+        key: the section's key (``/**/sfs``).
+        nodes: the offline run's nodes it applies to (:data:`NODES`' names).
+        parameters: its ``ros__parameters`` mapping.
+    """
+
+    key: str
+    nodes: tuple[str, ...]
+    parameters: dict[str, Any]
+
+
+def read_parameter_file(path: Path) -> list[ParameterSection]:
+    """The sections of a ROS 2 parameter file, in its order.
 
     Raises:
-        ParameterFileError: unreadable file, not YAML, or not the
-            ``node: {ros__parameters: {...}}`` layout.
+        ParameterFileError: unreadable file, not YAML, not the
+            ``node: {ros__parameters: {...}}`` layout, or a section whose
+            node name is a near miss of a node's (``sfss``).
     """
     try:
         document = yaml.safe_load(Path(path).read_text())
@@ -95,31 +129,43 @@ def read_parameter_file(path: Path) -> dict[str, dict[str, Any]]:
     except yaml.YAMLError as error:
         raise ParameterFileError(f"{path}: not YAML ({yaml_error_line(error)})") from None
     if document is None:
-        return {}
+        return []
     if not isinstance(document, Mapping):
         raise ParameterFileError(f"{path}: expected a mapping of node names")
-    nodes: dict[str, dict[str, Any]] = {}
+    sections = []
     for name, section in document.items():
         parameters = section.get("ros__parameters") if isinstance(section, Mapping) else None
         if not isinstance(parameters, Mapping):
             raise ParameterFileError(f"{path}: node {name!r} has no ros__parameters mapping")
-        key = str(name).lstrip("/")
-        # `/**/sfs` (config/endo3d.yaml's keys: the node in any namespace) is the node `sfs`
-        nodes[key[3:] if key.startswith("**/") else key] = dict(parameters)
-    return nodes
+        nodes = tuple(node for node in NODES if section_applies(name, f"/{node}"))
+        sections.append(ParameterSection(str(name), nodes, dict(parameters)))
+    try:
+        sections_for_no_node(document, [f"/{node}" for node in NODES])
+    except ParameterValidationError as error:
+        raise ParameterFileError(f"{path}: {error}") from None
+    return sections
 
 
 def _node_values(
-    nodes: Mapping[str, Mapping[str, Any]], node: str, defaults: Mapping[str, Any], path: str
+    sections: Sequence[ParameterSection], node: str, defaults: Mapping[str, Any], path: str
 ) -> dict[str, Any]:
-    """The node's defaults with the file's ``/**`` and ``node`` sections over them."""
+    """The node's defaults with the file's sections for it over them, in the file's order."""
     values = dict(defaults)
-    for section in ("**", node):
-        for name, value in nodes.get(section, {}).items():
+    for section in sections:
+        if node not in section.nodes:
+            continue
+        for name, value in section.parameters.items():
             if name not in defaults:
-                if section == "**" or name in LIVE_ONLY.get(node, ()):
-                    continue  # another node's, or a live node's that changes nothing offline
-                raise ParameterFileError(f"{path}: node {node!r} has no parameter {name!r}")
+                if name in LIVE_ONLY.get(node, ()):
+                    continue  # a live node's that changes nothing offline
+                if len(section.nodes) > 1 and name in ALL_NAMES:
+                    continue  # another node's, in a section for several (`/**`)
+                close = [row for row in defaults if is_near_miss(name, row)]
+                if len(section.nodes) > 1 and not close:
+                    continue  # rcl gives it to every node; the node ignores it (with a word)
+                hint = f" (did you mean {close[0]}?)" if close else ""
+                raise ParameterFileError(
+                    f"{path}: node {node!r} has no parameter {name!r}{hint}")
             default = defaults[name]
             if isinstance(default, bool) != isinstance(value, bool) or (
                 isinstance(default, int | float) and not isinstance(value, int | float)
@@ -144,6 +190,8 @@ class ProcessSettings:
         sfs: the SFS node's parameters (name -> value), every one of them.
         bridge: the tracker bridge's parameters for a ``ros`` source.
         flow: the flow node's parameters, every one of them.
+        ignored_sections: the parameter file's sections that apply to none
+            of the nodes (their keys), ignored.
     """
 
     channel: str = "luminance"
@@ -154,6 +202,7 @@ class ProcessSettings:
     )
     bridge: dict[str, Any] = field(default_factory=lambda: dict(BRIDGE_DEFAULTS))
     flow: dict[str, Any] = field(default_factory=lambda: dict(FLOW_DEFAULTS))
+    ignored_sections: tuple[str, ...] = ()
 
     @property
     def sfs_options(self) -> SfsOptions:
@@ -186,7 +235,7 @@ def load_settings(path: Path | None, *, solve_scale: float | None = None) -> Pro
             node does not have, gives a value of the wrong kind, or holds a
             T_world_tracker / ros_unit the bridge would refuse.
     """
-    nodes = read_parameter_file(path) if path is not None else {}
+    nodes = read_parameter_file(path) if path is not None else []
     where = str(path) if path is not None else "the nodes' defaults"
     correction = _node_values(nodes, CORRECTION_NODE, CORRECTION_DEFAULTS, where)
     settings = ProcessSettings(
@@ -196,6 +245,7 @@ def load_settings(path: Path | None, *, solve_scale: float | None = None) -> Pro
         sfs=_node_values(nodes, SFS_NODE, SFS_DEFAULTS, where),
         bridge=_node_values(nodes, BRIDGE_NODE, BRIDGE_DEFAULTS, where),
         flow=_node_values(nodes, FLOW_NODE, FLOW_DEFAULTS, where),
+        ignored_sections=tuple(section.key for section in nodes if not section.nodes),
     )
     if solve_scale is not None:
         settings.sfs["solve_scale"] = float(solve_scale)

@@ -47,6 +47,30 @@ def test_every_parameter_of_the_correction_node_is_accepted(tmp_path: Path) -> N
         load_settings(path)
 
 
+def test_sections_apply_as_rcl_applies_them_and_a_section_for_no_node_is_named(
+    tmp_path: Path,
+) -> None:
+    # `sfss:` (a misspelt node) and `/rig1/sfs:` (a namespaced launch's) were ignored
+    # without a word: the run went on with the defaults
+    path = tmp_path / "params.yaml"
+    path.write_text("/**:\n  ros__parameters: {roughness: 0.2, max_tracks: 300}\n"
+                    "/sfs:\n  ros__parameters: {solve_scale: 0.5}\n"
+                    "/*/sfs:\n  ros__parameters: {solve_scale: 0.25}\n"
+                    "v4l2_camera:\n  ros__parameters: {video_device: /dev/video0}\n")  # fmt: skip
+    settings = load_settings(path)
+    assert settings.sfs["roughness"] == 0.2 and settings.flow["max_tracks"] == 300
+    assert settings.sfs["solve_scale"] == 0.5  # /*/sfs is a namespaced node's
+    assert settings.ignored_sections == ("/*/sfs", "v4l2_camera")
+    path.write_text("sfss:\n  ros__parameters: {solve_scale: 0.5}\n")
+    with pytest.raises(ParameterFileError, match=r"section sfss .* \(did you mean sfs\?\)$"):
+        load_settings(path)
+    # a typo in a section for every node is refused as the live node refuses it
+    path.write_text("/**:\n  ros__parameters: {solve_scal: 0.5}\n")
+    with pytest.raises(ParameterFileError,
+                       match=r"no parameter 'solve_scal' \(did you mean solve_scale\?\)$"):
+        load_settings(path)
+
+
 def _phantom_frame() -> tuple[np.ndarray, RawFrame]:
     with BagReader(PHANTOM) as reader:
         image = deserialize(next(reader.messages([topics.IMAGE_RAW])))
