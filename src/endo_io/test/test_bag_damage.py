@@ -225,6 +225,38 @@ def test_missing_paths_and_non_bags(tmp_path):
         BagReader(text)
 
 
+def test_a_sqlite3_bag_names_the_command_that_converts_it(tmp_path):
+    # `ros2 bag record` before Jazzy wrote sqlite3 (.db3) bags; the error said only
+    # "not supported": the command it names now works as printed
+    import shlex
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    from rosbags.rosbag2 import StoragePlugin, Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    from endo_io.bag import serialize
+
+    typestore = get_typestore(Stores.ROS2_JAZZY)
+    bag = tmp_path / "humble rig"
+    writer = Writer(bag, version=9, storage_plugin=StoragePlugin.SQLITE3)
+    writer.open()
+    connection = writer.add_connection("/image", "sensor_msgs/msg/Image", typestore=typestore)
+    writer.write(connection, 5, serialize(small_image(0)))
+    writer.close()
+    with pytest.raises(BagError) as caught:
+        BagReader(bag)
+    message = str(caught.value)
+    assert message.startswith(f"{bag}: storage 'sqlite3' is not supported, only mcap (convert it: ")
+    command = message.split("(convert it: ", 1)[1].rstrip(")")
+    argv = shlex.split(command)
+    argv[0] = str(Path(sys.executable).parent / argv[0])
+    subprocess.run(argv, check=True, capture_output=True, timeout=120)
+    with BagReader(tmp_path / "humble rig_mcap") as reader:
+        assert [(m.topic, m.log_time_ns) for m in reader.messages()] == [("/image", 5)]
+
+
 def test_empty_and_magic_only_files_are_truncated_bags(tmp_path):
     for cut in (0, 4, 8):
         path = tmp_path / f"stub_{cut}.mcap"

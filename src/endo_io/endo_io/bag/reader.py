@@ -24,6 +24,7 @@ from __future__ import annotations
 import dataclasses
 import heapq
 import os
+import shlex
 import types
 from collections.abc import Iterable, Iterator
 from pathlib import Path
@@ -82,7 +83,13 @@ class BagReader:
                 self.metadata = read_metadata_yaml(self.path)
                 storage = self.metadata.get("storage_identifier", "mcap")
                 if storage != "mcap":
-                    raise BagError(f"{self.path}: storage '{storage}' is not supported, only mcap")
+                    # rosbags (an endo_io dependency) converts; so does `ros2 bag convert`
+                    raise BagError(
+                        f"{self.path}: storage '{storage}' is not supported, only mcap "
+                        f"(convert it: rosbags-convert --src {shlex.quote(str(self.path))} "
+                        f"--dst {shlex.quote(str(self.path.with_name(self.path.name + '_mcap')))} "
+                        "--dst-storage mcap)"
+                    )
                 if self.metadata.get("compression_mode"):
                     raise BagError(
                         f"{self.path}: rosbag2 {self.metadata['compression_mode']} compression "
