@@ -260,6 +260,9 @@ def _run(args: argparse.Namespace, workers: StartedWorkers | None) -> int:
     if report.damage:
         print(f"{PROGRAM}: input cut short, processed up to the damage: {report.damage}",
               file=sys.stderr)  # fmt: skip
+    elif report.damage_beyond:
+        print(f"{PROGRAM}: note: the input is damaged after the {report.frames_in} frames "
+              f"processed (--max-frames): {report.damage_beyond}", file=sys.stderr)  # fmt: skip
     if report.undecodable:
         skipped = ", ".join(f"{n} on {topic}" for topic, n in report.undecodable.most_common())
         print(f"{PROGRAM}: error: skipped {skipped}, undecodable; the first: "

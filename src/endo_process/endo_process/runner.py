@@ -175,6 +175,7 @@ class ProcessReport:
     stage_cpu_seconds: defaultdict[str, float] = field(default_factory=lambda: defaultdict(float))
     shading_seconds: defaultdict[str, float] = field(default_factory=lambda: defaultdict(float))
     damage: str | None = None
+    damage_beyond: str | None = None
     undecodable: Counter[str] = field(default_factory=Counter)
     first_undecodable: str | None = None
     reasons: dict[str, str] = field(default_factory=dict)
@@ -747,7 +748,10 @@ def process_bag(
     report.written = output.on_disk if report.write_failure else Counter(output.counts)
     report.lost = output.lost
     report.poses_written = report.written[topics.CAMERA_POSE]
-    report.damage = inputs.damage
+    if options.max_frames is not None and report.frames_in < inputs.frame_count:
+        report.damage_beyond = inputs.damage  # --max-frames stopped before it: not met
+    else:
+        report.damage = inputs.damage
     report.undecodable = inputs.undecodable
     report.first_undecodable = inputs.first_undecodable
     if first_stamp is not None and last_stamp is not None:

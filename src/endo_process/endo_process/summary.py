@@ -63,6 +63,8 @@ def _rows(report: ProcessReport) -> list[tuple[str, str]]:
     ]
     if report.damage:
         rows.append(("input damage", report.damage))
+    elif report.damage_beyond:
+        rows.append(("input damage (after --max-frames)", report.damage_beyond))
     if report.undecodable:
         rows.append(("undecodable messages skipped", _causes(report.undecodable)))
     if report.interrupted:
@@ -195,6 +197,7 @@ def summary_document(report: ProcessReport, accuracy: Accuracy | None) -> dict[s
             "median_solve_ms": report.median_solve_ms,
         },
         "damage": report.damage,
+        "damage_after_max_frames": report.damage_beyond,
         "undecodable": dict(report.undecodable),
         "interrupted": report.interrupted,
         "written": dict(report.written),

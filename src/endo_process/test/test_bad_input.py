@@ -133,6 +133,12 @@ def test_a_truncated_bag_is_processed_up_to_the_cut(
     with BagReader(cut) as reader:
         readable = sum(1 for m in _intact(reader) if m.topic == topics.IMAGE_RAW)
     assert 5 <= depth == readable < 90
+    # --max-frames short of the cut does not meet it: exit 0, and a note, not "cut short"
+    out = tmp_path / "out3.mcap"
+    assert main(_argv(cut, out, calibrations, "--max-frames", "3")) == EXIT_OK
+    err = capsys.readouterr().err
+    assert "cut short" not in err, err
+    assert "note: the input is damaged after the 3 frames processed (--max-frames): " in err, err
 
 
 def _intact(reader: BagReader):  # type: ignore[no-untyped-def]
