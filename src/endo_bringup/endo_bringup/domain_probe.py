@@ -14,6 +14,9 @@ import os
 import time
 from collections.abc import Collection
 
+#: What rcl names a publisher's node before discovery has told it the node's name.
+UNKNOWN_NODE = "_NODE_NAME_UNKNOWN_"
+
 
 def _qualified(namespace: str, name: str) -> str:
     return f"{namespace.rstrip('/')}/{name}"
@@ -55,7 +58,10 @@ def graph_conflicts(
             current = _conflicts(probe, topics, node_names)
             if current != found:
                 found, changed = current, now
-            if now >= deadline or (found and now - changed > 0.5):
+            # a publisher seen before its node's name (rcl's _NODE_NAME_UNKNOWN_) is
+            # not settled: under load the name came later than half a second
+            settled = found and not any(UNKNOWN_NODE in entry for entry in found)
+            if now >= deadline or (settled and now - changed > 0.5):
                 return found
             time.sleep(0.1)
     finally:
