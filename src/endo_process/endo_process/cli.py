@@ -255,6 +255,15 @@ def _run(args: argparse.Namespace, workers: StartedWorkers | None) -> int:
             print(f"{PROGRAM}: error: cannot write {args.summary_json} ({error.strerror})",
                   file=sys.stderr)  # fmt: skip
             summary_failed = True
+    ply_failed = False  # the output and the summary are whole: it costs the PLY alone
+    if args.ply is not None and report.ply_error and not report.write_failure:
+        if report.ply_error.startswith("the "):  # empty, or no map: nothing to write
+            print(f"{PROGRAM}: warning: --ply {args.ply} not written ({report.ply_error})",
+                  file=sys.stderr)  # fmt: skip
+        else:
+            print(f"{PROGRAM}: error: --ply {args.ply} not written ({report.ply_error})",
+                  file=sys.stderr)  # fmt: skip
+            ply_failed = True
     for line in drop_lines(report):
         print(f"{PROGRAM}: warning: {line}", file=sys.stderr)
     if report.damage:
@@ -284,7 +293,7 @@ def _run(args: argparse.Namespace, workers: StartedWorkers | None) -> int:
         print(f"{PROGRAM}: interrupted; {options.output} holds the "
               f"{report.frames_shaded} frames processed", file=sys.stderr)  # fmt: skip
     status = exit_status(report)
-    return max(status, EXIT_DAMAGED) if summary_failed else status
+    return max(status, EXIT_DAMAGED) if summary_failed or ply_failed else status
 
 
 if __name__ == "__main__":

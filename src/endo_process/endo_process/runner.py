@@ -508,18 +508,19 @@ def _export_ply(flow: FlowStage, options: ProcessOptions, report: ProcessReport)
     ``report.ply_error`` says why.
     """
     voxel_map = flow.pipeline.voxel_map
-    if options.ply is None or voxel_map is None:
+    if options.ply is None:
         return
-    if report.write_failure:
-        if len(voxel_map):
-            try:
-                report.ply_vertices = voxel_map.export_ply(options.ply)
-            except (MapExportError, OSError) as error:  # write_ply removes a partial file
-                report.ply_error = str(error)
-        else:
-            report.ply_error = "the map was empty"
-    elif report.map_points:
-        report.ply_vertices = voxel_map.export_ply(options.ply)
+    if voxel_map is None:
+        report.ply_error = "the flow node's map is off (map_enabled)"
+    elif len(voxel_map) and (report.write_failure or report.map_points):
+        try:
+            report.ply_vertices = voxel_map.export_ply(options.ply)
+        except (MapExportError, OSError) as error:  # write_ply removes a partial file
+            # the output and the summary are whole: this costs only the PLY (it was exit 2
+            # with no summary, after the whole run)
+            report.ply_error = str(error)
+    else:
+        report.ply_error = "the map was empty"
 
 
 def one_chain_parameters(sfs_parameters: dict[str, Any]) -> dict[str, Any]:

@@ -71,6 +71,8 @@ def _rows(report: ProcessReport) -> list[tuple[str, str]]:
         rows.append(("interrupted", "yes (output finalised)"))
     if report.ply_vertices:
         rows.append(("PLY vertices", f"{report.ply_vertices}"))
+    elif report.ply_error:
+        rows.append(("PLY", f"not written ({report.ply_error})"))
     if report.output is not None:
         written = sum(report.written.values())
         rows.append(("output", f"{report.output} ({written} messages)"))

@@ -569,3 +569,39 @@ def test_a_ply_that_cannot_be_written_after_a_full_disk_is_reported_not_raised(
     _export_ply(flow, SimpleNamespace(ply=ply), report)  # type: ignore[arg-type]
     assert report.ply_vertices == 0 and f"cannot write {ply}" in report.ply_error
     assert not ply.exists()
+
+
+def test_a_ply_that_cannot_be_written_or_has_nothing_costs_only_itself(
+    calibrations: tuple[Path, Path], tmp_path: Path, capsys: pytest.CaptureFixture
+) -> None:
+    # A probe, session 15: `--ply /unwritable/map.ply` after 40 frames ended in
+    # "MapExportError: cannot write ..." with exit 2 and no summary; `--ply` of a run
+    # whose map stayed empty wrote nothing and said nothing.
+    from types import SimpleNamespace
+
+    import numpy as np
+
+    from endo_flow.voxel_map import VoxelMap
+    from endo_process.runner import ProcessReport, _export_ply
+
+    voxel_map = VoxelMap(1e-3)
+    voxel_map.insert(np.random.default_rng(0).uniform(0.0, 0.05, (1000, 3)), np.zeros(1000))
+    flow = SimpleNamespace(pipeline=SimpleNamespace(voxel_map=voxel_map))
+    ply = tmp_path / "missing_dir" / "map.ply"  # as a directory removed during the run
+    report = ProcessReport(map_points=len(voxel_map))
+    _export_ply(flow, SimpleNamespace(ply=ply), report)  # type: ignore[arg-type]
+    assert report.ply_vertices == 0 and f"cannot write {ply}" in report.ply_error
+    empty = SimpleNamespace(pipeline=SimpleNamespace(voxel_map=VoxelMap(1e-3)))
+    report = ProcessReport()
+    _export_ply(empty, SimpleNamespace(ply=ply), report)  # type: ignore[arg-type]
+    assert report.ply_error == "the map was empty"
+    # the command: 3 frames make no map; the summary says so, a warning line too, exit 0
+    ply = tmp_path / "map.ply"
+    argv = _argv(PHANTOM, tmp_path / "out.mcap", calibrations, "--max-frames", "3",
+                 "--ply", str(ply))  # fmt: skip
+    assert main(argv) == EXIT_OK
+    captured = capsys.readouterr()
+    assert "PLY                    " in captured.out and "not written (the map was empty)" in (
+        captured.out)
+    assert f"endo-process: warning: --ply {ply} not written (the map was empty)" in captured.err
+    assert not ply.exists()
