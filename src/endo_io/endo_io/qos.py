@@ -14,11 +14,12 @@
   image of SFS, the relative depth of flow) comes through
   :data:`NEWEST_FRAME_QOS`: best effort, keep last :data:`NEWEST_FRAME_DEPTH`.
   A frame that has waited there longer than ``frame_backlog_s`` is stale:
-  the node then takes the frames behind it, processes the first that is not
-  stale (or the newest) and counts the others as skipped
-  (:meth:`endo_io.diagnostics.InputHealth.subscribe` with ``newest=True``),
-  so a stage slower than the camera works on the present, never on a
-  growing backlog, while a stall shorter than the limit skips nothing. Why not keep-last-1: DDS
+  the node then takes the frames behind it, processes the newest and counts
+  the others as skipped (:meth:`endo_io.diagnostics.InputHealth.subscribe`
+  with ``newest=True``; for a second after a skip every frame with a newer
+  one behind it is stale), so a stage slower than the camera works on the
+  present, never on a backlog, while a stall shorter than the limit skips
+  nothing. Why not keep-last-1: DDS
   would then overwrite the stale frames where the node cannot see them, and
   a skip would be indistinguishable from a frame lost in transport.
 * The inputs a node takes by stamp when its frame arrives (flow's corrected

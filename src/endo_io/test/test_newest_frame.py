@@ -4,8 +4,8 @@ Frames are published while the subscriber does not spin (a node busy with an
 earlier frame); one spin then delivers only the newest, and /diagnostics says
 how many were skipped (not dropped, not lost). A frame younger than
 ``frame_backlog_s`` is not stale: a short stall delays frames instead of
-skipping them, and past it the node skips to the first frame that is not
-stale. With ``newest_frame`` false every frame comes, in order. Also the
+skipping them; past it the node skips to the newest and, for a second,
+keeps to the newest. With ``newest_frame`` false every frame comes, in order. Also the
 header stamp read from the CDR bytes.
 """
 
@@ -21,6 +21,7 @@ from rclpy.node import Node
 from rclpy.serialization import serialize_message
 from sensor_msgs.msg import CameraInfo, Image
 
+from endo_io import diagnostics
 from endo_io.diagnostics import InputHealth
 from endo_io.image import array_to_image
 from endo_io.qos import NEWEST_FRAME_DEPTH, NEWEST_FRAME_QOS, reliable_qos
@@ -46,10 +47,12 @@ def _frame(k: int) -> Image:
 
 
 def _deliver(node: Node, health: InputHealth, topic: str, frames: int, got: list[Image],
-             expected_calls: int, *, wait_after: int = -1, wait_s: float = 0.0) -> None:
+             expected_calls: int, *, wait_after: int = -1, wait_s: float = 0.0,
+             first: int = 0) -> None:
     """Publish ``frames`` frames while not spinning, then spin until ``expected_calls`` came.
 
-    ``wait_s`` seconds pass after publishing frame ``wait_after`` (a stall upstream).
+    Frames are numbered from ``first``; ``wait_s`` seconds pass after
+    publishing frame ``wait_after`` (a stall upstream).
     """
     publisher = node.create_publisher(Image, topic, reliable_qos(NEWEST_FRAME_DEPTH))
     executor = SingleThreadedExecutor(context=node.context)
@@ -58,7 +61,7 @@ def _deliver(node: Node, health: InputHealth, topic: str, frames: int, got: list
     while publisher.get_subscription_count() == 0:
         executor.spin_once(timeout_sec=0.05)
         assert time.monotonic() < deadline, "no subscription matched"
-    for k in range(frames):
+    for k in range(first, first + frames):
         publisher.publish(_frame(k))
         if k == wait_after:
             time.sleep(wait_s)
@@ -106,19 +109,25 @@ def test_frames_younger_than_the_backlog_limit_are_processed_in_order_not_skippe
     assert values["processed"] == "5" and values["skipped"] == "0"
 
 
-def test_past_the_limit_the_node_skips_to_the_first_frame_that_is_not_stale(node):
-    # frames 0-2 wait 1.0 s longer than 3-4: at spin time they are ~1.3 s old, past
-    # the 0.8 s limit, and 3-4 ~0.3 s, inside it
+def test_past_the_limit_the_node_skips_to_the_newest_and_then_keeps_to_the_newest(node,
+                                                                                 monkeypatch):
+    monkeypatch.setattr(diagnostics, "BEHIND_HOLD_S", 30.0)  # the test's own pace can't end it
+    # frames 0-2 wait 1.0 s longer than 3-4: at spin time they are ~1.3 s old, past the
+    # 0.8 s limit, 3-4 ~0.3 s, inside it; once behind the node takes the newest, 4, and for
+    # the hold frames 5-7, published in one go, are stale too: only 7 comes
     health = InputHealth(node, "image input", settings={"newest_frame": True,
                                                         "frame_backlog_s": 0.8})
     got: list[Image] = []
     health.subscribe(Image, "/newest_test/stale", got.append, NEWEST_FRAME_QOS, gaps=True,
                      newest=True)
-    _deliver(node, health, "/newest_test/stale", 5, got, 2, wait_after=2, wait_s=1.0)
-    assert _stamps(got) == [3, 4]
+    _deliver(node, health, "/newest_test/stale", 5, got, 1, wait_after=2, wait_s=1.0)
+    assert _stamps(got) == [4]
     values = _values(health)
-    assert values["received"] == "5" and values["processed"] == "2"
-    assert values["skipped"] == "3" and values["dropped"] == "0" and values["lost"] == "0"
+    assert values["received"] == "5" and values["processed"] == "1"
+    assert values["skipped"] == "4" and values["dropped"] == "0" and values["lost"] == "0"
+    _deliver(node, health, "/newest_test/stale", 3, got, 2, first=5)
+    assert _stamps(got) == [4, 7]
+    assert _values(health)["skipped"] == "6"
 
 
 def test_a_zero_limit_skips_every_frame_that_has_a_newer_one_behind_it(node):
