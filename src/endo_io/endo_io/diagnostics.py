@@ -47,10 +47,12 @@ Stale means older than ``frame_backlog_s`` (:data:`DEFAULT_FRAME_BACKLOG_S`)
 since the middleware received it: a younger frame is processed in order,
 even when newer ones wait behind it, so a stall of the node or of the
 machine shorter than that delays a few frames instead of skipping them.
-Once a frame is stale the node is behind: it skips to the newest frame, and
-for :data:`BEHIND_HOLD_S` after its last skip every frame that has a newer
-one behind it is stale, so a node slower than its input on average (SFS at
-full resolution) works on the newest frame, not on one up to the limit old.
+A stale frame makes the node skip to the newest. A second skip within
+:data:`BEHIND_HOLD_S` of the one before says the node is behind on average
+(SFS at full resolution): from then until that long after its last skip,
+every frame that has a newer one behind it is stale, so the node works on
+the newest frame, not on one up to the limit old. One stall alone costs
+only the frames it made stale.
 With ``frame_backlog_s`` 0 every frame that has a newer one behind it is
 skipped.
 
@@ -108,10 +110,12 @@ DEFAULT_WINDOW_S = 5.0
 #: inside what :data:`endo_io.qos.NEWEST_FRAME_DEPTH` (8 frames) holds at up
 #: to 60 fps.
 DEFAULT_FRAME_BACKLOG_S = 0.1
-#: Seconds after a skip during which the input takes the newest frame: a node
-#: that had to skip within the last second is behind on average (a backlog
-#: kept in order would only add ``frame_backlog_s`` to every frame's latency:
-#: SFS at full resolution, p50 196 against 67 ms in bench_graph, session 15).
+#: Two skips this close (seconds) say the input's node is behind on average;
+#: it then takes the newest frame until this long after its last skip (a
+#: backlog kept in order would only add ``frame_backlog_s`` to every frame's
+#: latency: SFS at full resolution, p50 196 against 67 ms in bench_graph,
+#: session 15; holding after every single skip instead made a lone stall at
+#: solve_scale 0.5 cost a second of skips: 7-12 against 0-5 per 60 s).
 BEHIND_HOLD_S = 1.0
 #: Events remembered per kind for the window's counts (memory bound).
 _MAX_EVENTS = 10_000
@@ -298,6 +302,7 @@ class InputHealth:
         self.skipped: Counter[str] = Counter()
         # per newest-frame input: until when (monotonic ns) it takes the newest frame
         self._behind_until: dict[str, int] = {}
+        self._last_skip: dict[str, int] = {}  # when (monotonic ns) it last skipped
         self.clock_jumps = 0
         self.last_error = ""
         self._inputs: dict[str, _Input] = {}
@@ -513,9 +518,9 @@ class InputHealth:
             processed: as in :meth:`guard`.
             gaps: count frames missing from the header stamps (image topics).
             newest: before each stale message (older than
-                ``frame_backlog_s``, or any within :data:`BEHIND_HOLD_S` of
-                the last skip), take the ones waiting behind it and process
-                the newest; the others are counted as skipped (unless the
+                ``frame_backlog_s``, or any while the node is behind: see
+                the module's docstring), take the ones waiting behind it and
+                process the newest; the others are counted as skipped (unless the
                 ``newest_frame`` setting is false).
             decode: turns the serialized bytes into what ``callback`` takes
                 (:func:`endo_io.image.image_from_cdr` for images: no copy of
@@ -597,18 +602,27 @@ class InputHealth:
         The ones passed over are received and skipped. ``info`` is rclpy's
         message info of ``data`` (None: its age is unknown, so it is stale).
         """
-        behind_until = self._behind_until.get(name, 0)
-        if time.monotonic_ns() >= behind_until and _age_ns(info) <= self.frame_backlog_ns:
+        now = time.monotonic_ns()
+        behind = now < self._behind_until.get(name, 0)
+        if not behind and _age_ns(info) <= self.frame_backlog_ns:
             return data
+        skipped = False
         while True:
             with subscription.handle:
                 taken = subscription.handle.take_message(msg_type, True)
             if taken is None:
-                return data
+                break
             self.received(name, serialized_header_stamp_ns(data))
             self.skip(name)
-            self._behind_until[name] = time.monotonic_ns() + round(BEHIND_HOLD_S * 1e9)
+            skipped = True
             data, info = taken
+        if skipped:
+            # a second skip within the hold of the first: behind on average
+            hold_ns = round(BEHIND_HOLD_S * 1e9)
+            if now - self._last_skip.get(name, -hold_ns) < hold_ns:
+                self._behind_until[name] = now + hold_ns
+            self._last_skip[name] = now
+        return data
 
     def _decode(self, data: bytes, msg_type: Any, name: str,
                 decode: Callable[[bytes], Any] | None) -> Any:

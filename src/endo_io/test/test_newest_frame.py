@@ -4,9 +4,9 @@ Frames are published while the subscriber does not spin (a node busy with an
 earlier frame); one spin then delivers only the newest, and /diagnostics says
 how many were skipped (not dropped, not lost). A frame younger than
 ``frame_backlog_s`` is not stale: a short stall delays frames instead of
-skipping them; past it the node skips to the newest and, for a second,
-keeps to the newest. With ``newest_frame`` false every frame comes, in order. Also the
-header stamp read from the CDR bytes.
+skipping them; past it the node skips to the newest, and two such skips
+within a second keep it on the newest frame. With ``newest_frame`` false
+every frame comes, in order. Also the header stamp read from the CDR bytes.
 """
 
 from __future__ import annotations
@@ -109,25 +109,40 @@ def test_frames_younger_than_the_backlog_limit_are_processed_in_order_not_skippe
     assert values["processed"] == "5" and values["skipped"] == "0"
 
 
-def test_past_the_limit_the_node_skips_to_the_newest_and_then_keeps_to_the_newest(node,
-                                                                                 monkeypatch):
-    monkeypatch.setattr(diagnostics, "BEHIND_HOLD_S", 30.0)  # the test's own pace can't end it
-    # frames 0-2 wait 1.0 s longer than 3-4: at spin time they are ~1.3 s old, past the
-    # 0.8 s limit, 3-4 ~0.3 s, inside it; once behind the node takes the newest, 4, and for
-    # the hold frames 5-7, published in one go, are stale too: only 7 comes
+def _stale_health(node: Node, topic: str, got: list[Image]) -> InputHealth:
     health = InputHealth(node, "image input", settings={"newest_frame": True,
                                                         "frame_backlog_s": 0.8})
+    health.subscribe(Image, topic, got.append, NEWEST_FRAME_QOS, gaps=True, newest=True)
+    return health
+
+
+def test_past_the_limit_the_node_skips_to_the_newest_and_a_lone_stall_costs_no_more(node):
+    # frames 0-2 wait 1.0 s longer than 3-4: at spin time they are ~1.3 s old, past the
+    # 0.8 s limit (3-4 ~0.3 s, inside it); the node skips to the newest, 4. Frames 5-7
+    # then come young: in order, the lone stall skipped nothing more
     got: list[Image] = []
-    health.subscribe(Image, "/newest_test/stale", got.append, NEWEST_FRAME_QOS, gaps=True,
-                     newest=True)
-    _deliver(node, health, "/newest_test/stale", 5, got, 1, wait_after=2, wait_s=1.0)
+    health = _stale_health(node, "/newest_test/lone", got)
+    _deliver(node, health, "/newest_test/lone", 5, got, 1, wait_after=2, wait_s=1.0)
     assert _stamps(got) == [4]
     values = _values(health)
     assert values["received"] == "5" and values["processed"] == "1"
     assert values["skipped"] == "4" and values["dropped"] == "0" and values["lost"] == "0"
-    _deliver(node, health, "/newest_test/stale", 3, got, 2, first=5)
-    assert _stamps(got) == [4, 7]
-    assert _values(health)["skipped"] == "6"
+    _deliver(node, health, "/newest_test/lone", 3, got, 4, first=5)
+    assert _stamps(got) == [4, 5, 6, 7]
+    assert _values(health)["skipped"] == "4"
+
+
+def test_two_skips_within_the_hold_keep_the_node_on_the_newest_frame(node, monkeypatch):
+    monkeypatch.setattr(diagnostics, "BEHIND_HOLD_S", 30.0)  # the test's own pace can't end it
+    got: list[Image] = []
+    health = _stale_health(node, "/newest_test/behind", got)
+    _deliver(node, health, "/newest_test/behind", 5, got, 1, wait_after=2, wait_s=1.0)
+    _deliver(node, health, "/newest_test/behind", 3, got, 2, first=5, wait_after=5, wait_s=1.0)
+    assert _stamps(got) == [4, 7]  # a second stale frame within the hold: behind
+    # young frames, but the node is behind: a frame with a newer one waiting is stale
+    _deliver(node, health, "/newest_test/behind", 3, got, 3, first=8)
+    assert _stamps(got) == [4, 7, 10]
+    assert _values(health)["skipped"] == "8"
 
 
 def test_a_zero_limit_skips_every_frame_that_has_a_newer_one_behind_it(node):
