@@ -58,6 +58,8 @@ import statistics
 import subprocess
 import sys
 import tempfile
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
 from datetime import UTC, datetime
 from pathlib import Path
@@ -591,6 +593,9 @@ def main() -> int:
                         help="also run every configuration with this checkout's src/* packages")
     parser.add_argument("--listener", choices=[*LISTEN_MODES, "both"], default="recording",
                         help="how the bench watches the graph (see the module docstring)")
+    parser.add_argument("--stalls", type=float, nargs=2, default=None, metavar=("MS", "EVERY_S"),
+                        help="stall the whole machine for MS ms every EVERY_S seconds during "
+                        "each run (bench/stall_injector.py: one nice -20 busy process per core)")
     parser.add_argument("--sweep-only", action="store_true", help="only the demo-rate sweep")
     parser.add_argument("--sweep-scale", type=float, default=GRAPH_SOLVE_SCALE,
                         help=f"solve_scale of the sweep (the demo's: {GRAPH_SOLVE_SCALE:g})")
@@ -639,11 +644,14 @@ def main() -> int:
                                      listens[0][1], baseline_env(env, args.baseline)))
                 for variant, listen, environment in variants:
                     load = os.getloadavg()[0]
+                    stalled = ("" if args.stalls is None else
+                               f", stalls of {args.stalls[0]:g} ms every {args.stalls[1]:g} s")
                     print(f"== pass {run}: {bag.name}, {variant.name}, solve_scale "
-                          f"{variant.solve_scale:g}, rate {args.rate:g}, listener {listen} "
-                          f"(load {load:.1f})", flush=True)
-                    result = run_once(bag, variant, args.rate, work, environment, listen,
-                                      keep_recording=args.keep_recordings)
+                          f"{variant.solve_scale:g}, rate {args.rate:g}, listener {listen}"
+                          f"{stalled} (load {load:.1f})", flush=True)
+                    with stalls(args.stalls):
+                        result = run_once(bag, variant, args.rate, work, environment, listen,
+                                          keep_recording=args.keep_recordings)
                     result.run, result.load_before = run, load
                     _print_result(result)
                     results.append(result)
@@ -659,6 +667,21 @@ def main() -> int:
                 sweep.append(result)
                 save(work, results, sweep)
     return write_report(results, sweep, args)
+
+
+@contextmanager
+def stalls(stall: list[float] | None) -> Iterator[None]:
+    """bench/stall_injector.py running (``stall``: ms, every seconds) while the block runs."""
+    if stall is None:
+        yield
+        return
+    injector = subprocess.Popen([sys.executable, str(Path(__file__).with_name(
+        "stall_injector.py")), "--ms", str(stall[0]), "--every", str(stall[1])])
+    try:
+        yield
+    finally:
+        injector.terminate()
+        injector.wait(10)
 
 
 def save(work: Path, results: list[Result], sweep: list[Result]) -> None:
