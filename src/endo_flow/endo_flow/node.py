@@ -345,6 +345,8 @@ class FlowNode(Node):
         self.pose_health.on_refresh(self._take_poses)
         # the image and camera_info counted and aged as theirs, even while no depth comes
         self.health.on_refresh(self._take_frame_inputs)
+        self.health.watch_matching(self._images, topics.IMAGE_CORRECTED, topics.CAMERA_INFO)
+        self.health.watch_matching(self._frames, "image + camera_info", topics.DEPTH_RELATIVE)
         # until when a depth that came before its image or camera_info retakes them
         self._inputs_due = 0.0
         self.create_service(Trigger, "~/reset_map", self._reset_map)

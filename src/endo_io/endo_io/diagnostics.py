@@ -93,6 +93,7 @@ from endo_io.qos import reliable_qos
 from endo_io.sequence_gaps import SequenceGapCounter
 from endo_io.serialized_stamp import serialized_header_stamp_ns
 from endo_io.stamp import stamp_to_ns
+from endo_io.stamp_matching import StampMatcher
 from endo_io.taking import OnDemandGroup, system_to_monotonic_ns, take_waiting
 
 F = TypeVar("F", bound=Callable[..., Any])
@@ -435,6 +436,24 @@ class InputHealth:
             self._problems.pop(key, None)
         else:
             self._problems[key] = message
+
+    def watch_matching(self, matcher: StampMatcher[Any, Any], first: str, second: str) -> None:
+        """WARN on /diagnostics, and log once, while ``matcher``'s two streams come unpaired.
+
+        Args:
+            matcher: the node's matcher of the two streams.
+            first: its first stream's name (a topic), as the line names it.
+            second: its second stream's name.
+        """
+        key = f"stamps of {first} and {second}"
+
+        def refresh() -> None:
+            line = matcher.mismatch(first, second)
+            if line is not None and key not in self._problems:
+                self._node.get_logger().warning(f"no frame: {line}")
+            self.set_problem(key, line)
+
+        self.on_refresh(refresh)
 
     def on_refresh(self, refresh: Callable[[], None]) -> None:
         """Call ``refresh()`` before each status is published (to copy a source's state)."""

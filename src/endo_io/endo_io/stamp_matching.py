@@ -15,6 +15,13 @@ stamp could pair with them: on a jump of one stream, its queue is emptied
 and the other stream's messages far (more than the jump tolerance) from the
 new stamp are dropped, counted in :attr:`StampMatcher.dropped` and
 :attr:`StampMatcher.clock_jumps`.
+
+Two streams that never agree (a driver that stamps camera_info a few ms
+apart from its image) would otherwise only grow a counter: once each
+stream brought :data:`MISMATCH_ARRIVALS` messages without a partner since
+the last pair, :meth:`StampMatcher.mismatch` says so in one line, with the
+nearest stamp difference seen, so the node can name the cause and the
+parameter. One stream that stops (a dead upstream node) is not a mismatch.
 """
 
 from __future__ import annotations
@@ -26,6 +33,11 @@ from typing import Any, Generic, TypeVar
 from endo_io.clock_jump import ClockJumpDetector
 from endo_io.errors import StampOrderError
 from endo_io.stamp import NS_PER_S
+
+#: Messages of each stream without a partner since the last pair before
+#: :meth:`StampMatcher.mismatch` speaks (a second at 30 fps: more than the
+#: transient misses around a queue overflow or a clock jump).
+MISMATCH_ARRIVALS = 30
 
 A = TypeVar("A")
 B = TypeVar("B")
@@ -62,6 +74,8 @@ class StampMatcher(Generic[A, B]):
         self._second: OrderedDict[int, B] = OrderedDict()
         self.dropped = 0
         self.clock_jumps = 0
+        self._misses = [0, 0]  # arrivals without a partner since the last pair, per stream
+        self._nearest_miss_ns: int | None = None  # since the last pair
         self.jump_tolerance_ns = int(jump_tolerance_ns)
         self._clocks = (
             ClockJumpDetector(back_tolerance_ns=self.jump_tolerance_ns),
@@ -73,10 +87,12 @@ class StampMatcher(Generic[A, B]):
         self._follow(0, stamp_ns)
         partner = self._closest(self._second, stamp_ns)
         if partner is None:
+            self._miss(0, self._second, stamp_ns)
             self._store(self._first, stamp_ns, message)
             return None
         second = self._second.pop(partner)
         self._forget_older_than(min(stamp_ns, partner))
+        self._matched()
         return MatchedPair(stamp_ns, message, second)
 
     def add_second(self, stamp_ns: int, message: B) -> MatchedPair[A, B] | None:
@@ -84,11 +100,40 @@ class StampMatcher(Generic[A, B]):
         self._follow(1, stamp_ns)
         partner = self._closest(self._first, stamp_ns)
         if partner is None:
+            self._miss(1, self._first, stamp_ns)
             self._store(self._second, stamp_ns, message)
             return None
         first = self._first.pop(partner)
         self._forget_older_than(min(stamp_ns, partner))
+        self._matched()
         return MatchedPair(partner, first, message)
+
+    def mismatch(self, first: str, second: str) -> str | None:
+        """One line when both streams come but stopped pairing (:data:`MISMATCH_ARRIVALS`).
+
+        Args:
+            first: the first stream's name (e.g. its topic), for the line.
+            second: the second stream's name.
+        """
+        if min(self._misses) < MISMATCH_ARRIVALS or self._nearest_miss_ns is None:
+            return None
+        apart_ms, tolerance_ms = self._nearest_miss_ns / 1e6, self.tolerance_ns / 1e6
+        return (f"{self._misses[0]} {first} and {self._misses[1]} {second} messages without a "
+                f"partner since the last pair: the closest stamps were {apart_ms:.3f} ms apart, "
+                f"beyond the stamp tolerance of {tolerance_ms:g} ms (a driver that stamps them "
+                f"apart needs stamp_tolerance, seconds, above that)")
+
+    def _matched(self) -> None:
+        self._misses = [0, 0]
+        self._nearest_miss_ns = None
+
+    def _miss(self, stream: int, other: OrderedDict[int, Any], stamp_ns: int) -> None:
+        """Count an arrival without a partner; remember how close the other stream came."""
+        self._misses[stream] += 1
+        if other:
+            nearest = min(abs(s - stamp_ns) for s in other)
+            if self._nearest_miss_ns is None or nearest < self._nearest_miss_ns:
+                self._nearest_miss_ns = nearest
 
     def clear(self) -> None:
         """Drop every unmatched message and forget both streams' timelines."""

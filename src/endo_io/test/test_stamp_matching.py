@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from endo_io.stamp_matching import StampMatcher
+from endo_io.stamp_matching import MISMATCH_ARRIVALS, StampMatcher
 
 
 def test_pairs_come_out_in_either_arrival_order():
@@ -76,3 +76,30 @@ def test_a_loop_drops_the_old_timelines_leftovers_so_they_never_pair_with_the_ne
     assert len(matched) == 90 and matcher.clock_jumps == 2
     assert all(p.first.startswith("pass2") and p.second.startswith("pass2") for p in matched)
     assert matcher.pending() == (0, 0)
+
+
+def test_two_streams_stamped_apart_are_named_once_each_brought_enough_unpaired():
+    # a driver stamping camera_info 2 ms before its image: nothing ever pairs
+    matcher: StampMatcher[int, int] = StampMatcher(queue_size=10)
+    period = 33_333_333
+    for k in range(MISMATCH_ARRIVALS):
+        assert matcher.mismatch("/image", "/info") is None
+        matcher.add_second(k * period - 2_000_000, k)
+        matcher.add_first(k * period, k)
+    line = matcher.mismatch("/image", "/info")
+    assert line is not None
+    assert line.startswith(f"{MISMATCH_ARRIVALS} /image and {MISMATCH_ARRIVALS} /info messages")
+    assert "2.000 ms apart" in line and "stamp_tolerance" in line
+    # the same streams with a tolerance above the offset pair, and the line goes
+    matcher.tolerance_ns = 3_000_000
+    k = MISMATCH_ARRIVALS
+    matcher.add_second(k * period - 2_000_000, k)
+    assert matcher.add_first(k * period, k) is not None
+    assert matcher.mismatch("/image", "/info") is None
+
+
+def test_one_stream_that_stops_is_not_a_mismatch():
+    matcher: StampMatcher[int, int] = StampMatcher(queue_size=10)
+    for k in range(3 * MISMATCH_ARRIVALS):  # camera_info goes on, the images stopped
+        matcher.add_second(k * 1000, k)
+    assert matcher.dropped > MISMATCH_ARRIVALS and matcher.mismatch("/image", "/info") is None

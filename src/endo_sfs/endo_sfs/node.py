@@ -271,6 +271,7 @@ class SfsNode(Node):
         self._matcher: StampMatcher[ImageMessage, CameraInfo] = StampMatcher(
             self.parameters["queue_size"], _tolerance_ns(self.parameters["stamp_tolerance"])
         )
+        self.health.watch_matching(self._matcher, topics.IMAGE_CORRECTED, topics.CAMERA_INFO)
         self.depth_publisher = create_reliable_publisher(self, Image, topics.DEPTH_RELATIVE)
         self.normals_publisher = create_reliable_publisher(self, Image, topics.NORMALS)
         # "processed" counts published depth images (_process), not callbacks.

@@ -7,6 +7,7 @@ import time
 import numpy as np
 import pytest
 import rclpy
+from diagnostic_msgs.msg import DiagnosticStatus
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
@@ -16,6 +17,7 @@ from endo_io import topics
 from endo_io.image import array_to_image, image_to_array
 from endo_io.qos import SENSOR_DATA_QOS, reliable_qos
 from endo_io.stamp import ns_to_stamp, stamp_to_ns
+from endo_io.stamp_matching import MISMATCH_ARRIVALS
 from endo_sfs.evaluation import depth_error
 from endo_sfs.node import PARAMETERS, SfsNode
 from endo_sfs.options import SfsOptions
@@ -185,3 +187,21 @@ def test_processed_counts_frames_and_implausible_or_jumping_frames_are_handled(g
     assert spin_until(lambda: len(received["depth"]) == 5)
     assert sfs.health.clock_jumps == 1 and sfs.health.processed == 4
     np.testing.assert_allclose(image_to_array(received["depth"][-1]), good, rtol=1e-3)
+
+
+def test_camera_info_stamped_apart_from_its_image_is_named_not_silent(graph):
+    # found by a new user's rig (session 15): no depth, no log line, only a counter
+    sfs, images, infos, received, spin_until = graph
+    camera = scene_camera(SIZE)
+    image = render_near_light(camera, near_light_surface("sphere")).irradiance.astype(np.float32)
+    stamp = 1_763_900_000_000_000_000
+    for k in range(MISMATCH_ARRIVALS + 2):
+        msg, info = _frame(stamp + k * 33_000_000, image, camera)
+        info.header.stamp = ns_to_stamp(stamp + k * 33_000_000 - 2_000_000)
+        infos.publish(info)
+        images.publish(msg)
+        assert spin_until(lambda n=k: int(_values(sfs)["received"]) >= 2 * (n + 1))
+    sfs.health.publish()  # its refresh asks the matcher, as the 1 Hz timer does
+    status = sfs.health.status()
+    assert status.level == DiagnosticStatus.WARN and not received["depth"]
+    assert "2.000 ms apart" in status.message and "stamp_tolerance" in status.message
