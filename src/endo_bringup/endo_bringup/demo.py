@@ -293,14 +293,14 @@ def run_round_trip(
 #: The sample bags the graph part needs, with their ground truth beside them.
 GRAYCARD_BAG, HANDEYE_BAG, PHANTOM_BAG = "graycard.mcap", "handeye.mcap", "phantom_colon.mcap"
 SAMPLE_BAGS = (GRAYCARD_BAG, HANDEYE_BAG, PHANTOM_BAG)
-#: Playback speed of the phantom bag into the graph: 30 fps × 0.3 = 9 frames/s, the
+#: Playback speed of the phantom bag into the graph: 30 fps × 0.5 = 15 frames/s, the
 #: fastest rate at which the whole graph kept every frame in every pass of
 #: bench/bench_graph.py --sweep-only on a quiet 2-core machine (docs/benchmarks.md,
-#: endo-demo's playback rate; 2026-12-02, load 1.4–2.7: 0.3× four of four passes,
-#: 0.35× three of four, 0.4× one). SFS at full resolution is the limit. A run on a
-#: loaded machine skips frames; the demo prints what each stage kept and skipped
-#: (endo_bringup.graph_monitor, the bench's code) and says NOT OK.
-GRAPH_RATE = 0.3
+#: endo-demo's playback rate; 2026-12-03, load 1.1–2.7: 0.5× four of four passes,
+#: 0.6× two of four, 0.75× none; 0.3× until session 15). SFS at full resolution is
+#: the limit. A run on a loaded machine skips frames; the demo prints what each stage
+#: kept and skipped (endo_bringup.graph_monitor, the bench's code) and says NOT OK.
+GRAPH_RATE = 0.5
 #: The SFS node's solve_scale in the demo graph (full resolution).
 GRAPH_SOLVE_SCALE = 1.0
 
