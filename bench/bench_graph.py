@@ -329,7 +329,10 @@ def report(results: list[Result], args: argparse.Namespace) -> str:
         "pass runs every configuration once, back to back)."
         + (f" Left out: {', '.join(args.exclude)} (bag:pass; that pass overlapped with a test "
            "graph on the same DDS domain, whose messages the listener counted too); a later "
-           "pass replaces it." if getattr(args, "exclude", None) else ""),
+           "pass replaces it." if getattr(args, "exclude", None) else "")
+        + (f" **Every run stalled on purpose**: {args.stalls[0]:g} ms of one nice -20 busy "
+           f"process per core, {args.stalls[1]:g} s after the end of the stall before "
+           "(bench/stall_injector.py)." if getattr(args, "stalls", None) else ""),
         "",
         "Bags: `phantom_colon` (the committed 3 s phantom, 90 frames) and the long render "
         f"(`endo-sim render colon --seed 2 --duration {args.long_seconds:g} --depth-every 30`, "

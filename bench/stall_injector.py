@@ -1,7 +1,8 @@
 """Stalls of the whole machine on purpose, for benchmarks of how a graph rides them out.
 
-Every ``--every`` seconds, one busy process per core runs at nice -20 for
-``--ms`` milliseconds: beside it the graph's processes (nice 0) get ~1 % of
+``--every`` seconds after the end of the last stall, one busy process per
+core runs at nice -20 for ``--ms`` milliseconds (so one period is the two
+added): beside it the graph's processes (nice 0) get ~1 % of
 a core (CFS weights 88761 against 1024), so the stall is what a burst of
 other work on a shared machine does, only known in length and time.
 Without root the busy processes run at the highest nice allowed and say so.
@@ -48,6 +49,9 @@ def main() -> int:
     parser.add_argument("--every", type=float, default=5.0, help="seconds between stalls")
     parser.add_argument("--cores", type=int, default=os.cpu_count() or 1)
     args = parser.parse_args()
+    if args.ms <= 0 or args.every < 0 or args.cores < 1:
+        parser.error(f"--ms must be > 0, --every >= 0 and --cores >= 1, got {args.ms:g}, "
+                     f"{args.every:g}, {args.cores}")
     signal.signal(signal.SIGTERM, lambda *_: sys.exit(0))
     stalls = 0
     try:

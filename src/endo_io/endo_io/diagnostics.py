@@ -47,12 +47,16 @@ Stale means older than ``frame_backlog_s`` (:data:`DEFAULT_FRAME_BACKLOG_S`)
 since the middleware received it: a younger frame is processed in order,
 even when newer ones wait behind it, so a stall of the node or of the
 machine shorter than that delays a few frames instead of skipping them.
-A stale frame makes the node skip to the newest. A second skip within
+A stale frame makes the node skip to the newest. A second such skip within
 :data:`BEHIND_HOLD_S` of the one before says the node is behind on average
-(SFS at full resolution): from then until that long after its last skip,
-every frame that has a newer one behind it is stale, so the node works on
-the newest frame, not on one up to the limit old. One stall alone costs
-only the frames it made stale.
+(SFS at full resolution): from then until that long after its last skip of
+a stale frame, every frame that has a newer one behind it is passed over
+too, so the node works on the newest frame, not on one up to the limit old.
+One stall alone costs only the frames it made stale. Frames wait in DDS
+for up to ``frame_backlog_s`` plus one processing time: at the camera's
+rate that must stay below :data:`endo_io.qos.NEWEST_FRAME_DEPTH` frames, or
+DDS overwrites them (counted as lost): 0.1 s with a 30 ms step is 4 frames
+at 30 fps, 8 at 60 fps.
 With ``frame_backlog_s`` 0 every frame that has a newer one behind it is
 skipped.
 
@@ -107,9 +111,10 @@ DEFAULT_WINDOW_S = 5.0
 #: received it) up to which a frame is processed in order though newer ones
 #: wait. 0.1 s is three frames at 30 fps: longer than the stalls of the whole
 #: machine seen in bench_graph's passes (in one, even the correction node
-#: skipped 5 frames), well inside issue 15's 150 ms end-to-end p99, and
-#: inside what :data:`endo_io.qos.NEWEST_FRAME_DEPTH` (8 frames) holds at up
-#: to 60 fps.
+#: skipped 5 frames); it raised the end-to-end p99 at solve_scale 0.5 from
+#: 75-88 to 101-120 ms with stalls (177 ms beside a foreign test suite) against
+#: issue 15's 150 ms. (Limit + one frame's work) x rate must stay below
+#: :data:`endo_io.qos.NEWEST_FRAME_DEPTH` (8): see the module docstring.
 DEFAULT_FRAME_BACKLOG_S = 0.1
 #: Two skips this close (seconds) say the input's node is behind on average;
 #: it then takes the newest frame until this long after its last skip (a
@@ -623,7 +628,11 @@ class InputHealth:
         """
         now = time.monotonic_ns()
         behind = now < self._behind_until.get(name, 0)
-        if not behind and _age_ns(info) <= self.frame_backlog_ns:
+        # only a frame older than the limit says the node is behind; a young
+        # one skipped because the node was already behind must not extend it
+        # (frames that come in pairs would hold a fast node there for good)
+        stale = _age_ns(info) > self.frame_backlog_ns
+        if not behind and not stale:
             return data
         skipped = False
         while True:
@@ -635,8 +644,8 @@ class InputHealth:
             self.skip(name)
             skipped = True
             data, info = taken
-        if skipped:
-            # a second skip within the hold of the first: behind on average
+        if skipped and stale:
+            # a second skip of a stale frame within the hold of the first: behind on average
             hold_ns = round(BEHIND_HOLD_S * 1e9)
             if now - self._last_skip.get(name, -hold_ns) < hold_ns:
                 self._behind_until[name] = now + hold_ns

@@ -139,10 +139,14 @@ def test_two_skips_within_the_hold_keep_the_node_on_the_newest_frame(node, monke
     _deliver(node, health, "/newest_test/behind", 5, got, 1, wait_after=2, wait_s=1.0)
     _deliver(node, health, "/newest_test/behind", 3, got, 2, first=5, wait_after=5, wait_s=1.0)
     assert _stamps(got) == [4, 7]  # a second stale frame within the hold: behind
-    # young frames, but the node is behind: a frame with a newer one waiting is stale
+    # young frames, but the node is behind: a frame with a newer one waiting is passed over
+    held_until = health._behind_until["/newest_test/behind"]
     _deliver(node, health, "/newest_test/behind", 3, got, 3, first=8)
     assert _stamps(got) == [4, 7, 10]
     assert _values(health)["skipped"] == "8"
+    # ... and those young skips do not extend the hold (frames that come in pairs
+    # would otherwise keep a fast node behind for good: review of session 15)
+    assert health._behind_until["/newest_test/behind"] == held_until
 
 
 def test_a_zero_limit_skips_every_frame_that_has_a_newer_one_behind_it(node):
