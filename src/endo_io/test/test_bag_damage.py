@@ -255,6 +255,11 @@ def test_a_sqlite3_bag_names_the_command_that_converts_it(tmp_path):
     subprocess.run(argv, check=True, capture_output=True, timeout=120)
     with BagReader(tmp_path / "humble rig_mcap") as reader:
         assert [(m.topic, m.log_time_ns) for m in reader.messages()] == [("/image", 5)]
+    # the .db3 file itself, not its directory: the same command, not "bad magic"
+    (db3,) = bag.glob("*.db3")
+    with pytest.raises(BagError, match="sqlite3") as caught:
+        BagReader(db3)
+    assert f"rosbags-convert --src {shlex.quote(str(bag))} " in str(caught.value)
 
 
 def test_empty_and_magic_only_files_are_truncated_bags(tmp_path):

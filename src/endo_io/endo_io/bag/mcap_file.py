@@ -35,6 +35,7 @@ from __future__ import annotations
 import dataclasses
 import heapq
 import os
+import shlex
 import zlib
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -75,6 +76,8 @@ from endo_io.bag.metadata import (
 from endo_io.bag.msgdef import MessageDefinition
 
 MCAP_MAGIC = b"\x89MCAP0\r\n"
+#: The first bytes of an SQLite 3 database (rosbag2's sqlite3 storage, .db3 files).
+SQLITE_MAGIC = b"SQLite format 3\x00"
 _RECORD_PREFIX = RECORD_PREFIX
 _FOOTER_CRC_SIZE = 4
 _KIND_CHUNK = 0
@@ -170,6 +173,13 @@ class McapFile:
                 if MCAP_MAGIC.startswith(head):  # empty, or cut inside the magic
                     self._damage[len(head)] = "file ends inside the MCAP magic"
                     return
+                bag = Path(path).parent  # rosbag2's sqlite3 storage: convert its directory
+                if head == SQLITE_MAGIC[:len(head)] and (bag / "metadata.yaml").exists():
+                    raise BagError(
+                        f"{path}: a sqlite3 (.db3) rosbag2 file, only mcap is supported (convert "
+                        f"its bag: rosbags-convert --src {shlex.quote(str(bag))} --dst "
+                        f"{shlex.quote(str(bag.with_name(bag.name + '_mcap')))} "
+                        "--dst-storage mcap)")
                 raise BagError(f"{path}: not an MCAP file (bad magic {head[:8]!r})")
             if not self._load_index():
                 self._scan()
