@@ -117,7 +117,8 @@ DEFAULT_WINDOW_S = 5.0
 #: :data:`endo_io.qos.NEWEST_FRAME_DEPTH` (8): see the module docstring.
 DEFAULT_FRAME_BACKLOG_S = 0.1
 #: Two skips this close (seconds) say the input's node is behind on average;
-#: it then takes the newest frame until this long after its last skip (a
+#: it then takes the newest frame until this long after its last skip of a
+#: stale frame (a
 #: backlog kept in order would only add ``frame_backlog_s`` to every frame's
 #: latency: SFS at full resolution, p50 196 against 67 ms in bench_graph,
 #: session 15; holding after every single skip instead made a lone stall at
@@ -308,7 +309,7 @@ class InputHealth:
         self.skipped: Counter[str] = Counter()
         # per newest-frame input: until when (monotonic ns) it takes the newest frame
         self._behind_until: dict[str, int] = {}
-        self._last_skip: dict[str, int] = {}  # when (monotonic ns) it last skipped
+        self._last_skip: dict[str, int] = {}  # when (monotonic ns) it last skipped a stale frame
         self.clock_jumps = 0
         self.last_error = ""
         self._inputs: dict[str, _Input] = {}

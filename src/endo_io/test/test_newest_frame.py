@@ -98,20 +98,18 @@ def _stamps(got: list[Image]) -> list[int]:
 
 def test_frames_younger_than_the_backlog_limit_are_processed_in_order_not_skipped(node):
     # the limit above the test's 0.3 s: a stall that short delays every frame, skips none
-    health = InputHealth(node, "image input", settings={"newest_frame": True,
-                                                        "frame_backlog_s": 5.0})
     got: list[Image] = []
-    health.subscribe(Image, "/newest_test/young", got.append, NEWEST_FRAME_QOS, gaps=True,
-                     newest=True)
+    health = _limited(node, "/newest_test/young", got, 5.0)
     _deliver(node, health, "/newest_test/young", 5, got, 5)
     assert _stamps(got) == [0, 1, 2, 3, 4]
     values = _values(health)
     assert values["processed"] == "5" and values["skipped"] == "0"
 
 
-def _stale_health(node: Node, topic: str, got: list[Image]) -> InputHealth:
+def _limited(node: Node, topic: str, got: list[Image], limit_s: float) -> InputHealth:
+    """A newest-frame input on ``topic`` with ``frame_backlog_s`` ``limit_s``, into ``got``."""
     health = InputHealth(node, "image input", settings={"newest_frame": True,
-                                                        "frame_backlog_s": 0.8})
+                                                        "frame_backlog_s": limit_s})
     health.subscribe(Image, topic, got.append, NEWEST_FRAME_QOS, gaps=True, newest=True)
     return health
 
@@ -121,7 +119,7 @@ def test_past_the_limit_the_node_skips_to_the_newest_and_a_lone_stall_costs_no_m
     # 0.8 s limit (3-4 ~0.3 s, inside it); the node skips to the newest, 4. Frames 5-7
     # then come young: in order, the lone stall skipped nothing more
     got: list[Image] = []
-    health = _stale_health(node, "/newest_test/lone", got)
+    health = _limited(node, "/newest_test/lone", got, 0.8)
     _deliver(node, health, "/newest_test/lone", 5, got, 1, wait_after=2, wait_s=1.0)
     assert _stamps(got) == [4]
     values = _values(health)
@@ -135,7 +133,7 @@ def test_past_the_limit_the_node_skips_to_the_newest_and_a_lone_stall_costs_no_m
 def test_two_skips_within_the_hold_keep_the_node_on_the_newest_frame(node, monkeypatch):
     monkeypatch.setattr(diagnostics, "BEHIND_HOLD_S", 30.0)  # the test's own pace can't end it
     got: list[Image] = []
-    health = _stale_health(node, "/newest_test/behind", got)
+    health = _limited(node, "/newest_test/behind", got, 0.8)
     _deliver(node, health, "/newest_test/behind", 5, got, 1, wait_after=2, wait_s=1.0)
     _deliver(node, health, "/newest_test/behind", 3, got, 2, first=5, wait_after=5, wait_s=1.0)
     assert _stamps(got) == [4, 7]  # a second stale frame within the hold: behind
@@ -150,11 +148,8 @@ def test_two_skips_within_the_hold_keep_the_node_on_the_newest_frame(node, monke
 
 
 def test_a_zero_limit_skips_every_frame_that_has_a_newer_one_behind_it(node):
-    health = InputHealth(node, "image input", settings={"newest_frame": True,
-                                                        "frame_backlog_s": 0.0})
     got: list[Image] = []
-    health.subscribe(Image, "/newest_test/zero", got.append, NEWEST_FRAME_QOS, gaps=True,
-                     newest=True)
+    health = _limited(node, "/newest_test/zero", got, 0.0)
     _deliver(node, health, "/newest_test/zero", 5, got, 1)
     assert _stamps(got) == [4]
     assert _values(health)["skipped"] == "4"
