@@ -285,7 +285,7 @@ class PhotometricCalibration:
         if image.ndim != expected_ndim or (n_channels == 3 and image.shape[2] != 3):
             raise CalibrationMismatchError(
                 f"frame of shape {image.shape} does not fit a "
-                f"{'/'.join(self.channel_names)} calibration"
+                f"{'/'.join(self.channel_names)} calibration{_channel_hint(image.ndim, n_channels)}"
             )
         if image.dtype == np.uint8:
             if self.bit_depth != 8:
@@ -565,3 +565,23 @@ def _model_document(channels: list[ChannelCalibration]) -> dict[str, Any] | None
             for ch in channels
         },
     }
+
+
+def _channel_hint(frame_ndim: int, n_channels: int) -> str:
+    """What to do when a stream's channels differ from the calibration's ("" when they agree).
+
+    The inverse response and light map are per channel, so a colour stream needs a
+    calibration fitted on that camera's colour gray-card images, not a mono one.
+    """
+    if frame_ndim == 3 and n_channels == 1:
+        return (
+            "; the stream is colour and the calibration mono: fit one on this camera's"
+            " colour gray-card images (endo-calibrate keeps their red, green and blue)"
+        )
+    if frame_ndim == 2 and n_channels == 3:
+        return (
+            "; the stream is mono and the calibration colour: fit one on this camera's"
+            " mono gray-card images, as the stream publishes them"
+        )
+    return ""
+

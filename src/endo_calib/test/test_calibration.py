@@ -81,6 +81,24 @@ def test_binned_frames_use_the_area_mean_of_the_light_map():
         cal.correct(np.zeros((48, 64, 3), np.uint8))
 
 
+def test_a_stream_of_other_channels_than_the_calibration_says_how_to_calibrate_it():
+    # A colour camera's stream against a mono calibration was refused with its shape only;
+    # the user's way out is a calibration from that camera's own colour gray-card images.
+    with pytest.raises(CalibrationMismatchError) as mono_calibration:
+        _calibration().correct(np.zeros((48, 64, 3), np.uint8))
+    assert str(mono_calibration.value) == (
+        "frame of shape (48, 64, 3) does not fit a mono calibration; the stream is colour and"
+        " the calibration mono: fit one on this camera's colour gray-card images"
+        " (endo-calibrate keeps their red, green and blue)"
+    )
+    with pytest.raises(CalibrationMismatchError, match="the stream is mono and the calibration"
+                       " colour: fit one on this camera's mono gray-card images"):  # fmt: skip
+        _calibration(colour=True).correct(np.zeros((48, 64), np.uint8))
+    four_channels = r"\(48, 64, 4\) does not fit a red/green/blue calibration$"
+    with pytest.raises(CalibrationMismatchError, match=four_channels):
+        _calibration(colour=True).correct(np.zeros((48, 64, 4), np.uint8))
+
+
 @pytest.mark.parametrize("colour", [False, True])
 def test_save_load_round_trip(tmp_path, colour):
     cal = _calibration(colour=colour, source="model")

@@ -310,7 +310,9 @@ def test_each_cause_of_dropped_frames_is_one_line_with_its_message(
     assert len(dropped) == 1, lines
     warning = "endo-process: warning: 3 frames dropped, CalibrationMismatchError: "
     assert dropped[0].startswith(warning), dropped
-    assert dropped[0].endswith(", 3) does not fit a mono calibration"), dropped
+    assert dropped[0].endswith(", 3) does not fit a mono calibration; the stream is colour and"
+                               " the calibration mono: fit one on this camera's colour gray-card"
+                               " images (endo-calibrate keeps their red, green and blue)"), dropped
     assert lines[-1] == ("endo-process: error: none of the 3 frames read gave a relative depth "
                          "(the causes above)")  # fmt: skip
 
