@@ -16,6 +16,7 @@ from endo_io.bag import (
     BagNotFoundError,
     BagReader,
     BagWriter,
+    DamagedRegion,
     deserialize,
 )
 
@@ -294,3 +295,93 @@ def test_a_cut_in_the_closing_magic_names_an_offset_inside_the_file(tmp_path):
         assert got == written, f"cut at {cut}"
         assert_clear_error(error, damaged, offset=size - 8)
         assert f"of {cut} " in str(error) and "closing MCAP magic" in str(error)
+
+
+def _corrupt_chunk(path, target, chunk: int):
+    """A copy of ``path`` with 16 flipped bytes in the middle of its ``chunk``-th chunk."""
+    start, end, _ = chunk_layout(path)[chunk]
+    raw = bytearray(path.read_bytes())
+    middle = (start + end) // 2
+    raw[middle : middle + 16] = bytes(b ^ 0x5A for b in raw[middle : middle + 16])
+    target.write_bytes(bytes(raw))
+    return target, start
+
+
+@pytest.mark.parametrize("summary", [True, False])
+def test_a_corrupt_chunk_is_a_region_with_its_log_times_and_the_index_counts(tmp_path, summary):
+    path = tmp_path / "full.mcap"
+    written = write_chunked_bag(path, "zstd")
+    damaged, bad_start = _corrupt_chunk(path, tmp_path / "corrupt.mcap", 2)
+    if not summary:  # the data section only: the scan lists the chunks, counts from their indexes
+        raw = damaged.read_bytes()
+        data_end = chunk_layout(path)[-1][1]
+        while raw[data_end] != 0x0F:  # past the last chunk's message index records
+            data_end += 9 + int.from_bytes(raw[data_end + 1 : data_end + 9], "little")
+        damaged.write_bytes(raw[:data_end])
+    lost = [t for t, _ in written[2 * MESSAGES_PER_CHUNK : 3 * MESSAGES_PER_CHUNK]]
+    with BagReader(damaged) as reader:
+
+        def spans() -> list[DamagedRegion]:
+            return [r for r in reader.damaged_regions if r.lost == "span"]
+
+        # a chunk is read when its turn comes: before that nothing is known of it
+        assert spans() == []
+        messages = reader.messages()
+        for _ in range(2 * MESSAGES_PER_CHUNK):
+            next(messages)
+        assert spans() == []
+        next(messages)  # the next chunk's first message: the damaged one was tried before it
+        (region,) = spans()
+        with pytest.raises(BagCorruptError) as caught:
+            list(messages)
+        others = [r for r in reader.damaged_regions if r is not region]
+    if summary:
+        assert others == [] and str(caught.value) == str(region)
+    else:  # the file also ends without its summary: nothing after its last message is known
+        (cut,) = others
+        assert cut.lost == "rest" and cut.start_ns == written[-1][0] and cut.offset > bad_start
+        assert str(caught.value) == f"{region}; 1 more damaged region(s)"
+    assert region.path == damaged and region.offset == bad_start
+    assert region.file_size == damaged.stat().st_size
+    assert region.lost == "span"
+    assert (region.start_ns, region.end_ns) == (lost[0], lost[-1]) == (1100, 1140)
+    assert region.lost_counts == {"/image": MESSAGES_PER_CHUNK}
+    assert "chunk CRC mismatch" in region.reason or "decompress" in region.reason
+
+
+def test_a_cut_is_a_region_open_after_the_last_message_read(tmp_path):
+    path = tmp_path / "full.mcap"
+    written = write_chunked_bag(path, "none")
+    layout = chunk_layout(path)
+    # inside the fourth chunk, past its first two whole messages (recovered from the cut chunk)
+    cut = layout[3][0] + CHUNK_RECORDS_START + layout[3][2][2] + 1
+    damaged = cut_copy(path, tmp_path / "cut.mcap", cut)
+    got, error = read_until_error(damaged)
+    assert len(got) == 3 * MESSAGES_PER_CHUNK + 2
+    with BagReader(damaged) as reader:  # a cut is found at opening
+        (region,) = reader.damaged_regions
+    assert region.lost == "rest" and region.offset == layout[3][0]
+    assert region.start_ns == got[-1][0] == written[3 * MESSAGES_PER_CHUNK + 1][0]
+    assert region.end_ns is None and region.lost_counts is None
+    assert str(error) == str(region)
+    # at a record boundary: the file ends before its footer, after the last whole chunk
+    damaged = cut_copy(path, tmp_path / "cut_at_chunk.mcap", layout[2][1])
+    with BagReader(damaged) as reader:
+        (region,) = reader.damaged_regions
+    assert region.lost == "rest" and region.start_ns == written[3 * MESSAGES_PER_CHUNK - 1][0]
+    assert "file ends before the MCAP footer" in region.reason
+    # nothing read before the damage
+    damaged = cut_copy(path, tmp_path / "magic.mcap", 5)
+    with BagReader(damaged) as reader:
+        (region,) = reader.damaged_regions
+    assert region.lost == "rest" and region.start_ns is None
+
+
+def test_a_cut_closing_magic_is_a_region_that_cost_no_message(tmp_path):
+    path = tmp_path / "full.mcap"
+    write_chunked_bag(path, "zstd")
+    damaged = cut_copy(path, tmp_path / "cut.mcap", path.stat().st_size - 3)
+    with BagReader(damaged) as reader:
+        (region,) = reader.damaged_regions
+    assert region.lost == "none" and region.start_ns is None and region.end_ns is None
+    assert "closing MCAP magic" in region.reason

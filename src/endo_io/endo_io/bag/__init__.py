@@ -20,7 +20,7 @@ from endo_io.bag.errors import (
     TopicTypeError,
     UnknownMessageTypeError,
 )
-from endo_io.bag.interfaces import BagMessage, TopicInfo
+from endo_io.bag.interfaces import BagMessage, DamagedRegion, LostMessages, TopicInfo
 from endo_io.bag.msgdef import MessageDefinition, message_definition, type_description_hash
 from endo_io.bag.qos_yaml import QosYamlError, qos_profiles_from_yaml, qos_profiles_to_yaml
 from endo_io.bag.reader import BagReader
@@ -34,6 +34,8 @@ __all__ = [
     "BagNotFoundError",
     "BagReader",
     "BagWriter",
+    "DamagedRegion",
+    "LostMessages",
     "MessageDefinition",
     "MessageDeserializationError",
     "QosYamlError",

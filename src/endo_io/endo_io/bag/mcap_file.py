@@ -28,6 +28,14 @@ the overlapping chunks are held in memory. A chunk that fails to read
 (corrupt bytes, CRC mismatch) is skipped and remembered; after the last
 intact message the iterator raises :class:`BagCorruptError` naming the file
 and the byte offset of the first damage.
+
+Each damaged region is also kept as a :class:`~endo_io.bag.interfaces.DamagedRegion`
+(:attr:`McapFile.damaged_regions`) saying which messages it cost by log time:
+a chunk's time range from its index or its header, with the per-topic
+counts of its message indexes when they are readable; for a cut, everything
+after the last message read. A chunk is read only when its start time comes
+up, so a region found while reading is known only once the reading has got
+there.
 """
 
 from __future__ import annotations
@@ -58,7 +66,13 @@ from mcap.records import (
 from mcap.stream_reader import MAGIC_SIZE
 
 from endo_io.bag.errors import BagCorruptError, BagError, BagNotFoundError
-from endo_io.bag.interfaces import BagMessage, ChunkStats, TopicInfo
+from endo_io.bag.interfaces import (
+    BagMessage,
+    ChunkStats,
+    DamagedRegion,
+    LostMessages,
+    TopicInfo,
+)
 from endo_io.bag.mcap_records import (
     DEFAULT_MAX_CHUNK_BYTES,
     RECORD_PREFIX,
@@ -163,7 +177,11 @@ class McapFile:
             self._channel_records: dict[int, Channel] = {}
             self._counts: dict[int, int] = {}
             self._segments: list[_Segment] = []
-            self._damage: dict[int, str] = {}
+            self._regions: dict[int, DamagedRegion] = {}
+            # chunk offset -> its messages per channel id, from the scan's message indexes
+            self._chunk_counts: dict[int, dict[int, int]] = {}
+            # chunk offset -> channel id -> offset of its message index (the summary's)
+            self._index_offsets: dict[int, dict[int, int]] = {}
             self._recovered: dict[int, list[Any]] = {}
             self._chunk_compression: dict[str, int] = {}
             self._chunk_bytes = [0, 0]  # compressed, uncompressed
@@ -171,7 +189,7 @@ class McapFile:
             self._file.seek(len(head))
             if head != MCAP_MAGIC:
                 if MCAP_MAGIC.startswith(head):  # empty, or cut inside the magic
-                    self._damage[len(head)] = "file ends inside the MCAP magic"
+                    self._note(len(head), "file ends inside the MCAP magic", "rest")
                     return
                 bag = Path(path).parent  # rosbag2's sqlite3 storage: convert its directory
                 if head == SQLITE_MAGIC[:len(head)] and (bag / "metadata.yaml").exists():
@@ -238,6 +256,7 @@ class McapFile:
         self._counts.update(stats.channel_message_counts)
         for index in summary.chunk_indexes:
             self._count_chunk(index.compression, index.compressed_size, index.uncompressed_size)
+            self._index_offsets[index.chunk_start_offset] = dict(index.message_index_offsets)
         self._segments = [
             _Segment(
                 index.message_start_time,
@@ -255,7 +274,7 @@ class McapFile:
             try:
                 record, _ = read_record(stream, metadata_index.offset)
             except Exception as exc:
-                self._damage.setdefault(metadata_index.offset, _describe(exc))
+                self._note(metadata_index.offset, _describe(exc), "none")
                 continue
             if isinstance(record, Metadata):
                 self._take_metadata(record)
@@ -307,8 +326,8 @@ class McapFile:
                 elif isinstance(record, Footer):
                     stream.seek(end)
                     if end + MAGIC_SIZE > self.size or stream.read(MAGIC_SIZE) != MCAP_MAGIC:
-                        self._damage.setdefault(
-                            end, "the closing MCAP magic after the footer is cut or damaged"
+                        self._note(
+                            end, "the closing MCAP magic after the footer is cut or damaged", "none"
                         )
                     return
                 position = end
@@ -316,13 +335,77 @@ class McapFile:
             if pending is not None:
                 self._finish_scanned_chunk(*pending, pending_counts)
                 pending = None
-            self._damage.setdefault(position, _describe(exc))
+            reason = _describe(exc)
             self._recover_cut_chunk(position)
+            self._note(position, reason, "rest", self._last_read_ns())
             return
         finally:
             if pending is not None:
                 self._finish_scanned_chunk(*pending, pending_counts)
-        self._damage.setdefault(position, "file ends before the MCAP footer")
+        self._note(position, "file ends before the MCAP footer", "rest", self._last_read_ns())
+
+    def _note(
+        self,
+        offset: int,
+        reason: str,
+        lost: LostMessages,
+        start_ns: int | None = None,
+        end_ns: int | None = None,
+        counts: dict[str, int] | None = None,
+    ) -> None:
+        """Remember the damage at ``offset`` (the first reason found there wins)."""
+        if offset in self._regions:
+            return
+        if lost == "span" and (start_ns is None or end_ns is None or start_ns > end_ns):
+            start_ns = end_ns = None  # a damaged chunk header's times say nothing
+        self._regions[offset] = DamagedRegion(
+            self.path, offset, self.size, reason, lost, start_ns, end_ns, counts
+        )
+
+    def _last_read_ns(self) -> int | None:
+        """The latest log time of the messages the scan found so far (None: none)."""
+        latest: int | None = None
+        for segment in self._segments:
+            if segment.kind == _KIND_RECOVERED:  # its header's range covers the cut part too
+                times = [r.log_time for r in self._recovered[segment.offset]
+                         if isinstance(r, Message)]  # fmt: skip
+                end = max(times) if times else None
+            else:
+                end = segment.end_ns
+            if end is not None and (latest is None or end > latest):
+                latest = end
+        return latest
+
+    def _topic_counts(self, channel_counts: dict[int, int]) -> dict[str, int] | None:
+        """Channel id -> count as topic -> count; None if a channel is not declared."""
+        counts: dict[str, int] = {}
+        for cid, count in channel_counts.items():
+            info = self._channels.get(cid)
+            if info is None:
+                return None
+            counts[info.topic] = counts.get(info.topic, 0) + count
+        return counts
+
+    def _segment_counts(self, segment: _Segment) -> dict[str, int] | None:
+        """Topic -> messages in a segment, from its message indexes; None if they do not say."""
+        if segment.kind == _KIND_MESSAGE:
+            ids = segment.channel_ids or frozenset()
+            return self._topic_counts({cid: 1 for cid in ids}) if len(ids) == 1 else None
+        if segment.offset in self._chunk_counts:
+            return self._topic_counts(self._chunk_counts[segment.offset])
+        offsets = self._index_offsets.get(segment.offset)
+        if not offsets:
+            return None
+        channel_counts: dict[int, int] = {}
+        for cid, index_offset in offsets.items():
+            try:  # outside the chunk: often intact when the chunk is not
+                record, _ = read_record(self._file, index_offset)
+            except Exception:
+                return None
+            if not isinstance(record, MessageIndex) or record.channel_id != cid:
+                return None
+            channel_counts[cid] = len(record.records)
+        return self._topic_counts(channel_counts)
 
     def _count_chunk(self, compression: str, compressed: int, uncompressed: int) -> None:
         self._chunk_compression[compression] = self._chunk_compression.get(compression, 0) + 1
@@ -337,13 +420,16 @@ class McapFile:
             for cid, count in index_counts.items():
                 self._counts[cid] = self._counts.get(cid, 0) + count
             channel_ids = frozenset(index_counts)
+            self._chunk_counts[offset] = dict(index_counts)
         else:
             try:
                 records = chunk_records(
                     chunk, validate_crc=self.validate_crcs, max_chunk_bytes=self.max_chunk_bytes
                 )
             except Exception as exc:
-                self._damage.setdefault(offset, _describe(exc))
+                counts = self._topic_counts(index_counts) if index_counts else None
+                self._note(offset, _describe(exc), "span", chunk.message_start_time,
+                           chunk.message_end_time, counts)  # fmt: skip
                 return
             found: set[int] = set()
             for record in records:
@@ -433,7 +519,17 @@ class McapFile:
     @property
     def damage(self) -> list[tuple[int, str]]:
         """Damaged regions found so far, as (byte offset, reason), by offset."""
-        return sorted(self._damage.items())
+        return [(region.offset, region.reason) for region in self.damaged_regions]
+
+    @property
+    def damaged_regions(self) -> list[DamagedRegion]:
+        """Damaged regions found so far, with the messages each cost, by offset.
+
+        Found at opening (a cut, a scan's damaged chunk) or while reading (a
+        chunk that fails when its turn comes): a region after the messages
+        read so far may not be known yet.
+        """
+        return [self._regions[offset] for offset in sorted(self._regions)]
 
     def topics(self) -> dict[str, TopicInfo]:
         """Topics of this file with their message counts (of the intact part)."""
@@ -489,14 +585,11 @@ class McapFile:
 
     def corrupt_error(self) -> BagCorruptError | None:
         """The error to raise after the last intact message, or None if the file is sound."""
-        if not self._damage:
+        regions = self.damaged_regions
+        if not regions:
             return None
-        damage = self.damage
-        offset, reason = damage[0]
-        more = f"; {len(damage) - 1} more damaged region(s)" if len(damage) > 1 else ""
-        return BagCorruptError(
-            f"{self.path}: truncated or corrupt at byte {offset} of {self.size} ({reason}){more}"
-        )
+        more = f"; {len(regions) - 1} more damaged region(s)" if len(regions) > 1 else ""
+        return BagCorruptError(f"{regions[0]}{more}")
 
     def messages(
         self,
@@ -579,7 +672,8 @@ class McapFile:
                 else:
                     raise RecordDamage("the summary's chunk index points at no chunk record")
         except Exception as exc:
-            self._damage.setdefault(segment.offset, _describe(exc))
+            self._note(segment.offset, _describe(exc), "span", segment.start_ns, segment.end_ns,
+                       self._segment_counts(segment))  # fmt: skip
             return []
         channels = self._channels
         offset = segment.offset
@@ -603,7 +697,8 @@ class McapFile:
                 continue
             info = channels.get(cid)
             if info is None:
-                self._damage.setdefault(offset, f"message on undeclared channel {cid}")
+                self._note(offset, f"message on undeclared channel {cid}", "span",
+                           segment.start_ns, segment.end_ns)  # fmt: skip
                 continue
             out.append(
                 (

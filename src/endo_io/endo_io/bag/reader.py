@@ -31,7 +31,7 @@ from pathlib import Path
 from typing import Any
 
 from endo_io.bag.errors import BagCorruptError, BagError, BagNotFoundError, TopicTypeError
-from endo_io.bag.interfaces import BagMessage, ChunkStats, TopicInfo
+from endo_io.bag.interfaces import BagMessage, ChunkStats, DamagedRegion, TopicInfo
 from endo_io.bag.mcap_file import McapFile
 from endo_io.bag.mcap_records import DEFAULT_MAX_CHUNK_BYTES
 from endo_io.bag.metadata import read_metadata_yaml, split_file_order
@@ -257,6 +257,18 @@ class BagReader:
         """One-line description of damage found so far (reading may find more), or None."""
         errors = [e for f in self._files if (e := f.corrupt_error()) is not None]
         return str(errors[0]) if errors else None
+
+    @property
+    def damaged_regions(self) -> list[DamagedRegion]:
+        """Every damaged region found so far, per file in order, by offset.
+
+        Each says which messages it cost, by log time
+        (:class:`~endo_io.bag.interfaces.DamagedRegion`). Regions found at
+        opening are here at once; a damaged chunk is found when reading gets
+        to its start time, so one after the messages read so far may be
+        missing (stay after the reading to know them all).
+        """
+        return [region for f in self._files for region in f.damaged_regions]
 
     def messages(
         self,
