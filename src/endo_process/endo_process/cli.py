@@ -3,8 +3,11 @@
 Exit status:
 
 * 0: every frame of the recording was processed;
-* 1: the recording is truncated or damaged (a cut, or messages whose bytes
-  do not decode as their topic's type: those are skipped and counted), or no
+* 1: the recording is truncated or damaged (a cut, a lost chunk among or
+  after the frames processed, a damaged record that lost no message, or
+  messages whose bytes do not decode as their topic's type: those are
+  skipped and counted; damage after the frames ``--max-frames`` processed is
+  a note, exit 0: :mod:`endo_process.damage`), or no
   frame gave a relative depth: what could be processed was, and was written;
   or writing the output failed (a full disk, a file size limit): the run
   stopped there, the output reads to its last complete chunk (as
@@ -213,6 +216,7 @@ def _run(args: argparse.Namespace, workers: StartedWorkers | None) -> int:
     """The run and its summary, with the workers started in :func:`main`."""
     from endo_io.bag import BagError
     from endo_process.accuracy import Accuracy, score_recording
+    from endo_process.damage import damage_line
     from endo_process.runner import process_bag
     from endo_process.settings import NODES, load_settings
     from endo_process.simulated import registration_mismatch
@@ -266,12 +270,10 @@ def _run(args: argparse.Namespace, workers: StartedWorkers | None) -> int:
             ply_failed = True
     for line in drop_lines(report):
         print(f"{PROGRAM}: warning: {line}", file=sys.stderr)
-    if report.damage:
-        print(f"{PROGRAM}: input cut short, processed up to the damage: {report.damage}",
-              file=sys.stderr)  # fmt: skip
-    elif report.damage_beyond:
-        print(f"{PROGRAM}: note: the input is damaged after the {report.frames_in} frames "
-              f"processed (--max-frames): {report.damage_beyond}", file=sys.stderr)  # fmt: skip
+    damage = damage_line(report.input_damage, report.frames_in, report.recording_start_ns,
+                         "interrupted" if report.interrupted else "--max-frames")  # fmt: skip
+    if damage:
+        print(f"{PROGRAM}: {damage}", file=sys.stderr)
     if report.undecodable:
         skipped = ", ".join(f"{n} on {topic}" for topic, n in report.undecodable.most_common())
         print(f"{PROGRAM}: error: skipped {skipped}, undecodable; the first: "

@@ -15,13 +15,16 @@ An image pairs with the newest camera_info stamped at or before it
 alike, and a driver that stamps its camera_info on its own clock works too.
 
 A truncated or damaged bag yields every intact message, then
-:class:`endo_io.bag.BagCorruptError`; each reader here stops at the damage
-and keeps its one-line description in :attr:`RecordingInputs.damage`, so
-the run processes everything up to the cut and says so.
+:class:`endo_io.bag.BagCorruptError`; each stream here ends there, and the
+readers keep each damaged region with the log times of the messages it cost
+(:meth:`RecordingStreams.damaged_regions`), so that the run can say where
+its input lost messages relative to the frames it processed
+(:mod:`endo_process.damage`).
 """
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 from collections import Counter, deque
 from collections.abc import Iterator
@@ -37,6 +40,7 @@ from endo_io.bag import (
     BagCorruptError,
     BagMessage,
     BagReader,
+    DamagedRegion,
     MessageDeserializationError,
     deserialize,
     msgtype_of,
@@ -70,7 +74,9 @@ class RecordingInputs:
         fixed_camera: the ``--camera-info`` model, used for every frame, or None.
         ground_truth: the ``/ground_truth/*`` topics (name -> type).
         time_range_ns: (first, last) log time of the bag.
-        damage: one-line description of the first damage met, or None.
+        damage_at_open: the damaged regions found when the bag was opened
+            (a cut; a damaged chunk is found when the reading gets to it:
+            :meth:`RecordingStreams.damaged_regions` has them all).
         undecodable: messages skipped because their bytes do not decode as
             their topic's type, per topic.
         first_undecodable: the first such message's one-line error, or None.
@@ -82,20 +88,15 @@ class RecordingInputs:
     fixed_camera: CameraModel | None
     ground_truth: dict[str, str]
     time_range_ns: tuple[int, int]
-    damage: str | None = None
+    damage_at_open: list[DamagedRegion] = field(default_factory=list)
     undecodable: Counter[str] = field(default_factory=Counter)
     first_undecodable: str | None = None
 
 
-def _read(
-    reader: BagReader, topic_names: list[str], inputs: RecordingInputs
-) -> Iterator[BagMessage]:
-    """Messages of ``topic_names``; damage ends the stream and is remembered."""
-    try:
+def _read(reader: BagReader, topic_names: list[str]) -> Iterator[BagMessage]:
+    """Messages of ``topic_names``; damage ends the stream (``reader.damaged_regions``: where)."""
+    with contextlib.suppress(BagCorruptError):
         yield from reader.messages(topics=topic_names)
-    except BagCorruptError as error:
-        if inputs.damage is None:
-            inputs.damage = str(error)
 
 
 def open_recording(
@@ -144,7 +145,7 @@ def open_recording(
                 if name.startswith(GROUND_TRUTH_PREFIX)
             },
             time_range_ns=span,
-            damage=reader.damage,
+            damage_at_open=reader.damaged_regions,
         )
 
 
@@ -187,11 +188,17 @@ class RecordingStreams:
         self._queued_messages = 0
         self._reader: BagReader | None = None
         self._pass: Iterator[BagMessage] | None = None
+        self._readers: list[BagReader] = []  # every reader opened, for the damage each found
+
+    def _open(self) -> BagReader:
+        reader = BagReader(self._inputs.path)
+        self._readers.append(reader)
+        return reader
 
     def _shared(self) -> Iterator[BagMessage]:
         if self._pass is None:
-            self._reader = BagReader(self._inputs.path)
-            self._pass = _read(self._reader, list(self._owner), self._inputs)
+            self._reader = self._open()
+            self._pass = _read(self._reader, list(self._owner))
         return self._pass
 
     def _next_of(self, name: str) -> BagMessage | None:
@@ -226,7 +233,7 @@ class RecordingStreams:
         return name in self._topics
 
     def messages(self, name: str) -> Iterator[BagMessage]:
-        """Stream ``name``'s messages in log order, raw; damage ends it (``inputs.damage``)."""
+        """Stream ``name``'s messages in log order, raw; damage ends it (damaged_regions)."""
         try:
             while (message := self._next_of(name)) is not None:
                 self._delivered[name] += 1
@@ -235,10 +242,24 @@ class RecordingStreams:
         except _DetachedError:
             pass
         skip = self._delivered[name]
-        with BagReader(self._inputs.path) as reader:
-            for index, message in enumerate(_read(reader, self._topics[name], self._inputs)):
+        with self._open() as reader:
+            for index, message in enumerate(_read(reader, self._topics[name])):
                 if index >= skip:
                     yield message
+
+    def damaged_regions(self) -> list[DamagedRegion]:
+        """The damaged regions found so far: at opening, and by each reader of the streams.
+
+        Each region once (by file and byte offset), in the order found. A
+        damaged chunk is found when a stream's reading gets to its start
+        time: after the run, these are the regions up to where it read.
+        """
+        found: dict[tuple[str, int], DamagedRegion] = {}
+        for region in self._inputs.damage_at_open + [
+            r for reader in self._readers for r in reader.damaged_regions
+        ]:
+            found.setdefault((str(region.path), region.offset), region)
+        return list(found.values())
 
     def close(self) -> None:
         """Close the shared reader (idempotent)."""
@@ -251,22 +272,29 @@ class _DetachedError(Exception):
     """A stream leaves the shared pass (internal to RecordingStreams)."""
 
 
-def _decoded(inputs: RecordingInputs, messages: Iterator[BagMessage]) -> Iterator[Any]:
-    """Each message decoded; one that does not decode is counted in ``inputs`` and skipped."""
+def _decoded_with_log_time(
+    inputs: RecordingInputs, messages: Iterator[BagMessage]
+) -> Iterator[tuple[int, Any]]:
+    """(log time ns, message decoded); one that does not decode is counted in ``inputs``."""
     for message in messages:
         try:
-            yield deserialize(message)
+            yield message.log_time_ns, deserialize(message)
         except MessageDeserializationError as error:
             inputs.undecodable[message.topic] += 1
             if inputs.first_undecodable is None:
                 inputs.first_undecodable = str(error)
 
 
+def _decoded(inputs: RecordingInputs, messages: Iterator[BagMessage]) -> Iterator[Any]:
+    """Each message decoded; one that does not decode is counted in ``inputs`` and skipped."""
+    return (decoded for _, decoded in _decoded_with_log_time(inputs, messages))
+
+
 def _iter_decoded(inputs: RecordingInputs, topic: str) -> Iterator[Any]:
     with BagReader(inputs.path) as reader:
         # Counted where the stream is read for the run (CameraInfoPairing), not here too.
         uncounted = dataclasses.replace(inputs, undecodable=Counter())
-        yield from _decoded(uncounted, _read(reader, [topic], inputs))
+        yield from _decoded(uncounted, _read(reader, [topic]))
 
 
 def recording_streams(inputs: RecordingInputs) -> RecordingStreams:
@@ -356,9 +384,12 @@ def first_camera(inputs: RecordingInputs) -> CameraModel | None:
         return None
 
 
-def iter_images(streams: RecordingStreams) -> Iterator[Image]:
-    """The image topic's messages in log order, decoded one at a time (undecodable: skipped)."""
-    return _decoded(streams.inputs, streams.messages("image"))
+def iter_images(streams: RecordingStreams) -> Iterator[tuple[int, Image]]:
+    """(log time ns, image) of the image topic in log order, decoded one at a time.
+
+    An undecodable message is skipped and counted (:attr:`RecordingInputs.undecodable`).
+    """
+    return _decoded_with_log_time(streams.inputs, streams.messages("image"))
 
 
 def iter_ground_truth(streams: RecordingStreams) -> Iterator[BagMessage]:

@@ -60,6 +60,7 @@ from endo_io.progress import Progress
 from endo_io.stamp import NS_PER_S, ns_to_stamp, stamp_to_ns
 from endo_io.tf import StampedTransform, static_transforms
 from endo_process.accuracy import Accuracy, RecordingScorer
+from endo_process.damage import PlacedDamage, most_serious, place_damage
 from endo_process.errors import ImageStampBackError, ProcessInputError
 from endo_process.flow_stage import FlowStage, offline_flow_options
 from endo_process.inputs import (
@@ -145,6 +146,15 @@ class ProcessReport:
     the file holds and ``lost`` the messages that did not reach it;
     ``--ply`` is still attempted from the map in memory (``ply_vertices``,
     or ``ply_error``: why not).
+    ``frames_log_ns``: (first, last) log time of the images read (None:
+    none); ``read_all_images``: the image stream was read to its end (no
+    ``--max-frames`` or stop before it). ``input_damage``: every damaged
+    region of the input the run's readers found, placed against those log
+    times (:mod:`endo_process.damage`); ``damage``: the reader's line for
+    the most serious region that lost messages among or after the frames
+    (or cost none), ``damage_beyond``: for one after the frames processed
+    when the run stopped before it (only such regions), else None.
+    ``recording_start_ns``: the recording's first log time.
     """
 
     frames_in: int = 0
@@ -176,6 +186,10 @@ class ProcessReport:
     shading_seconds: defaultdict[str, float] = field(default_factory=lambda: defaultdict(float))
     damage: str | None = None
     damage_beyond: str | None = None
+    input_damage: list[PlacedDamage] = field(default_factory=list)
+    frames_log_ns: tuple[int, int] | None = None
+    read_all_images: bool = False
+    recording_start_ns: int = 0
     undecodable: Counter[str] = field(default_factory=Counter)
     first_undecodable: str | None = None
     reasons: dict[str, str] = field(default_factory=dict)
@@ -365,7 +379,7 @@ class _PoseFeed:
 
 def _raw_frames(
     pairing: CameraInfoPairing,
-    images: Iterator[Image],
+    images: Iterator[tuple[int, Image]],
     infos: dict[int, CameraInfo | None],
     report: ProcessReport,
     stop: threading.Event,
@@ -374,16 +388,20 @@ def _raw_frames(
     """Decoded images paired with their camera; unusable ones are counted and skipped.
 
     ``infos`` receives each yielded frame's camera_info (by frame index) for
-    the output; the frame loop takes it back out.
+    the output; the frame loop takes it back out. ``images`` are (log time
+    ns, image); the report gets the log times of the images read
+    (``frames_log_ns``) and whether they were read to the end.
     """
     index = 0
     newest_ns: int | None = None  # the newest image stamp read
     clock = _StageClock(report)
     start = clock.now()
-    for msg in images:
+    for log_ns, msg in images:
         if stop.is_set() or (max_frames is not None and report.frames_in >= max_frames):
             return
         report.frames_in += 1
+        first_ns = log_ns if report.frames_log_ns is None else report.frames_log_ns[0]
+        report.frames_log_ns = (first_ns, log_ns)
         stamp_ns = stamp_to_ns(msg.header.stamp)
         went_back = newest_ns is not None and stamp_ns < newest_ns
         newest_ns = stamp_ns if newest_ns is None else max(newest_ns, stamp_ns)
@@ -412,6 +430,7 @@ def _raw_frames(
         start = clock.now()
         index += 1
     clock.add("read", start)
+    report.read_all_images = True
 
 
 def _write_frame(
@@ -523,6 +542,21 @@ def _export_ply(flow: FlowStage, options: ProcessOptions, report: ProcessReport)
         report.ply_error = "the map was empty"
 
 
+def _place_damage(report: ProcessReport, streams: RecordingStreams, image_topic: str) -> None:
+    """Where the input's damage lies against the frames read: ``input_damage``, ``damage*``."""
+    placed = place_damage(streams.damaged_regions(), image_topic, report.frames_log_ns,
+                          report.read_all_images)  # fmt: skip
+    report.input_damage = placed
+    serious = most_serious(placed)
+    if serious is None:
+        return
+    more = f"; {len(placed) - 1} more damaged region(s)" if len(placed) > 1 else ""
+    if serious.where == "after":  # --max-frames or a stop came before it: not met
+        report.damage_beyond = f"{serious.region}{more}"
+    else:
+        report.damage = f"{serious.region}{more}"
+
+
 def one_chain_parameters(sfs_parameters: dict[str, Any]) -> dict[str, Any]:
     """The SFS parameters of ``--jobs 1``'s chain: ``threads`` 0 taken as 2.
 
@@ -585,7 +619,8 @@ def process_bag(
                        workers=workers)  # fmt: skip
     streams: RecordingStreams | None = None
     try:  # the workers are running: stop them if the set-up fails
-        report = ProcessReport(frames_total=inputs.frame_count, output=options.output)
+        report = ProcessReport(frames_total=inputs.frame_count, output=options.output,
+                               recording_start_ns=inputs.time_range_ns[0])  # fmt: skip
         streams = recording_streams(inputs)
         infos: dict[int, CameraInfo | None] = {}
         frames = _raw_frames(
@@ -749,10 +784,7 @@ def process_bag(
     report.written = output.on_disk if report.write_failure else Counter(output.counts)
     report.lost = output.lost
     report.poses_written = report.written[topics.CAMERA_POSE]
-    if options.max_frames is not None and report.frames_in < inputs.frame_count:
-        report.damage_beyond = inputs.damage  # --max-frames stopped before it: not met
-    else:
-        report.damage = inputs.damage
+    _place_damage(report, streams, inputs.topics.image)
     report.undecodable = inputs.undecodable
     report.first_undecodable = inputs.first_undecodable
     if first_stamp is not None and last_stamp is not None:

@@ -8,6 +8,7 @@ from typing import Any
 import numpy as np
 
 from endo_process.accuracy import Accuracy
+from endo_process.damage import damage_document, damage_line
 from endo_process.runner import ProcessReport
 from endo_sfs.evaluation import DepthError
 
@@ -61,10 +62,10 @@ def _rows(report: ProcessReport) -> list[tuple[str, str]]:
          f"{report.real_time_factor:.2f}x real time"),
         ("SFS solve, median per frame", f"{report.median_solve_ms:.1f} ms"),
     ]
-    if report.damage:
-        rows.append(("input damage", report.damage))
-    elif report.damage_beyond:
-        rows.append(("input damage (after --max-frames)", report.damage_beyond))
+    line = damage_line(report.input_damage, report.frames_in, report.recording_start_ns,
+                       "interrupted" if report.interrupted else "--max-frames")  # fmt: skip
+    if line:
+        rows.append(("input damage", line.removeprefix("error: ").removeprefix("note: ")))
     if report.undecodable:
         rows.append(("undecodable messages skipped", _causes(report.undecodable)))
     if report.interrupted:
@@ -200,6 +201,7 @@ def summary_document(report: ProcessReport, accuracy: Accuracy | None) -> dict[s
         },
         "damage": report.damage,
         "damage_after_max_frames": report.damage_beyond,
+        "input_damage": damage_document(report.input_damage, report.recording_start_ns),
         "undecodable": dict(report.undecodable),
         "interrupted": report.interrupted,
         "written": dict(report.written),

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import contextlib
 import fcntl
+import itertools
+import json
 import os
 import pty
 import signal
@@ -15,6 +17,7 @@ import time
 from pathlib import Path
 
 import pytest
+from mcap.reader import make_reader
 
 from endo_io import topics
 from endo_io.bag import BagReader, BagWriter
@@ -139,6 +142,117 @@ def test_a_truncated_bag_is_processed_up_to_the_cut(
     err = capsys.readouterr().err
     assert "cut short" not in err, err
     assert "note: the input is damaged after the 3 frames processed (--max-frames): " in err, err
+
+
+def test_a_cut_is_in_the_summary_as_everything_after_the_last_message_read(
+    calibrations: tuple[Path, Path], tmp_path: Path, capsys: pytest.CaptureFixture
+) -> None:
+    data = PHANTOM.read_bytes()
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(data[: len(data) // 5])
+    summary = tmp_path / "summary.json"
+    argv = _argv(cut, tmp_path / "out.mcap", calibrations, "--summary-json", str(summary))
+    assert main(argv) == EXIT_DAMAGED
+    err = capsys.readouterr().err
+    assert "endo-process: input cut short, processed up to the damage: " in err, err
+    with BagReader(cut) as reader:
+        last = max(m.log_time_ns for m in _intact(reader))
+        start = reader.time_range_ns[0]  # type: ignore[index]
+    document = json.loads(summary.read_text())
+    (damage,) = document["input_damage"]
+    assert damage["where"] == "end" and damage["lost"] == "rest"
+    assert damage["log_time_start_ns"] == last and damage["log_time_end_ns"] is None
+    assert damage["start_s"] == pytest.approx((last - start) / 1e9)
+    assert damage["file"] == str(cut) and f"at byte {damage['byte']} of" in document["damage"]
+    assert document["damage_after_max_frames"] is None
+
+
+def _corrupt_chunk(target: Path, chunk: int) -> tuple[int, int, int]:
+    """The phantom with 16 flipped bytes in the middle of its ``chunk``-th chunk (a whole file).
+
+    Returns the chunk's byte offset and the first and last log time of its messages.
+    """
+    with PHANTOM.open("rb") as stream:
+        index = make_reader(stream).get_summary().chunk_indexes[chunk]  # type: ignore[union-attr]
+    raw = bytearray(PHANTOM.read_bytes())
+    middle = index.chunk_start_offset + index.chunk_length // 2
+    raw[middle : middle + 16] = bytes(b ^ 0x5A for b in raw[middle : middle + 16])
+    target.write_bytes(bytes(raw))
+    return index.chunk_start_offset, index.message_start_time, index.message_end_time
+
+
+@pytest.fixture(scope="module")
+def lost_chunk(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, int, int, int]:
+    """The phantom, its fifth chunk corrupt (frames 14-17): bag, offset, first and last log time."""
+    bag = tmp_path_factory.mktemp("lost_chunk") / "lost_chunk.mcap"
+    return bag, *_corrupt_chunk(bag, 4)
+
+
+# Review of session 15: a chunk lost inside the first --max-frames frames went unsaid (exit 0),
+# and without --max-frames the same bag said "input cut short" though every frame after the
+# lost chunk was processed.
+@pytest.mark.parametrize("max_frames", [None, 20])
+def test_a_chunk_lost_inside_the_frames_processed_is_named_with_its_log_times(
+    max_frames: int | None,
+    lost_chunk: tuple[Path, int, int, int],
+    calibrations: tuple[Path, Path],
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture,
+) -> None:
+    bag, offset, first_ns, last_ns = lost_chunk
+    with BagReader(bag) as reader:
+        readable = sum(1 for m in _intact(reader) if m.topic == topics.IMAGE_RAW)
+        origin = reader.time_range_ns[0]  # type: ignore[index]
+    assert readable == 86  # the chunk held 4 of the 90 images
+    frames = readable if max_frames is None else max_frames
+    summary = tmp_path / "summary.json"
+    extra = [] if max_frames is None else ["--max-frames", str(max_frames)]
+    argv = _argv(bag, tmp_path / "out.mcap", calibrations, "--summary-json", str(summary), *extra)
+    assert main(argv) == EXIT_DAMAGED
+    err = capsys.readouterr().err
+    assert "cut short" not in err and "note:" not in err, err
+    span = f"{(first_ns - origin) / 1e9:.3f} s to {(last_ns - origin) / 1e9:.3f} s"
+    assert (f"endo-process: error: the input lost messages inside the {frames} frames processed "
+            f"(logged {span} into the recording, 4 images by the file's index; the frames after "
+            f"them were processed): {bag}: truncated or corrupt at byte {offset} of ") in err, err
+    document = json.loads(summary.read_text())
+    assert document["frames"]["read"] == frames
+    assert document["frames"]["with_relative_depth"] == frames
+    (damage,) = document["input_damage"]
+    assert damage["where"] == "inside" and damage["lost"] == "span"
+    assert damage["byte"] == offset and damage["images_lost"] == 4
+    assert (damage["log_time_start_ns"], damage["log_time_end_ns"]) == (first_ns, last_ns)
+    assert damage["lost_messages"][topics.IMAGE_RAW] == 4
+    assert f"at byte {offset} of" in document["damage"]
+    assert document["damage_after_max_frames"] is None
+    with BagReader(tmp_path / "out.mcap") as reader:  # the frames on both sides of the loss
+        stamps = [m.log_time_ns for m in reader.messages([topics.DEPTH_RELATIVE])]
+    assert len(stamps) == frames
+    gaps = [round((b - a) * 30 / 1e9, 3) for a, b in itertools.pairwise(stamps)]
+    assert gaps == [1.0] * 12 + [5.0] + [1.0] * (frames - 14)  # frames 14-17 are missing
+
+
+def test_a_chunk_lost_after_the_frames_max_frames_processed_is_a_note(
+    lost_chunk: tuple[Path, int, int, int],
+    calibrations: tuple[Path, Path],
+    tmp_path: Path,
+    capsys: pytest.CaptureFixture,
+) -> None:
+    bag, offset, first_ns, _ = lost_chunk
+    summary = tmp_path / "summary.json"
+    # the 13 frames before the lost chunk: the run reads on to the next image, past the chunk
+    argv = _argv(bag, tmp_path / "out.mcap", calibrations, "--summary-json", str(summary),
+                 "--max-frames", "13")  # fmt: skip
+    assert main(argv) == EXIT_OK
+    err = capsys.readouterr().err
+    assert "error:" not in err and "cut short" not in err, err
+    assert (f"endo-process: note: the input is damaged after the 13 frames processed "
+            f"(--max-frames): {bag}: truncated or corrupt at byte {offset} of ") in err, err
+    document = json.loads(summary.read_text())
+    (damage,) = document["input_damage"]
+    assert damage["where"] == "after" and damage["log_time_start_ns"] == first_ns
+    assert document["damage"] is None
+    assert f"at byte {offset} of" in document["damage_after_max_frames"]
 
 
 def _intact(reader: BagReader):  # type: ignore[no-untyped-def]
