@@ -292,8 +292,10 @@ def _run(args: argparse.Namespace, workers: StartedWorkers | None) -> int:
               + _ply_outcome(args.ply, report),
               file=sys.stderr)  # fmt: skip
     if report.interrupted:
+        in_flight = (f"; {report.frames_in_flight} frames in flight at the interrupt were not "
+                     "written" if report.frames_in_flight else "")  # fmt: skip
         print(f"{PROGRAM}: interrupted; {options.output} holds the "
-              f"{report.frames_shaded} frames processed", file=sys.stderr)  # fmt: skip
+              f"{report.frames_shaded} frames processed{in_flight}", file=sys.stderr)  # fmt: skip
     status = exit_status(report)
     return max(status, EXIT_DAMAGED) if summary_failed or ply_failed else status
 

@@ -154,7 +154,12 @@ class ProcessReport:
     the most serious region that lost messages among or after the frames
     (or cost none), ``damage_beyond``: for one after the frames processed
     when the run stopped before it (only such regions), else None.
-    ``recording_start_ns``: the recording's first log time.
+    ``frames_in_flight``: frames read and sent to the correction and SFS
+    but never written, because the run stopped (a stop request, a failed
+    write) while they were in a worker process: every image read is either
+    dropped before the shading (``dropped``), written (with a relative
+    depth, ``frames_shaded``, or without, ``dropped`` saying why), or one of
+    these. ``recording_start_ns``: the recording's first log time.
     """
 
     frames_in: int = 0
@@ -189,6 +194,7 @@ class ProcessReport:
     input_damage: list[PlacedDamage] = field(default_factory=list)
     frames_log_ns: tuple[int, int] | None = None
     read_all_images: bool = False
+    frames_in_flight: int = 0
     recording_start_ns: int = 0
     undecodable: Counter[str] = field(default_factory=Counter)
     first_undecodable: str | None = None
@@ -744,6 +750,8 @@ def process_bag(
             raise
         report.write_failure = output.failure  # a full disk: stop here, keep what is on disk
     finally:
+        # Sent to the shading and not written: in a worker when the run stopped.
+        report.frames_in_flight = len(infos)
         report.seconds = time.perf_counter() - loop_start
         report.loop_cpu_seconds = time.process_time() - loop_cpu_start
         report.worker_cpu_seconds = sum(worker_cpu.values())

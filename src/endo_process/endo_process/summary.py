@@ -42,6 +42,10 @@ def _rows(report: ProcessReport) -> list[tuple[str, str]]:
         ("images read", f"{report.frames_in}"),
         ("frames with relative depth", f"{report.frames_shaded}"),
         ("frames dropped or without depth", _causes(report.dropped)),
+    ]
+    if report.frames_in_flight:
+        rows.append(("frames in flight at the stop, not written", f"{report.frames_in_flight}"))
+    rows += [
         ("frames with a camera pose", f"{report.frames_with_pose}"),
         ("frames without a pose (no world points)", _causes(report.without_pose)),
         ("frames through flow / with metric depth",
@@ -184,6 +188,7 @@ def summary_document(report: ProcessReport, accuracy: Accuracy | None) -> dict[s
             "through_flow": report.frames_flow, "with_metric_depth": report.frames_metric,
             "dropped": dict(report.dropped), "without_pose": dict(report.without_pose),
             "refused_by_flow": dict(report.flow_dropped),
+            "in_flight_not_written": report.frames_in_flight,
         },
         "tracker": {
             "samples": report.tracker_samples, "rejected": dict(report.tracker_rejected),

@@ -8,6 +8,7 @@ import itertools
 import json
 import os
 import pty
+import re
 import signal
 import struct
 import subprocess
@@ -330,6 +331,36 @@ def test_a_signal_finalises_the_output(
         frames = reader.topics[topics.DEPTH_RELATIVE].message_count
         assert sum(1 for _ in reader.messages([topics.DEPTH_RELATIVE])) == frames
     assert 1 <= frames < 90
+
+
+def test_frames_in_flight_at_an_interrupt_are_counted_in_the_summary(
+    calibrations: tuple[Path, Path], tmp_path: Path
+) -> None:
+    # With worker processes, up to 16 frames are read and in the workers when Ctrl-C comes:
+    # the summary counted them nowhere (images read 33, with a relative depth 18, none dropped).
+    out, summary = tmp_path / "out.mcap", tmp_path / "summary.json"
+    argv = _argv(PHANTOM, out, calibrations, "--summary-json", str(summary))
+    jobs = argv.index("--jobs")
+    argv[jobs + 1] = "2"
+    command = [sys.executable, "-m", "endo_process.cli", *argv, "--solve-scale", "1"]
+    process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                               text=True, env=dict(os.environ))  # fmt: skip
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline and not (out.exists() and out.stat().st_size > 1 << 20):
+        time.sleep(0.2)  # the first frames are written
+    process.send_signal(signal.SIGINT)
+    stdout, stderr = process.communicate(timeout=60)
+    assert process.returncode == EXIT_INTERRUPTED, stderr
+    frames = json.loads(summary.read_text())["frames"]
+    in_flight = frames["in_flight_not_written"]
+    assert frames["dropped"] == {} and frames["read"] < 90, frames
+    assert in_flight > 0 and frames["read"] == frames["with_relative_depth"] + in_flight
+    assert (f"interrupted; {out} holds the {frames['with_relative_depth']} frames processed; "
+            f"{in_flight} frames in flight at the interrupt were not written") in stderr, stderr
+    row = re.search(r"^frames in flight at the stop, not written +(\d+)$", stdout, re.MULTILINE)
+    assert row is not None and int(row.group(1)) == in_flight, stdout
+    with BagReader(out) as reader:
+        assert reader.topics[topics.DEPTH_RELATIVE].message_count == frames["with_relative_depth"]
 
 
 def test_the_progress_bar_shows_on_a_terminal_only(
