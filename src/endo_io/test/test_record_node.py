@@ -177,8 +177,10 @@ def test_take_period_0_records_each_message_in_its_own_callback(tmp_path):
         deadline = time.monotonic() + 10.0
         for k in range(5):
             publisher.publish(String(data=f"c{k}"))
-        tally = recording.report.topics["/rn_test/c"]
-        while tally.received < 5:  # written by the executor's callbacks, no take timer
+        # the writer thread declares the topic in the report (add_topic is queued to it):
+        # looked up again at each turn, not once right after the subscription matched
+        while (tally := recording.report.topics.get("/rn_test/c")) is None or tally.received < 5:
+            # written by the executor's callbacks, no take timer
             assert time.monotonic() < deadline, tally
             executor.spin_once(timeout_sec=0.05)
         executor.shutdown()
