@@ -456,7 +456,8 @@ class ReplayReport:
         if self.interrupted:
             lines.append("  interrupted before the end of the bag")
         if self.error:
-            lines.append(f"  stopped at damaged data: {self.error}")
+            # the reader yields every intact message (past a lost chunk too) before it raises
+            lines.append(f"  damaged bag, every intact message played: {self.error}")
         return lines
 
 
