@@ -147,11 +147,11 @@ from endo_io.pose_buffer import PoseBuffer
 from endo_io.process import describing_only, run_node
 from endo_io.qos import (
     BY_STAMP_QOS,
+    MAP_QOS,
     NEWEST_FRAME_QOS,
     PASSIVE_POSE_QOS,
     PASSIVE_POSE_TAKE_PERIOD_S,
     create_reliable_publisher,
-    reliable_qos,
 )
 from endo_io.stamp import NS_PER_S, stamp_to_ns
 from endo_io.stamp_matching import StampMatcher
@@ -323,8 +323,7 @@ class FlowNode(Node):
         self.depth_pub = create_reliable_publisher(self, Image, topics.DEPTH)
         self.points_pub = create_reliable_publisher(self, PointCloud2, topics.POINTS, depth=2)
         self.scale_pub = create_reliable_publisher(self, Vector3Stamped, topics.SCALE)
-        self.map_pub = self.create_publisher(PointCloud2, topics.MAP,
-                                             reliable_qos(1, latched=True))
+        self.map_pub = self.create_publisher(PointCloud2, topics.MAP, MAP_QOS)
         # "processed" counts frames (_process), not the inputs' messages. The depth
         # drives a frame: only the newest is processed, stale ones are skipped. The
         # image, camera_info and poses wait in DDS and are taken when a depth comes

@@ -93,6 +93,15 @@ def reliable_qos(depth: int = 10, *, latched: bool = False) -> QoSProfile:
     )
 
 
+#: Publisher profile of endo_flow's fused map (``/endoscope/map``): reliable,
+#: keep last 1, transient local, so that a viewer started after the last map
+#: still gets it. A recording of the map must offer the same (endo-process
+#: writes it as its ``offered_qos_profiles``): a replay publishes with the
+#: recorded offer, and a transient-local subscriber (endo-foxglove, the RViz
+#: config) matches no volatile publisher.
+MAP_QOS: QoSProfile = reliable_qos(1, latched=True)
+
+
 def publisher_overrides() -> QoSOverridingOptions:
     """Allow history, depth, reliability and durability to be overridden by parameters."""
     return QoSOverridingOptions.with_default_policies()

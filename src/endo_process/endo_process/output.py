@@ -42,6 +42,7 @@ from typing import Any
 
 import numpy as np
 
+from endo_io import topics
 from endo_io.bag import BagError, BagMessage, BagWriter, TopicInfo
 from endo_io.bag.serde import msgtype_of, serialize
 from endo_io.image import array_to_image_cdr
@@ -57,6 +58,22 @@ POINTS_TYPE = "sensor_msgs/msg/PointCloud2"
 DEFAULT_FLUSH_EVERY = 30
 #: Writer calls queued for the writer thread at most (a few frames' outputs).
 WRITE_QUEUE_CALLS = 64
+
+
+def offered_qos(topic: str) -> str:
+    """The ``offered_qos_profiles`` recorded for an output topic ("" for rosbag2's default).
+
+    The live publisher's offer where it is not the default a replay falls
+    back to (reliable, volatile): the map's, transient local
+    (:data:`endo_io.qos.MAP_QOS`). Recorded as volatile, a replayed map
+    reached no transient-local subscriber (endo-foxglove, the RViz config).
+    """
+    if topic != topics.MAP:
+        return ""
+    from endo_io.bag.qos_yaml import qos_profiles_to_yaml  # rclpy: only where it is needed
+    from endo_io.qos import MAP_QOS
+
+    return qos_profiles_to_yaml([MAP_QOS])
 
 
 class _WriterThread:
@@ -189,19 +206,22 @@ class OutputBag:
         """Messages handed to the writer that a failed write kept off the disk."""
         return self._bag.lost
 
+    def _declare(self, topic: str, msgtype: str) -> None:
+        """Add an output topic to the file, with its live publisher's offered QoS."""
+        self._writer.call(self._bag.add_topic, topic, msgtype, offered_qos(topic))
+        self.counts[topic] = 0
+
     def hold(self, topic: str, message: Any, log_time_ns: int) -> None:
         """Queue a small message; it is written once frame outputs pass its time."""
         if topic not in self.counts:
-            self._writer.call(self._bag.add_topic, topic, msgtype_of(message))
-            self.counts[topic] = 0
+            self._declare(topic, msgtype_of(message))
         heapq.heappush(self._held, (int(log_time_ns), self._order, topic, serialize(message)))
         self._order += 1
 
     def hold_cdr(self, topic: str, msgtype: str, data: bytes, log_time_ns: int) -> None:
         """Queue a small message already serialised (CDR bytes of ``msgtype``), as :meth:`hold`."""
         if topic not in self.counts:
-            self._writer.call(self._bag.add_topic, topic, msgtype)
-            self.counts[topic] = 0
+            self._declare(topic, msgtype)
         heapq.heappush(self._held, (int(log_time_ns), self._order, topic, data))
         self._order += 1
 
@@ -255,14 +275,14 @@ class OutputBag:
     def write(self, topic: str, message: Any, log_time_ns: int) -> None:
         """Write one frame output now, after every held message that is not later."""
         if topic not in self.counts:
-            self._writer.call(self._bag.add_topic, topic, msgtype_of(message))
+            self._declare(topic, msgtype_of(message))
         self.release(log_time_ns)
         self._hand(topic, serialize(message), log_time_ns)
 
     def write_cdr(self, topic: str, msgtype: str, data: bytes, log_time_ns: int) -> None:
         """Write one frame output given as CDR bytes of ``msgtype``, as :meth:`write` does."""
         if topic not in self.counts:
-            self._writer.call(self._bag.add_topic, topic, msgtype)
+            self._declare(topic, msgtype)
         self.release(log_time_ns)
         self._hand(topic, data, log_time_ns)
 
@@ -276,7 +296,7 @@ class OutputBag:
         the pixels instead of five.
         """
         if topic not in self.counts:
-            self._writer.call(self._bag.add_topic, topic, IMAGE_TYPE)
+            self._declare(topic, IMAGE_TYPE)
         self.release(stamp_ns)
         self._hand(topic, array_to_image_cdr(array, encoding, stamp_ns, frame_id), stamp_ns)
 

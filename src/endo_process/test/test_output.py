@@ -115,3 +115,39 @@ def test_jobs_1_solves_on_two_threads_unless_the_parameters_set_a_count() -> Non
     assert one_chain_parameters({"solve_scale": 0.5})["threads"] == 2
     assert one_chain_parameters({"threads": 1})["threads"] == 1
     assert one_chain_parameters({"threads": 3})["threads"] == 3
+
+
+def test_the_map_is_recorded_latched_so_that_a_replay_reaches_late_viewers(
+    tmp_path: Path,
+) -> None:
+    """The map's offer is the flow node's (transient local); a replay publishes with it.
+
+    Recorded without an offer, endo-replay published the map volatile, and
+    endo-foxglove and the RViz config (transient-local subscriptions) got no map.
+    """
+    from rclpy.qos import DurabilityPolicy, ReliabilityPolicy
+
+    from endo_io import topics
+    from endo_io.bag.qos_yaml import qos_profiles_from_yaml
+    from endo_io.pointcloud import xyz_to_pointcloud2
+    from endo_io.replay import publisher_qos_for_topic
+
+    xyz = np.arange(12, dtype=np.float32).reshape(4, 3) * 1e-3
+    output = OutputBag(tmp_path / "map.mcap", "none")
+    output.write_image(topics.DEPTH, np.ones((4, 5), np.float32), "32FC1", 1_000, "optical")
+    output.write(topics.MAP, xyz_to_pointcloud2(xyz, 2_000, "world"), 2_000)
+    output.close()
+    with BagReader(tmp_path / "map.mcap") as reader:
+        infos = reader.topics
+    (offer,) = qos_profiles_from_yaml(infos[topics.MAP].offered_qos_profiles)
+    assert offer.durability == DurabilityPolicy.TRANSIENT_LOCAL
+    assert offer.reliability == ReliabilityPolicy.RELIABLE
+    assert offer.depth == 1
+    replayed, warning = publisher_qos_for_topic(
+        topics.MAP, infos[topics.MAP].offered_qos_profiles, {}
+    )
+    assert (replayed.durability, replayed.reliability, warning) == (
+        DurabilityPolicy.TRANSIENT_LOCAL, ReliabilityPolicy.RELIABLE, ""
+    )
+    # The other outputs keep rosbag2's default (reliable, volatile), as their publishers offer.
+    assert infos[topics.DEPTH].offered_qos_profiles == ""
