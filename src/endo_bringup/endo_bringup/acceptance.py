@@ -20,7 +20,7 @@ from __future__ import annotations
 
 from collections.abc import Collection, Iterable, Mapping
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -181,3 +181,59 @@ def accuracy_shortfalls(accuracy: Accuracy, bars: AccuracyBars | None = None) ->
                 f"(bound {bars.position_mm:g} mm / {bars.rotation_deg:g} deg)"
             )
     return problems
+
+
+def acceptance_document(accuracy: Accuracy, bars: AccuracyBars | None = None) -> dict[str, Any]:
+    """The figures :func:`accuracy_shortfalls` judges, as JSON-able data (summary.json).
+
+    Keys carry their unit (``_ns``, ``_mm``, ``_deg``); errors without one are
+    fractions (0.02 = 2 %). ``scale_worst_relative_error`` is the largest
+    |s / s_oracle − 1| over the judged samples that have an estimate (None
+    when none has); ``scale_samples_without_estimate`` counts the others.
+    ``metric_abs_rel_mean`` and ``oracle_abs_rel_mean`` are means over the
+    ``metric_frames`` truth frames that have both (so the oracle's mean can
+    differ from the accuracy's ``oracle_abs_rel_mean`` over every truth
+    frame). ``ok`` is :func:`accuracy_shortfalls` finding nothing.
+    """
+    bars = bars or AccuracyBars()
+    document: dict[str, Any] = {
+        "ok": not accuracy_shortfalls(accuracy, bars),
+        "scale_judged_from_ns": None,
+        "scale_judged_from": "",
+        "scale_judged_samples": 0,
+        "scale_samples_without_estimate": 0,
+        "scale_worst_relative_error": None,
+        "metric_frames": 0,
+        "metric_abs_rel_mean": None,
+        "oracle_abs_rel_mean": None,
+        "metric_oracle_gap": None,
+        "pose_position_max_mm": None,
+        "pose_rotation_max_deg": None,
+    }
+    if not accuracy.has_truth:
+        return document
+    start, since = convergence_start_ns(accuracy, bars)
+    converged = converged_scale_error(accuracy, bars)
+    finite = np.abs(converged[np.isfinite(converged)])
+    document.update(
+        scale_judged_from_ns=start,
+        scale_judged_from=since,
+        scale_judged_samples=len(converged),
+        scale_samples_without_estimate=int(np.count_nonzero(~np.isfinite(converged))),
+        scale_worst_relative_error=float(np.max(finite)) if len(finite) else None,
+    )
+    metric, oracle, frames = metric_oracle_gap(accuracy)
+    if frames:
+        document.update(
+            metric_frames=frames,
+            metric_abs_rel_mean=metric,
+            oracle_abs_rel_mean=oracle,
+            metric_oracle_gap=abs(metric - oracle),
+        )
+    poses = accuracy.poses
+    if poses is not None and poses.compared:
+        document.update(
+            pose_position_max_mm=float(np.max(poses.position_mm)),
+            pose_rotation_max_deg=float(np.max(poses.rotation_deg)),
+        )
+    return document

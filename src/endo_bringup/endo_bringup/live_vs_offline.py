@@ -16,7 +16,7 @@ endo_process depends on endo_bringup (its scoring pairs streams with
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -122,8 +122,15 @@ def write_summary(
     ``accuracy`` member); offline: endo-process's whole summary document;
     timing: the live graph's frames, skips, rates, latency, CPU and RSS
     (:class:`endo_bringup.graph_monitor.GraphFigures` as a dict; NaN as null).
+    ``acceptance`` holds the bars and, for each recording, the figures judged
+    against them (:func:`endo_bringup.acceptance.acceptance_document`): the
+    numbers behind ``fell_short``'s sentences.
     """
+    from endo_bringup.acceptance import AccuracyBars, acceptance_document
     from endo_process.summary import _finite, accuracy_document
+
+    def judged(accuracy: Accuracy | None) -> dict[str, Any] | None:
+        return None if accuracy is None else acceptance_document(accuracy)
 
     document = {
         "format": "endo3d.demo_summary",
@@ -135,5 +142,10 @@ def write_summary(
         "live": {"stages": stages, "accuracy": accuracy_document(live),
                  "timing": _finite(timing)},
         "offline": None if offline is None else offline.summary,
+        "acceptance": _finite({
+            "bars": asdict(AccuracyBars()),
+            "live": judged(live),
+            "offline": None if offline is None else judged(offline.accuracy),
+        }),
     }
     path.write_text(json.dumps(document, indent=1, allow_nan=False) + "\n")

@@ -160,3 +160,49 @@ def test_summary_json_and_side_by_side(tmp_path) -> None:
     assert document["calibration"] == {"residual": None}  # strict JSON: no NaN
     scale = document["live"]["accuracy"]["scale"]["relative_error"]
     assert scale[:10] == [None] * 10 and scale[-1] == pytest.approx(0.04)
+
+
+def test_summary_json_holds_the_judged_figures_and_the_bars(tmp_path) -> None:
+    """Every number of fell_short's sentences is in summary.json, not only in the sentences."""
+    import json
+
+    from endo_bringup.live_vs_offline import write_summary
+
+    live = _accuracy(scale_error=0.04, metric_factor=1.1)
+    live.poses = PoseComparison(89, 1, np.linspace(0.1, 2.5, 89), np.full(89, 0.1))
+    problems = accuracy_shortfalls(live)
+    path = tmp_path / "summary.json"
+    write_summary(
+        path, ok=False, problems=problems, settings={}, stages=[], calibration=None,
+        live=live, offline=None,
+    )  # fmt: skip
+    acceptance = json.loads(path.read_text())["acceptance"]
+    assert acceptance["bars"] == {
+        "scale_relative_error": 0.02, "convergence_s": 1.0, "metric_oracle_gap": 0.01,
+        "position_mm": 2.0, "rotation_deg": 0.5, "motion_m": 0.002,
+    }  # fmt: skip
+    judged = acceptance["live"]
+    assert acceptance["offline"] is None
+    assert judged["ok"] is False
+    # "scale up to 4.0% ... (bar 2%; 50 samples)": samples 40..89 (1 s after the first estimate)
+    assert judged["scale_worst_relative_error"] == pytest.approx(0.04)
+    assert judged["scale_judged_samples"] == 50
+    assert judged["scale_samples_without_estimate"] == 0
+    assert judged["scale_judged_from_ns"] == T0 + 10 * FRAME_NS + 1_000_000_000
+    assert judged["scale_judged_from"] == "1 s after its first estimate"
+    metric, oracle, frames = metric_oracle_gap(live)
+    assert frames == 3
+    assert (judged["metric_frames"], judged["metric_abs_rel_mean"]) == (frames, metric)
+    assert judged["oracle_abs_rel_mean"] == oracle
+    assert judged["metric_oracle_gap"] == pytest.approx(abs(metric - oracle))
+    assert f"{judged['metric_oracle_gap']:.4f}" in problems[1]
+    assert judged["pose_position_max_mm"] == pytest.approx(2.5)
+    assert judged["pose_rotation_max_deg"] == pytest.approx(0.1)
+    assert "camera pose error up to 2.50 mm" in problems[2]
+    # a recording that meets every bar says so
+    write_summary(
+        path, ok=True, problems=[], settings={}, stages=[], calibration=None,
+        live=_accuracy(scale_error=0.015, metric_factor=1.0), offline=None,
+    )  # fmt: skip
+    good = json.loads(path.read_text())["acceptance"]["live"]
+    assert good["ok"] is True and good["scale_worst_relative_error"] == pytest.approx(0.015)
