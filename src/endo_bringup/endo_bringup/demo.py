@@ -676,7 +676,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument(
         "--output-dir", type=Path, default=None, help="where to write (default: a new temp dir)"
     )
-    parser.add_argument("--rate", type=float, default=1.0, help="round-trip playback speed")
+    parser.add_argument(
+        "--rate", type=float, default=1.0, help="round-trip playback speed (default 1)"
+    )
     parser.add_argument(
         "--graph-rate",
         type=float,

@@ -172,9 +172,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="one log file per process (default: a new temporary directory)")
     g.add_argument("--startup-timeout", type=float, default=180.0, metavar="SECONDS",
                    help="how long the nodes may take to come up (SFS compiles its kernels "
-                   "on the very first run)")
+                   "on the very first run; default 180)")
     g.add_argument("--drain-timeout", type=float, default=30.0, metavar="SECONDS",
-                   help="replay: after the bag ends, how long to wait for the outputs")
+                   help="replay: after the bag ends, how long to wait for the outputs "
+                   "(default 30)")
     g.add_argument("--quiet", action="store_true", help="do not echo the nodes' logs")
     g.add_argument("--allow-shared-domain", action="store_true",
                    help="start even when another endo3d graph already runs in this ROS domain "

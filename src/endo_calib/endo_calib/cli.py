@@ -238,14 +238,17 @@ def build_parser() -> argparse.ArgumentParser:
         help="convert a TUM/DSO pcalib.txt + vignette.png instead of fitting",
     )
     parser.add_argument("--camera-info", type=Path, help="camera calibration YAML (for G)")
-    parser.add_argument("--image-topic", default=topics.IMAGE_RAW)
-    parser.add_argument("--gray-level-topic", default=topics.GRAY_LEVEL)
-    parser.add_argument("--camera-info-topic", default=topics.CAMERA_INFO)
+    parser.add_argument("--image-topic", default=topics.IMAGE_RAW,
+                        help="the gray-card images in --bag (default %(default)s)")
+    parser.add_argument("--gray-level-topic", default=topics.GRAY_LEVEL,
+                        help="the card's reflectance per image in --bag (default %(default)s)")
+    parser.add_argument("--camera-info-topic", default=topics.CAMERA_INFO,
+                        help="camera_info in --bag (default %(default)s)")
     parser.add_argument(
         "--settle-frames",
         type=int,
         default=0,
-        help="frames to skip after each gray-level change in a bag",
+        help="frames to skip after each gray-level change in a bag (default 0)",
     )
     parser.add_argument(
         "--card-distance",
@@ -260,16 +263,18 @@ def build_parser() -> argparse.ArgumentParser:
         nargs=3,
         default=(0.0, 0.0, -1.0),
         metavar=("NX", "NY", "NZ"),
-        help="card normal in the optical frame",
+        help="card normal in the optical frame (default 0 0 -1: facing the camera)",
     )
     parser.add_argument("--bit-depth", type=int, help="raw bit depth (default: inferred)")
     parser.add_argument("--saturation-value", type=int, help="raw values >= this are saturated")
-    parser.add_argument("--light-degree", type=int, default=8, help="light model degree")
+    parser.add_argument(
+        "--light-degree", type=int, default=8, help="light model degree (default 8)"
+    )
     parser.add_argument(
         "--light-source",
         choices=LIGHT_SOURCES,
         default="model",
-        help="divide by the smooth light model or the per-pixel map",
+        help="divide by the smooth light model or the per-pixel map (default model)",
     )
     parser.add_argument("-o", "--output", type=Path, default=Path("photometric.yaml"),
                         help="the calibration YAML, with <stem>.light_map.png beside it "

@@ -64,9 +64,10 @@ def build_parser() -> argparse.ArgumentParser:
                         help="file: publishing rate in Hz (default: the file's, else 30)")
     parser.add_argument("--loop", action="store_true", help="file: play again from the start")
     parser.add_argument("--wait-for-subscribers", type=int, default=0, metavar="N",
-                        help="before the first frame, wait until image_raw has N subscribers")
+                        help="before the first frame, wait until image_raw has N subscribers, at "
+                        "most --wait-timeout (default 0: no wait)")
     parser.add_argument("--wait-timeout", type=float, default=30.0, metavar="SECONDS",
-                        help="give up waiting for subscribers after this long")
+                        help="give up waiting for subscribers after this long (default 30)")
     return parser  # fmt: skip
 
 

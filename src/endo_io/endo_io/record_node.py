@@ -177,15 +177,16 @@ def build_parser() -> argparse.ArgumentParser:
         "endo_record_<date>_<time>.mcap); " + OUTPUT_PATH_HELP,
     )
     parser.add_argument(
-        "--compression", choices=COMPRESSIONS, default="zstd", help="chunk compression"
+        "--compression", choices=COMPRESSIONS, default="zstd",
+        help="chunk compression (default zstd)",
     )
     parser.add_argument(
         "--direct",
         action=argparse.BooleanOptionalAction,
         default=True,
-        help="write the file with O_DIRECT, past the page cache (BagWriter(direct=True): a "
-        "file system that refuses it is written as usual); --no-direct writes through the "
-        "page cache",
+        help="write the file with O_DIRECT, past the page cache (default; "
+        "BagWriter(direct=True): a file system that refuses it is written as usual); "
+        "--no-direct writes through the page cache",
     )
     parser.add_argument(
         "--max-duration", type=float, default=None, metavar="SECONDS", help="stop after this long"
@@ -202,14 +203,14 @@ def build_parser() -> argparse.ArgumentParser:
         type=int,
         default=DEFAULT_QUEUE_DEPTH,
         metavar="N",
-        help="subscription history depth per topic",
+        help="subscription history depth per topic (default %(default)d)",
     )
     parser.add_argument(
         "--discovery-period",
         type=float,
         default=0.1,
         metavar="SECONDS",
-        help="how often to look for new topics",
+        help="how often to look for new topics (default 0.1)",
     )
     parser.add_argument(
         "--take-period",
@@ -217,30 +218,31 @@ def build_parser() -> argparse.ArgumentParser:
         default=0.02,
         metavar="SECONDS",
         help="how often the messages waiting in the subscriptions are taken and written "
-        "(0: one callback per message)",
+        "(default 0.02; 0: one callback per message)",
     )
     parser.add_argument(
         "--flush-period",
         type=float,
         default=1.0,
         metavar="SECONDS",
-        help="how often to write buffered messages out as a chunk",
+        help="how often to write buffered messages out as a chunk (default 1)",
     )
     parser.add_argument(
         "--buffer-mb",
         type=float,
         default=DEFAULT_BUFFER_BYTES / 2**20,
         metavar="MB",
-        help="bound of the messages taken but not yet written (MiB); beyond it messages are "
-        "refused and reported as lost",
+        help="bound of the messages taken but not yet written (MiB, default %(default)g); "
+        "beyond it messages are refused and reported as lost",
     )
     parser.add_argument(
         "--writer-nice",
         type=int,
         default=0,
         metavar="N",
-        help="niceness added to the writing thread only (0-19): taking the messages stays at "
-        "the process's priority, so a busy machine delays the writing, not the taking",
+        help="niceness added to the writing thread only (0-19, default 0): taking the "
+        "messages stays at the process's priority, so a busy machine delays the writing, not "
+        "the taking",
     )
     return parser
 

@@ -76,7 +76,8 @@ def build_parser() -> argparse.ArgumentParser:
         "--rate",
         type=float,
         default=1.0,
-        help="playback speed factor (> 0; 2 = twice as fast; 'inf' = as fast as possible)",
+        help="playback speed factor (default 1; > 0; 2 = twice as fast; 'inf' = as fast as "
+        "possible)",
     )
     parser.add_argument(
         "-l", "--loop", action="store_true", help="play again from the start at the end"
@@ -86,7 +87,7 @@ def build_parser() -> argparse.ArgumentParser:
         type=float,
         default=0.0,
         metavar="SECONDS",
-        help="skip this many seconds from the bag's first message",
+        help="skip this many seconds from the bag's first message (default 0)",
     )
     parser.add_argument("--topics", nargs="+", metavar="TOPIC", help="play only these bag topics")
     parser.add_argument(
@@ -117,7 +118,8 @@ def build_parser() -> argparse.ArgumentParser:
         type=int,
         default=0,
         metavar="N",
-        help="before playing, wait until every publisher has matched N subscriptions",
+        help="before playing, wait until every publisher has matched N subscriptions, at most "
+        "--wait-timeout (default 0: no wait)",
     )
     parser.add_argument(
         "--wait-topics",
@@ -132,17 +134,22 @@ def build_parser() -> argparse.ArgumentParser:
         type=float,
         default=10.0,
         metavar="SECONDS",
-        help="give up waiting for subscribers after this long and play anyway",
+        help="give up waiting for subscribers after this long and play anyway (default 10)",
     )
     parser.add_argument(
-        "--delay", type=float, default=0.0, metavar="SECONDS", help="sleep this long before playing"
+        "--delay",
+        type=float,
+        default=0.0,
+        metavar="SECONDS",
+        help="sleep this long before playing (default 0)",
     )
     parser.add_argument(
         "--ack-timeout",
         type=float,
         default=5.0,
         metavar="SECONDS",
-        help="at the end, wait up to this long for reliable subscribers to acknowledge everything",
+        help="at the end, wait up to this long for reliable subscribers to acknowledge "
+        "everything (default 5)",
     )
     return parser
 

@@ -73,10 +73,13 @@ def build_parser() -> argparse.ArgumentParser:
                         help="ROS 2 parameter file of the nodes (sfs, tracker_bridge, ...)")
     parser.add_argument("--solve-scale", type=float,
                         help="the SFS node's solve_scale (overrides --params)")
-    parser.add_argument("--image-topic", default=topics.IMAGE_RAW)
-    parser.add_argument("--camera-info-topic", default=topics.CAMERA_INFO)
+    parser.add_argument("--image-topic", default=topics.IMAGE_RAW,
+                        help="the raw camera images (default %(default)s)")
+    parser.add_argument("--camera-info-topic", default=topics.CAMERA_INFO,
+                        help="their camera_info (default %(default)s)")
     parser.add_argument("--tracker-topic", default=topics.TRACKER_POSE,
-                        help="the tracker driver's PoseStamped marker poses")
+                        help="the tracker driver's PoseStamped marker poses "
+                        "(default %(default)s)")
     parser.add_argument("--camera-info", type=Path,
                         help="camera YAML (camera_calibration format) instead of the topic")
     parser.add_argument("--ply", type=Path, help="write the fused map as PLY")

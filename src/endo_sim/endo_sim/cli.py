@@ -283,7 +283,8 @@ def build_parser() -> argparse.ArgumentParser:
     render.add_argument("-o", "--output", type=Path, required=True,
                         help="the bag; " + OUTPUT_PATH_HELP + "; the ground truth is written "
                         "beside it (NAME.ground_truth.yaml, ...)")
-    render.add_argument("--compression", choices=("zstd", "lz4", "none"), default="zstd")
+    render.add_argument("--compression", choices=("zstd", "lz4", "none"), default="zstd",
+                        help="chunk compression of the bag (default zstd)")
     render.add_argument(
         "--overwrite",
         action="store_true",

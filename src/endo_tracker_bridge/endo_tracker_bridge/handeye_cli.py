@@ -350,19 +350,26 @@ def build_parser() -> argparse.ArgumentParser:
         help="checkerboard square side in mm (default: estimated from the tracker)",
     )
     parser.add_argument("--report", type=Path, help="write the hand-eye report figure (PNG)")
-    parser.add_argument("--image-topic", default=BagTopics.image)
-    parser.add_argument("--camera-info-topic", default=BagTopics.camera_info)
-    parser.add_argument("--pose-topic", default=BagTopics.pose)
-    parser.add_argument("--pose-unit", choices=("m", "mm"), default="m")
+    parser.add_argument("--image-topic", default=BagTopics.image,
+                        help="the checkerboard images (default %(default)s)")
+    parser.add_argument("--camera-info-topic", default=BagTopics.camera_info,
+                        help="their camera_info (default %(default)s)")
+    parser.add_argument("--pose-topic", default=BagTopics.pose,
+                        help="the tracker's PoseStamped marker poses (default %(default)s)")
+    parser.add_argument("--pose-unit", choices=("m", "mm"), default="m",
+                        help="unit of the poses' positions (default m; mm for a tracker "
+                        "driver publishing millimetres)")
     parser.add_argument(
         "--offset-range-ms",
         type=float,
         nargs=2,
         default=(-200.0, 200.0),
         metavar=("LOW", "HIGH"),
-        help="clock offset search range in ms (equal values fix the offset)",
+        help="clock offset search range in ms (default -200 200; equal values fix the offset)",
     )
-    parser.add_argument("--offset-step-ms", type=float, default=4.0, help="coarse search step")
+    parser.add_argument(
+        "--offset-step-ms", type=float, default=4.0, help="coarse search step in ms (default 4)"
+    )
     parser.add_argument(
         "--max-views", type=int, default=0, help="use at most this many images (0: all)"
     )
@@ -370,7 +377,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--max-gap-ms",
         type=float,
         default=60.0,
-        help="longest tracker dropout bridged by interpolation",
+        help="longest tracker dropout bridged by interpolation, ms (default 60)",
     )
     return parser
 
