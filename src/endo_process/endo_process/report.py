@@ -49,14 +49,15 @@ def _range(image: np.ndarray | None) -> dict[str, float]:
     return {"vmin": float(low), "vmax": float(high)}
 
 
-def _image(axis: Any, image: np.ndarray | None, title: str, **style: Any) -> None:
+def _image(axis: Any, image: np.ndarray | None, title: str, unit: str, **style: Any) -> None:
+    """One image panel; ``unit`` labels its colour bar (every panel says what its colours mean)."""
     axis.set_title(title, fontsize=9)
     axis.axis("off")
     if image is None:
         axis.text(0.5, 0.5, "not available", ha="center", va="center", transform=axis.transAxes)
         return
     shown = axis.imshow(image, **style)
-    plt.colorbar(shown, ax=axis, fraction=0.046, pad=0.02)
+    plt.colorbar(shown, ax=axis, fraction=0.046, pad=0.02).set_label(unit, fontsize=8)
 
 
 def write_report_figure(
@@ -74,23 +75,28 @@ def write_report_figure(
                            ("metric", topics.DEPTH), ("truth", topics.TRUE_DEPTH)):  # fmt: skip
             frames[key] = read_depth_frames(recording, topic, {stamp},
                                             irradiance=key == "image").get(stamp)
-    first = read_scale_stream(recording)[0]
-    start = int(first[0]) if len(first) else (stamp or 0)
-    when = "" if stamp is None else f", t = {(stamp - start) / 1e9:.2f} s"
-    _image(figure.add_subplot(grid[0, 0]), frames["image"], f"corrected image{when}", cmap="gray")
-    _image(figure.add_subplot(grid[0, 1]), frames["relative"], "relative depth (SFS)",
-           cmap="viridis", **_range(frames["relative"]))  # fmt: skip
+    scale_stamps, scale = read_scale_stream(recording)
+    start = int(scale_stamps[0]) if len(scale_stamps) else (stamp or 0)
+    # The top row is one frame: the first panel says which, the others say "that frame".
+    when = "" if stamp is None else f" at t = {(stamp - start) / 1e9:.2f} s"
+    _image(figure.add_subplot(grid[0, 0]), frames["image"], f"corrected image{when}",
+           "linear irradiance", cmap="gray")  # fmt: skip
+    _image(figure.add_subplot(grid[0, 1]), frames["relative"], "relative depth (SFS; white: none)",
+           "relative depth (no unit)", cmap="viridis", **_range(frames["relative"]))  # fmt: skip
     metric, truth = frames["metric"], frames["truth"]
-    _image(figure.add_subplot(grid[0, 2]), metric, "metric depth (m)", cmap="viridis",
-           **_range(truth if truth is not None else metric))  # fmt: skip
+    at_stamp = scale[scale_stamps == stamp] if stamp is not None else scale[:0]
+    used = f", scale {at_stamp[0]:.4g} m per unit" if np.isfinite(at_stamp).any() else ""
+    _image(figure.add_subplot(grid[0, 2]), metric, f"metric depth{used}", "depth (m)",
+           cmap="viridis", **_range(truth if truth is not None else metric))  # fmt: skip
     error = None
     if metric is not None and truth is not None:
         with np.errstate(invalid="ignore", divide="ignore"):
             error = np.abs(metric - truth) / truth
     title = "|depth − truth| / truth"
     if stamp is not None and stamp in accuracy.metric:
-        title += f" (AbsRel {accuracy.metric[stamp].abs_rel:.3f})"
-    _image(figure.add_subplot(grid[0, 3]), error, title, cmap="magma", vmin=0.0, vmax=0.3)
+        title += f" (here AbsRel {accuracy.metric[stamp].abs_rel:.3f})"
+    _image(figure.add_subplot(grid[0, 3]), error, title, "relative error (fraction)",
+           cmap="magma", vmin=0.0, vmax=0.3)  # fmt: skip
 
     cloud_axis = figure.add_subplot(grid[1, 0:2], projection="3d")
     _cloud_panel(cloud_axis, recording, stamp, truth)
@@ -102,18 +108,28 @@ def write_report_figure(
     return Path(path)
 
 
+def _frames(count: int) -> str:
+    """How many ground-truth frames a mean is over (the truth may be sparse: 3 of 90)."""
+    return f"mean of {count} truth frame{'s' if count != 1 else ''}"
+
+
 def headline(accuracy: Accuracy) -> str:
-    """The run's key accuracy figures on one line (the figure's subtitle); "" without truth."""
+    """The run's key accuracy figures on one line (the figure's subtitle); "" without truth.
+
+    Each mean says over how many ground-truth frames it is.
+    """
     parts: list[str] = []
     if accuracy.metric:
         errors = list(accuracy.metric.values())
         parts.append(f"metric depth AbsRel {np.mean([e.abs_rel for e in errors]):.3f}, "
-                     f"MAE {np.mean([e.mae for e in errors]) * 1e3:.1f} mm")  # fmt: skip
+                     f"MAE {np.mean([e.mae for e in errors]) * 1e3:.1f} mm "
+                     f"({_frames(len(errors))})")  # fmt: skip
     elif accuracy.relative:
         relative = np.mean([e.abs_rel for e in accuracy.relative.values()])
-        parts.append(f"relative depth AbsRel {relative:.3f}")
+        parts.append(f"relative depth AbsRel {relative:.3f} ({_frames(len(accuracy.relative))})")
     if accuracy.cloud_rms_m:
-        parts.append(f"cloud RMS {np.mean(list(accuracy.cloud_rms_m.values())) * 1e3:.1f} mm")
+        rms = np.mean(list(accuracy.cloud_rms_m.values())) * 1e3
+        parts.append(f"cloud RMS {rms:.1f} mm ({_frames(len(accuracy.cloud_rms_m))})")
     if accuracy.scale is not None:
         error = accuracy.scale.relative_error[np.isfinite(accuracy.scale.relative_error)]
         if len(error):
@@ -153,7 +169,9 @@ def _cloud_panel(axis: Any, recording: Path, stamp: int | None, truth: np.ndarra
     axis.set_xlabel("x (mm)")
     axis.set_ylabel("y (mm)")
     axis.set_zlabel("z (mm)")
-    plt.colorbar(shown, ax=axis, fraction=0.03, pad=0.08)
+    plt.colorbar(shown, ax=axis, fraction=0.03, pad=0.08).set_label(
+        "distance to the true surface (mm)", fontsize=8
+    )
 
 
 def _scale_panel(axis: Any, recording: Path, accuracy: Accuracy) -> None:
@@ -173,7 +191,7 @@ def _scale_panel(axis: Any, recording: Path, accuracy: Accuracy) -> None:
             span = np.percentile(np.abs(finite / accuracy.oracle_scale - 1.0), 95)
             margin = accuracy.oracle_scale * max(0.05, 1.3 * span)
             axis.set_ylim(accuracy.oracle_scale - margin, accuracy.oracle_scale + margin)
-    axis.set_xlabel("time (s)")
+    axis.set_xlabel("time from the first frame (s)")
     axis.set_ylabel("metres per unit of relative depth")
     axis.legend(fontsize=8)
 
@@ -188,4 +206,5 @@ def _calibration_panel(figure: Any, cell: Any, calibration: Path) -> None:
     response.set_xlabel("raw value")
     response.set_ylabel("irradiance")
     light_map = cal.light_map if cal.light_map.ndim == 2 else cal.light_map[..., 1]
-    _image(light, light_map, "light map L(x)", cmap="inferno", vmin=0.0, vmax=1.0)
+    _image(light, light_map, "light map L(x)", "relative to its peak", cmap="inferno",
+           vmin=0.0, vmax=1.0)  # fmt: skip

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import Any
 
 import matplotlib.pyplot as plt
 import numpy as np
@@ -216,15 +217,44 @@ def test_accuracy_against_the_ground_truth(full_run: tuple[ProcessReport, Path])
 
 
 def test_report_figure(
-    full_run: tuple[ProcessReport, Path], calibrations: tuple[Path, Path], tmp_path: Path
+    full_run: tuple[ProcessReport, Path],
+    calibrations: tuple[Path, Path],
+    tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
 ) -> None:
+    import endo_process.report
+
     accuracy = score_recording(full_run[1])
+    drawn: list[Any] = []
+    monkeypatch.setattr(endo_process.report.plt, "close", drawn.append)  # keep it to read
     figure = write_report_figure(full_run[1], accuracy, calibrations[0], tmp_path / "report.png")
-    # The subtitle gives the headline figures, the same numbers as the summary.
+    # The subtitle gives the headline figures, the same numbers as the summary,
+    # and says over how many truth frames each mean is (the phantom has 3 of 90).
     line = headline(accuracy)
     metric = np.mean([e.abs_rel for e in accuracy.metric.values()])
+    frames = len(accuracy.metric)
     assert f"metric depth AbsRel {metric:.3f}" in line
-    assert "cloud RMS" in line and "final scale" in line and "camera pose" in line
+    assert f"mm (mean of {frames} truth frames)" in line
+    rms_mm = np.mean(list(accuracy.cloud_rms_m.values())) * 1e3
+    assert f"cloud RMS {rms_mm:.1f} mm (mean of {len(accuracy.cloud_rms_m)} truth frames)" in line
+    assert "final scale" in line and "camera pose" in line
+    # Every colour bar says what its colours are, in which unit; the metric depth
+    # names the scale of its frame (the flow's estimate at that stamp).
+    (shown,) = drawn
+    titles = [axis.get_title() for axis in shown.axes]
+    labels = {axis.get_ylabel() for axis in shown.axes} | {axis.get_zlabel()
+              for axis in shown.axes if hasattr(axis, "get_zlabel")}  # fmt: skip
+    assert {"linear irradiance", "relative depth (no unit)", "depth (m)",
+            "relative error (fraction)", "distance to the true surface (mm)",
+            "relative to its peak"} <= labels  # fmt: skip
+    stamp = max(accuracy.metric)
+    stamps, scale = read_scale_stream(full_run[1])
+    used = scale[stamps == stamp][0]
+    assert f"metric depth, scale {used:.4g} m per unit" in titles
+    assert f"corrected image at t = {(stamp - stamps[0]) / 1e9:.2f} s" in titles
+    assert f"|depth − truth| / truth (here AbsRel {accuracy.metric[stamp].abs_rel:.3f})" in titles
+    monkeypatch.undo()
+    plt.close(shown)
     image = plt.imread(figure)
     assert image.shape[0] > 600 and image.shape[1] > 1200
     assert image[..., :3].std() > 0.1  # drawn, not blank
