@@ -217,6 +217,8 @@ def _ply_outcome(ply: Path | None, report: ProcessReport) -> str:
 
 def _run(args: argparse.Namespace, workers: StartedWorkers | None) -> int:
     """The run and its summary, with the workers started in :func:`main`."""
+    import numpy as np
+
     from endo_io.bag import BagError
     from endo_process.accuracy import Accuracy, score_recording
     from endo_process.damage import damage_line
@@ -241,7 +243,11 @@ def _run(args: argparse.Namespace, workers: StartedWorkers | None) -> int:
         accuracy = report.accuracy or score_recording(options.output)
     print(format_report(report, accuracy))
     if accuracy is not None and accuracy.poses is not None:
-        mismatch = registration_mismatch(options.bag, load_settings(options.params).T_world_tracker)
+        median_mm = (float(np.median(accuracy.poses.position_mm))
+                     if accuracy.poses.compared else None)  # fmt: skip
+        mismatch = registration_mismatch(
+            options.bag, load_settings(options.params).T_world_tracker, median_mm
+        )
         if mismatch is not None:
             print(f"{PROGRAM}: warning: {mismatch}", file=sys.stderr)
     if args.report is not None and report.write_failure:

@@ -34,6 +34,11 @@ from endo_sim.ground_truth import ground_truth_of
 # different frames). Far above what a registration is meant to differ by.
 REGISTRATION_TOLERANCE_M = 1e-3
 REGISTRATION_TOLERANCE_RAD = np.deg2rad(0.1)
+# Without the ground-truth file there is no registration to compare with; a
+# median camera pose error above this (mm) then says the frames differ: a
+# wrong registration costs metres or tens of degrees, the tracker's own
+# error is below a millimetre (docs/process.md).
+UNCHECKED_POSE_ERROR_MM = 50.0
 
 
 def simulated_parameters(bag: Path, **sfs: Any) -> dict[str, Any]:
@@ -63,18 +68,34 @@ def write_simulated_parameters(bag: Path, path: Path, **sfs: Any) -> Path:
     return Path(path)
 
 
-def registration_mismatch(bag: Path, T_world_tracker: np.ndarray) -> str | None:
+def registration_mismatch(
+    bag: Path, T_world_tracker: np.ndarray, pose_error_mm: float | None = None
+) -> str | None:
     """Why ``T_world_tracker`` does not put ``bag``'s outputs in its ground truth's frame.
 
-    Returns None when ``bag`` has no endo_sim ground truth beside it, or when
-    ``T_world_tracker`` (4, 4) is the simulator's registration to within
-    1 mm / 0.1°; otherwise one sentence naming the truth file and the gap.
+    Returns None when ``T_world_tracker`` (4, 4) is the simulator's
+    registration to within 1 mm / 0.1°; otherwise one sentence naming the
+    truth file and the gap. A bag without endo_sim's ground-truth file
+    beside it (a re-recording of a simulated bag: its ground-truth topics
+    came along, the file did not) cannot be checked: then ``pose_error_mm``,
+    the run's median camera pose error against those topics, decides
+    (above :data:`UNCHECKED_POSE_ERROR_MM` the sentence says so); None when
+    it is not given or small.
     """
     try:
         truth: dict[str, Any] = ground_truth_of(Path(bag))
         T_tracker_world = np.asarray(truth["tracker"]["T_tracker_world"], dtype=np.float64)
     except (GroundTruthError, KeyError, TypeError):
-        return None
+        if pose_error_mm is None or not pose_error_mm > UNCHECKED_POSE_ERROR_MM:
+            return None
+        return (
+            f"camera pose error median {pose_error_mm:.0f} mm against the ground truth in "
+            f"{Path(bag).name}: this run's world (tracker_bridge T_world_tracker) is not the "
+            "simulator's, so pose and cloud errors compare different frames; no "
+            f"{Path(bag).stem}.ground_truth.yaml beside it to check: run "
+            "`python -m endo_process.simulated BAG -o sim.yaml` on the bag endo-sim rendered "
+            "and pass --params sim.yaml"
+        )
     gap = np.asarray(T_world_tracker, np.float64) @ T_tracker_world
     distance = float(np.linalg.norm(gap[:3, 3]))
     angle = float(np.arccos(np.clip((np.trace(gap[:3, :3]) - 1.0) / 2.0, -1.0, 1.0)))

@@ -72,3 +72,20 @@ def test_a_millimetre_tracker_recording_gets_the_bridges_unit(tmp_path):
     (tmp_path / "rig_mm.ground_truth.yaml").write_text(yaml.safe_dump(truth))
     assert main([str(tmp_path / "rig_mm.mcap"), "-o", str(out)]) == 0
     assert load_settings(out).tracker_unit.value == "m"
+
+
+def test_a_recording_without_its_truth_file_is_judged_by_its_pose_error(tmp_path):
+    # A re-recording of a simulated bag (endo-replay -> endo-record) carries the
+    # ground-truth topics but not the truth file: endo-process scored it in the
+    # default world and printed a camera pose error of 1251 mm / 134 deg unexplained.
+    rerecorded = tmp_path / "run.mcap"
+    message = registration_mismatch(rerecorded, np.eye(4), pose_error_mm=1251.09)
+    assert message is not None and "\n" not in message
+    assert message.startswith("camera pose error median 1251 mm against the ground truth in "
+                              "run.mcap: this run's world")  # fmt: skip
+    assert "no run.ground_truth.yaml beside it" in message and "--params sim.yaml" in message
+    # the tracker's own error (the phantom's 0.35 mm) or no comparison: nothing to say
+    assert registration_mismatch(rerecorded, np.eye(4), pose_error_mm=0.35) is None
+    assert registration_mismatch(rerecorded, np.eye(4), pose_error_mm=None) is None
+    # with the truth file, the registration itself is compared, as before
+    assert "phantom_colon.mcap" in (registration_mismatch(PHANTOM, np.eye(4), 0.35) or "")
