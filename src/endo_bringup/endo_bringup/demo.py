@@ -527,14 +527,16 @@ def print_graph_report(report: GraphReport, rate: float) -> None:
             f"(command line first) in {run.log_dir}"
         )
         per_frame = {t for p in run.processes for t in p.per_frame_outputs}
-        print(f"    {'stage':<28} {'output topic':<30} {'in':>5} {'out':>5} {'dropped':>7}  exit")
+        # "in-out", not "dropped": the monitor's table below has the nodes' own
+        # "dropped" (bad input) beside "skipped" (stale frames), which make up in-out.
+        print(f"    {'stage':<28} {'output topic':<30} {'in':>5} {'out':>5} {'in-out':>7}  exit")
         for row in stage_counts(run, report.counts):
             code = "?" if row.return_code is None else row.return_code
             # depth and cloud start once the scale converged, the map is periodic
-            dropped = row.count_in - row.count_out if row.topic in per_frame else "-"
+            missing = row.count_in - row.count_out if row.topic in per_frame else "-"
             print(
                 f"    {row.stage:<28} {row.topic:<30} {row.count_in:>5} {row.count_out:>5} "
-                f"{dropped:>7}  {code}"
+                f"{missing:>7}  {code}"
             )
     if report.figures is not None:
         print("    as bench/bench_graph.py measures it (endo_bringup.graph_monitor):")

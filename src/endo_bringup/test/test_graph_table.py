@@ -180,3 +180,30 @@ def test_the_recorders_own_loss_line_is_read_from_its_log(tmp_path):
     (tmp_path / f"{RECORDER}.log").write_text("\n".join(RecordReport().summary_lines()))
     assert recorder_lost(tmp_path) == ""
     assert recorder_lost(tmp_path / "missing") == ""
+
+
+def test_the_printed_stage_table_does_not_call_in_minus_out_dropped(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The demo printed 'dropped 34' for SFS and, 12 lines below, 'skipped 34 dropped 0'.
+
+    The first table's column is in − out (stale frames skipped and messages
+    dropped alike); "dropped" is the nodes' own count of bad input.
+    """
+    from endo_bringup.demo import GraphReport, print_graph_report
+    from endo_bringup.graph import OfflineStep
+
+    processes = _table(tmp_path)
+    played = {topics.IMAGE_RAW: 90, topics.CAMERA_INFO: 90, topics.TRACKER_POSE: 170,
+              topics.TRUE_DEPTH: 3}  # fmt: skip
+    run = GraphRun(recording=tmp_path / "graph.mcap", played=played,
+                   return_codes={p.name: 0 for p in processes}, log_dir=tmp_path, seconds=1.0,
+                   processes=processes)  # fmt: skip
+    step = OfflineStep(["endo-calibrate"], 0, "", tmp_path / "x.yaml", 1.0)
+    counts = {topics.IMAGE_CORRECTED: 90, topics.DEPTH_RELATIVE: 55, topics.CAMERA_INFO: 90}
+    print_graph_report(GraphReport(step, step, None, run, counts=counts), 0.5)
+    lines = capsys.readouterr().out.splitlines()
+    (header,) = [line for line in lines if "output topic" in line]
+    assert header.split() == ["stage", "output", "topic", "in", "out", "in-out", "exit"]
+    (sfs,) = [line for line in lines if line.split()[:2] == ["endo-sfs", topics.DEPTH_RELATIVE]]
+    assert sfs.split()[2:5] == ["90", "55", "35"]
