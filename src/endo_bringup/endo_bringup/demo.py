@@ -599,9 +599,17 @@ def print_graph_report(report: GraphReport, rate: float) -> None:
             print("  every stage kept every frame and the accuracy bars hold")
         print(f"  recording: {run.recording}")
         print(
-            f"  look at it: open {run.recording} in Foxglove Studio, or play it with "
-            f"`endo-replay {run.recording} --loop` and watch in RViz2 on the same ROS_DOMAIN_ID"
+            f"  look at it: open {run.recording} in Foxglove (layout config/foxglove/endo3d.json),"
+            f" or play it with `endo-replay {run.recording} --loop` beside `endo-foxglove` or "
+            "RViz2 on the same ROS_DOMAIN_ID"
         )
+        if topic_names.TF not in report.counts:
+            # pip-only the bridge cannot publish /tf (no tf2_msgs wheel, docs/viewers.md)
+            print(
+                "    it holds no /tf (no tf2_msgs here): the 3D view shows the world cloud, map "
+                "and pose but cannot place the camera's images; endo-process outputs "
+                "(offline.mcap) carry /tf"
+            )
 
 
 def run_offline_stage(

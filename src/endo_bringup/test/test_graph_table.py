@@ -207,3 +207,8 @@ def test_the_printed_stage_table_does_not_call_in_minus_out_dropped(
     assert header.split() == ["stage", "output", "topic", "in", "out", "in-out", "exit"]
     (sfs,) = [line for line in lines if line.split()[:2] == ["endo-sfs", topics.DEPTH_RELATIVE]]
     assert sfs.split()[2:5] == ["90", "55", "35"]
+    # pip-only the recording has no /tf: the hint says what the viewer can and cannot place
+    hint = [line for line in lines if "no /tf" in line]
+    assert len(hint) == 1 and "offline.mcap) carry /tf" in hint[0]
+    print_graph_report(GraphReport(step, step, None, run, counts=counts | {topics.TF: 89}), 0.5)
+    assert "no /tf" not in capsys.readouterr().out
