@@ -41,7 +41,11 @@ GROUND_TRUTH_SUFFIXES = (
 )
 
 
-def _add_common(parser: argparse.ArgumentParser) -> None:
+#: ``live``'s default --duration (s): colon and abdomen go on this long before the motion repeats.
+LIVE_DURATION_S = 3600.0
+
+
+def _add_common(parser: argparse.ArgumentParser, *, live: bool = False) -> None:
     parser.add_argument("scene", choices=SCENES, help="what to simulate")
     g = parser.add_argument_group("camera")
     g.add_argument("--width", type=int, default=640, help="image width, pixels (640)")
@@ -56,7 +60,13 @@ def _add_common(parser: argparse.ArgumentParser) -> None:
         help="circular field of view radius, pixels (height/2)",
     )
     g.add_argument("--fps", type=float, default=30.0, help="frame rate (30)")
-    g.add_argument("--duration", type=float, default=10.0, help="length in s, colon/abdomen (10)")
+    if live:
+        g.add_argument("--duration", type=float, default=LIVE_DURATION_S,
+                       help="colon/abdomen: the motion repeats after this many s "
+                       f"(default {LIVE_DURATION_S:g})")  # fmt: skip
+    else:
+        g.add_argument("--duration", type=float, default=10.0,
+                       help="length in s, colon/abdomen (10)")  # fmt: skip
     g.add_argument("--color", action="store_true", help="rgb8 instead of mono")
     g.add_argument(
         "--bit-depth",
@@ -293,7 +303,7 @@ def build_parser() -> argparse.ArgumentParser:
     render.add_argument("-q", "--quiet", action="store_true",
                         help="no progress bar (it is shown only on a terminal anyway)")
     live = sub.add_parser("live", help="publish in real time (stand-in camera driver + tracker)")
-    _add_common(live)
+    _add_common(live, live=True)
     return parser
 
 
@@ -353,9 +363,6 @@ def _live(args: argparse.Namespace, argv: Sequence[str]) -> int:
     from endo_io.process import run_node
     from endo_sim.node import SimulatorNode
 
-    if args.scene in ("colon", "abdomen"):
-        # Live runs go on for an hour before the motion repeats.
-        args.duration = 3600.0
     sequence = build_sequence(config_from_args(args))
     return run_node(lambda: SimulatorNode(sequence), args=argv)
 

@@ -43,3 +43,30 @@ def test_cli_flags_reach_the_configuration() -> None:
     assert config.photometry.specular_strength == 0.0
     default = config_from_args(build_parser().parse_args(["render", "abdomen", "-o", "x.mcap"]))
     assert default.texture == TextureOptions()
+
+
+def test_live_honours_duration_and_says_its_own_default(monkeypatch) -> None:
+    """``endo-sim live colon --duration 3`` ran an hour-long motion: the flag was overwritten.
+
+    Its help said "length in s, colon/abdomen (10)" while live used 3600 s whatever was given.
+    """
+    import endo_io.process
+    import endo_sim.cli
+
+    built: list[float] = []
+
+    def plan(config):  # the sequence a live run would play, without rendering it
+        built.append(config.duration_s)
+        raise SystemExit(0)
+
+    monkeypatch.setattr(endo_sim.cli, "build_sequence", plan)
+    monkeypatch.setattr(endo_io.process, "run_node", lambda *a, **k: 0)
+    for argv, duration in ((["live", "colon"], endo_sim.cli.LIVE_DURATION_S),
+                           (["live", "colon", "--duration", "3"], 3.0)):  # fmt: skip
+        with pytest.raises(SystemExit):
+            endo_sim.cli.main(argv)
+        assert built.pop() == duration
+    live = next(a for a in build_parser()._subparsers._group_actions[0].choices["live"]._actions
+                if "--duration" in a.option_strings)  # fmt: skip
+    assert live.default == 3600.0 and "repeats after" in (live.help or "")
+    assert build_parser().parse_args(["render", "colon", "-o", "x.mcap"]).duration == 10.0
