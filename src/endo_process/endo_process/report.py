@@ -12,7 +12,9 @@ Panels (matplotlib, Agg):
 * bottom right, the photometric calibration: the inverse response g(v) and
   the light map L(x).
 
-Without ground truth the truth panels say so and the rest is drawn.
+Without ground truth (a real rig's recording) the top row is the last frame
+with metric depth, its points are coloured by world z, and the error panel
+says there is no truth.
 """
 
 from __future__ import annotations
@@ -28,20 +30,35 @@ import numpy as np
 
 from endo_calib.calibration import PhotometricCalibration
 from endo_io import topics
+from endo_io.bag import BagReader
 from endo_io.bag.streams import read_depth_frames, read_pose_stream
 from endo_io.camera import CameraModel
 from endo_io.pointcloud import pointcloud2_to_xyz
 from endo_process.accuracy import Accuracy, cloud_distances, messages_at, read_scale_stream
 
 
-def _frame_stamp(accuracy: Accuracy) -> int | None:
+def _frame_stamp(accuracy: Accuracy, recording: Path) -> int | None:
+    """The frame the top row shows: the last one scored against the truth.
+
+    Without ground truth (a real rig's recording), the last frame with metric
+    depth, else with relative depth: the frames are drawn all the same (they
+    were "not available" before, on every recording without truth). An
+    endo-process output logs each frame at its header stamp, so the log
+    times name the frames without decoding them.
+    """
     for errors in (accuracy.metric, accuracy.relative):
         if errors:
             return max(errors)
+    with BagReader(recording) as reader:
+        for topic in (topics.DEPTH, topics.DEPTH_RELATIVE):
+            if topic in reader.topics:
+                stamps = [message.log_time_ns for message in reader.messages([topic])]
+                if stamps:
+                    return max(stamps)
     return None
 
 
-def _range(image: np.ndarray | None) -> dict[str, float]:
+def _range(image: np.ndarray | None) -> dict[str, Any]:
     """Colour limits at the 2nd and 98th percentiles (the far lumen would take the scale)."""
     if image is None or not np.isfinite(image).any():
         return {}
@@ -49,12 +66,20 @@ def _range(image: np.ndarray | None) -> dict[str, float]:
     return {"vmin": float(low), "vmax": float(high)}
 
 
-def _image(axis: Any, image: np.ndarray | None, title: str, unit: str, **style: Any) -> None:
-    """One image panel; ``unit`` labels its colour bar (every panel says what its colours mean)."""
+def _image(
+    axis: Any,
+    image: np.ndarray | None,
+    title: str,
+    unit: str,
+    *,
+    missing: str = "not available",
+    **style: Any,
+) -> None:
+    """One image panel; ``unit`` labels its colour bar, ``missing`` says why there is no image."""
     axis.set_title(title, fontsize=9)
     axis.axis("off")
     if image is None:
-        axis.text(0.5, 0.5, "not available", ha="center", va="center", transform=axis.transAxes)
+        axis.text(0.5, 0.5, missing, ha="center", va="center", transform=axis.transAxes)
         return
     shown = axis.imshow(image, **style)
     plt.colorbar(shown, ax=axis, fraction=0.046, pad=0.02).set_label(unit, fontsize=8)
@@ -66,7 +91,7 @@ def write_report_figure(
     """Draw the figure of a run's output ``recording`` into ``path`` (PNG); returns ``path``."""
     figure = plt.figure(figsize=(16, 8.5), constrained_layout=True)
     grid = figure.add_gridspec(2, 4)
-    stamp = _frame_stamp(accuracy)
+    stamp = _frame_stamp(accuracy, recording)
     frames: dict[str, np.ndarray | None] = dict.fromkeys(
         ("image", "relative", "metric", "truth"), None
     )
@@ -96,6 +121,7 @@ def write_report_figure(
     if stamp is not None and stamp in accuracy.metric:
         title += f" (here AbsRel {accuracy.metric[stamp].abs_rel:.3f})"
     _image(figure.add_subplot(grid[0, 3]), error, title, "relative error (fraction)",
+           missing="not available" if accuracy.has_truth else "no ground truth in the recording",
            cmap="magma", vmin=0.0, vmax=0.3)  # fmt: skip
 
     cloud_axis = figure.add_subplot(grid[1, 0:2], projection="3d")
@@ -142,36 +168,49 @@ def headline(accuracy: Accuracy) -> str:
 
 
 def _cloud_panel(axis: Any, recording: Path, stamp: int | None, truth: np.ndarray | None) -> None:
+    """That frame's world points, coloured by their distance to the true surface.
+
+    Without the truth at that frame (a recording of a real rig) they are
+    coloured by their world z, and the title says so.
+    """
     axis.set_title("world points of that frame (2nd-98th percentile box), distance to the true "
                    "surface (mm)", fontsize=9)  # fmt: skip
     if stamp is None:
         return
     cloud = messages_at(recording, topics.POINTS, {stamp}).get(stamp)
     info = messages_at(recording, topics.CAMERA_INFO, {stamp}).get(stamp)
-    true_stamps, true_poses = read_pose_stream(recording, topics.TRUE_CAMERA_POSE)
-    if cloud is None or info is None or truth is None or stamp not in set(true_stamps.tolist()):
+    if cloud is None:
         axis.text2D(0.5, 0.5, "not available", ha="center", transform=axis.transAxes)
         return
     points, _ = pointcloud2_to_xyz(cloud)
     points = points.reshape(-1, 3)
     points = points[np.isfinite(points).all(axis=1)]
-    pose = true_poses[true_stamps.tolist().index(stamp)]
-    distance = cloud_distances(points, truth, CameraModel.from_camera_info(info), pose)
+    if len(points) == 0:
+        axis.text2D(0.5, 0.5, "no finite point", ha="center", transform=axis.transAxes)
+        return
     millimetres = points * 1e3
+    true_stamps, true_poses = read_pose_stream(recording, topics.TRUE_CAMERA_POSE)
+    if truth is not None and info is not None and stamp in set(true_stamps.tolist()):
+        pose = true_poses[true_stamps.tolist().index(stamp)]
+        colour = cloud_distances(points, truth, CameraModel.from_camera_info(info), pose) * 1e3
+        label, low_colour = "distance to the true surface (mm)", 0.0
+    else:
+        axis.set_title("world points of that frame (2nd-98th percentile box), coloured by "
+                       "world z (mm): no ground truth", fontsize=9)  # fmt: skip
+        colour = millimetres[:, 2]
+        label, low_colour = "world z (mm)", float(np.percentile(colour, 2))
     # The view spans the bulk of the surface: a few far points in the lumen
     # would otherwise shrink it to a corner of the box.
     low, high = np.percentile(millimetres, [2.0, 98.0], axis=0)
     inside = np.all((millimetres >= low) & (millimetres <= high), axis=1)
-    top = max(1e-3, float(np.percentile(distance * 1e3, 98)))
-    shown = axis.scatter(*millimetres[inside].T, c=distance[inside] * 1e3, s=0.5, cmap="turbo",
-                         vmin=0.0, vmax=top)  # fmt: skip
+    top = max(low_colour + 1e-3, float(np.percentile(colour, 98)))
+    shown = axis.scatter(*millimetres[inside].T, c=colour[inside], s=0.5, cmap="turbo",
+                         vmin=low_colour, vmax=top)  # fmt: skip
     axis.view_init(elev=20.0, azim=-60.0)
     axis.set_xlabel("x (mm)")
     axis.set_ylabel("y (mm)")
     axis.set_zlabel("z (mm)")
-    plt.colorbar(shown, ax=axis, fraction=0.03, pad=0.08).set_label(
-        "distance to the true surface (mm)", fontsize=8
-    )
+    plt.colorbar(shown, ax=axis, fraction=0.03, pad=0.08).set_label(label, fontsize=8)
 
 
 def _scale_panel(axis: Any, recording: Path, accuracy: Accuracy) -> None:

@@ -260,6 +260,58 @@ def test_report_figure(
     assert image[..., :3].std() > 0.1  # drawn, not blank
 
 
+def test_report_of_a_recording_without_ground_truth_draws_its_frames(
+    calibrations: tuple[Path, Path], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A real rig's recording has no ground truth: its frames were all "not available".
+
+    The top row showed no corrected image, no relative and no metric depth and the
+    3-D panel no point, although the output held them all; now the last frame with
+    metric depth is drawn, its points coloured by world z, the error panel says why
+    it is empty.
+    """
+    import endo_process.report
+    from endo_io.bag import BagWriter
+
+    bag = tmp_path / "rig.mcap"  # the phantom's first 40 frames without /ground_truth/*
+    with BagReader(PHANTOM) as reader, BagWriter(bag) as writer:
+        kept = [t for t in reader.topics if not t.startswith("/ground_truth")]
+        for name in kept:
+            writer.add_topic(name, reader.topics[name].msgtype)
+        images = 0
+        for message in reader.messages(kept):
+            images += message.topic == topics.IMAGE_RAW
+            if images > 40:
+                break
+            writer.write(message.topic, message.data, message.log_time_ns)
+    output = tmp_path / "rig_out.mcap"
+    process_bag(ProcessOptions(
+        bag=bag, output=output, calibration=calibrations[0], handeye=calibrations[1],
+        solve_scale=0.5, jobs=1, progress=False,
+    ))  # fmt: skip
+    accuracy = score_recording(output)
+    assert not accuracy.has_truth
+    with BagReader(output) as reader:
+        last_metric = max(m.log_time_ns for m in reader.messages([topics.DEPTH]))
+    drawn: list[Any] = []
+    monkeypatch.setattr(endo_process.report.plt, "close", drawn.append)
+    write_report_figure(output, accuracy, calibrations[0], tmp_path / "report.png")
+    (shown,) = drawn
+    panels = {axis.get_title(): axis for axis in shown.axes if axis.get_title()}
+    stamps = read_scale_stream(output)[0]
+    image = panels[f"corrected image at t = {(last_metric - stamps[0]) / 1e9:.2f} s"]
+    assert len(image.images) == 1
+    assert len(panels["relative depth (SFS; white: none)"].images) == 1
+    (metric,) = [axis for title, axis in panels.items() if title.startswith("metric depth, scale")]
+    assert len(metric.images) == 1
+    error = panels["|depth − truth| / truth"]
+    assert [t.get_text() for t in error.texts] == ["no ground truth in the recording"]
+    labels = {axis.get_ylabel() for axis in shown.axes}
+    assert "world z (mm)" in labels
+    monkeypatch.undo()
+    plt.close(shown)
+
+
 def test_one_and_two_jobs_agree_to_the_solver_tolerance(
     full_run: tuple[ProcessReport, Path], one_chain: Path
 ) -> None:
