@@ -456,8 +456,9 @@ class ReplayReport:
         if self.interrupted:
             lines.append("  interrupted before the end of the bag")
         if self.error:
-            # the reader yields every intact message (past a lost chunk too) before it raises
-            lines.append(f"  damaged bag, every intact message played: {self.error}")
+            # the reader yields what it can reach (past a lost chunk too; not past framing
+            # damage in a file without its summary) before it raises
+            lines.append(f"  damaged bag, every message it could read was played: {self.error}")
         return lines
 
 

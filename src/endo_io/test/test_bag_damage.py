@@ -385,3 +385,25 @@ def test_a_cut_closing_magic_is_a_region_that_cost_no_message(tmp_path):
         (region,) = reader.damaged_regions
     assert region.lost == "none" and region.start_ns is None and region.end_ns is None
     assert "closing MCAP magic" in region.reason
+
+
+def test_a_split_bag_file_cut_before_any_message_loses_what_came_after_the_files_before(
+    tmp_path,
+):
+    # Review, session 16: a recorder killed at a split's rollover leaves a last file with
+    # nothing readable; its region had no log time, and endo-process placed it "inside"
+    # the frames read, saying "the frames after them were processed".
+    from endo_io.bag.repair import reindex
+
+    directory = tmp_path / "split"
+    directory.mkdir()
+    written = write_chunked_bag(directory / "split_0.mcap", "none")
+    (directory / "split_1.mcap").write_bytes(b"\x89MCAP")
+    reindex(directory)
+    with BagReader(directory) as reader:
+        (region,) = reader.damaged_regions
+    assert region.path.name == "split_1.mcap" and region.lost == "rest"
+    assert region.start_ns == written[-1][0]  # the latest log time of the file before it
+    with BagReader(directory / "split_1.mcap") as reader:  # alone, it has no time before
+        (alone,) = reader.damaged_regions
+    assert alone.start_ns is None

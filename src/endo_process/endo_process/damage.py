@@ -7,13 +7,15 @@ puts each region against the log times of the images the run read, and
 :func:`damage_line` says the most serious one in one line:
 
 * ``before`` / ``inside``: messages lost before the first frame read, or
-  between the first and the last (a corrupt chunk in the middle: the frames
-  after it were processed, the ones in it are missing);
+  between the first and what the last one needs (its log time plus the
+  reach of its pose lookup, ``reach_ns``): a corrupt chunk in the middle
+  (the frames after it were processed, the ones in it are missing), or one
+  right after the last frame that held its tracker samples;
 * ``end``: the run read every image that could be read and the messages
-  lost come after the last one (a cut: "cut short"; or a lost chunk at the
-  end);
-* ``after``: the run stopped before the damage (``--max-frames``, a stop
-  request): it was not met;
+  lost come after what the last one needs (a cut: "cut short"; or a lost
+  chunk at the end);
+* ``after``: the run stopped (``--max-frames``, a stop request) before the
+  damage and before what its frames need: it was not met;
 * ``none``: the region cost no message (a metadata record, the closing
   magic).
 
@@ -56,6 +58,8 @@ def place_damage(
     image_topic: str,
     frames_log_ns: tuple[int, int] | None,
     read_to_end: bool,
+    *,
+    reach_ns: int = 0,
 ) -> list[PlacedDamage]:
     """Place each region against the frames a run read.
 
@@ -66,6 +70,11 @@ def place_damage(
             None if none was.
         read_to_end: Whether the run read the image stream to its end (it
             did not stop at ``--max-frames`` or a stop request).
+        reach_ns: How far past the last image's log time the frames read
+            still need messages: a frame's pose is interpolated from tracker
+            samples up to the pose buffer's gap (plus the hand-eye clock
+            offset) after its stamp, so a chunk lost within it may have cost
+            the last frames their poses and is not "after" them.
 
     Returns:
         One placement per region, in the order given.
@@ -74,12 +83,14 @@ def place_damage(
     for region in regions:
         counts = region.lost_counts
         images = None if counts is None else counts.get(image_topic, 0)
-        placed.append(PlacedDamage(region, _where(region, frames_log_ns, read_to_end), images))
+        where = _where(region, frames_log_ns, read_to_end, reach_ns)
+        placed.append(PlacedDamage(region, where, images))
     return placed
 
 
 def _where(
-    region: DamagedRegion, frames_log_ns: tuple[int, int] | None, read_to_end: bool
+    region: DamagedRegion, frames_log_ns: tuple[int, int] | None, read_to_end: bool,
+    reach_ns: int,
 ) -> Placement:
     if region.lost == "none":
         return "none"
@@ -89,13 +100,16 @@ def _where(
     first, last = frames_log_ns
     start = region.start_ns
     if region.lost == "rest":
-        # Messages logged at the last one read may be lost with the rest, so
-        # only a cut strictly before the last frame (another file of a split
-        # bag went on) lost messages among the frames.
-        return "inside" if start is None or start < last else past
+        # A cut strictly before the last frame: another file of a split bag
+        # went on past it, so messages among the frames were lost.
+        if start is None or start < last:
+            return "inside"
+        if read_to_end:
+            return "end"
+        return "after" if start > last + reach_ns else "inside"
     if start is None or region.end_ns is None:  # a chunk whose header's times are damaged
         return "inside" if read_to_end else "after"
-    if start >= last:  # messages logged with the last frame read: none after it was processed
+    if start > last + reach_ns:  # beyond what the frames read need (their poses included)
         return past
     return "before" if region.end_ns < first else "inside"
 
@@ -149,22 +163,21 @@ def damage_line(
     region = item.region
     others = len(placed) - 1
     more = f"; {others} more damaged region{'' if others == 1 else 's'}" if others else ""
-    frames = f"{frames_read} frame{'' if frames_read == 1 else 's'}"
+    frames = f"{frames_read} image{'' if frames_read == 1 else 's'}"
     if item.where == "inside":
-        return (f"error: the input lost messages inside the {frames} processed "
-                f"({_lost_what(item, origin_ns)}; the frames after them were processed): "
-                f"{region}{more}")  # fmt: skip
+        return (f"error: the input lost messages that the {frames} read needed "
+                f"({_lost_what(item, origin_ns)}): {region}{more}")  # fmt: skip
     if item.where == "before":
-        return (f"error: the input lost messages before the first of the {frames} processed "
+        return (f"error: the input lost messages before the first of the {frames} read "
                 f"({_lost_what(item, origin_ns)}): {region}{more}")  # fmt: skip
     if item.where == "end" and region.lost == "rest":
         return f"input cut short, processed up to the damage: {region}{more}"
     if item.where == "end":
-        return (f"error: the input lost messages after the last of the {frames} processed "
+        return (f"error: the input lost messages after the last of the {frames} read "
                 f"({_lost_what(item, origin_ns)}): {region}{more}")  # fmt: skip
     if item.where == "none":
         return f"error: the input is damaged where it lost no message: {region}{more}"
-    return f"note: the input is damaged after the {frames} processed ({stopped_by}): {region}{more}"
+    return f"note: the input is damaged after the {frames} read ({stopped_by}): {region}{more}"
 
 
 def damage_document(placed: list[PlacedDamage], origin_ns: int) -> list[dict[str, Any]]:

@@ -548,10 +548,16 @@ def _export_ply(flow: FlowStage, options: ProcessOptions, report: ProcessReport)
         report.ply_error = "the map was empty"
 
 
-def _place_damage(report: ProcessReport, streams: RecordingStreams, image_topic: str) -> None:
-    """Where the input's damage lies against the frames read: ``input_damage``, ``damage*``."""
+def _place_damage(
+    report: ProcessReport, streams: RecordingStreams, image_topic: str, reach_ns: int
+) -> None:
+    """Where the input's damage lies against the frames read: ``input_damage``, ``damage*``.
+
+    ``reach_ns``: how far past the last image's log time its pose lookup reads
+    (:func:`endo_process.damage.place_damage`).
+    """
     placed = place_damage(streams.damaged_regions(), image_topic, report.frames_log_ns,
-                          report.read_all_images)  # fmt: skip
+                          report.read_all_images, reach_ns=reach_ns)  # fmt: skip
     report.input_damage = placed
     serious = most_serious(placed)
     if serious is None:
@@ -792,7 +798,11 @@ def process_bag(
     report.written = output.on_disk if report.write_failure else Counter(output.counts)
     report.lost = output.lost
     report.poses_written = report.written[topics.CAMERA_POSE]
-    _place_damage(report, streams, inputs.topics.image)
+    # a frame's pose: tracker samples up to the buffer's gap after its stamp, shifted by
+    # the hand-eye clock offset (the tracker's clock against the camera's)
+    pose_reach_ns = (round(float(settings.flow["pose_max_gap_s"]) * NS_PER_S)
+                     + abs(handeye.time_offset_ns))  # fmt: skip
+    _place_damage(report, streams, inputs.topics.image, pose_reach_ns)
     report.undecodable = inputs.undecodable
     report.first_undecodable = inputs.first_undecodable
     if first_stamp is not None and last_stamp is not None:

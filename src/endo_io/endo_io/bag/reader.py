@@ -266,9 +266,21 @@ class BagReader:
         (:class:`~endo_io.bag.interfaces.DamagedRegion`). Regions found at
         opening are here at once; a damaged chunk is found when reading gets
         to its start time, so one after the messages read so far may be
-        missing (stay after the reading to know them all).
+        missing (stay after the reading to know them all). A file of a split
+        bag cut before any message could be read loses what was logged after
+        the files before it: its ``rest`` starts at their latest log time.
         """
-        return [region for f in self._files for region in f.damaged_regions]
+        regions: list[DamagedRegion] = []
+        latest: int | None = None  # the latest log time of the files before this one
+        for mcap_file in self._files:
+            for region in mcap_file.damaged_regions:
+                if region.lost == "rest" and region.start_ns is None and latest is not None:
+                    region = dataclasses.replace(region, start_ns=latest)
+                regions.append(region)
+            span = mcap_file.time_range()
+            if span is not None:
+                latest = span[1] if latest is None else max(latest, span[1])
+        return regions
 
     def messages(
         self,
