@@ -115,7 +115,8 @@ class ProcessReport:
     """What a run did, for the summary table and the tests.
 
     Counters are per cause (error class name). ``seconds`` is the wall time
-    of the frame loop, ``bag_seconds`` the recording time it covered.
+    of the frame loop, ``bag_seconds`` the recording time it covered (by the
+    images' log times).
     ``stage_seconds``: wall seconds of the frame loop's steps in this
     process, summed over the frames (:data:`LOOP_STAGES`);
     ``stage_cpu_seconds``: the CPU seconds of the same steps in the loop's
@@ -806,8 +807,15 @@ def process_bag(
     report.undecodable = inputs.undecodable
     report.first_undecodable = inputs.first_undecodable
     if first_stamp is not None and last_stamp is not None:
-        frame_period = 0 if report.frames_in < 2 else (last_stamp - first_stamp) / max(
-            report.frames_in - 1, 1
-        )
-        report.bag_seconds = (last_stamp - first_stamp + frame_period) / NS_PER_S
+        # The recording time covered: the log times of the images read (the recorder's
+        # clock: a re-recorded looping replay's stamps go back at each loop, so the
+        # stamps' span said 0.04x for a run at ~0.8x); the stamps' when the log times
+        # do not move (a writer that logged every message at one time).
+        span_ns = 0
+        if report.frames_log_ns is not None:
+            span_ns = report.frames_log_ns[1] - report.frames_log_ns[0]
+        if span_ns <= 0:
+            span_ns = last_stamp - first_stamp
+        frame_period = 0 if report.frames_in < 2 else span_ns / max(report.frames_in - 1, 1)
+        report.bag_seconds = (span_ns + frame_period) / NS_PER_S
     return report

@@ -755,3 +755,32 @@ def test_a_ply_that_cannot_be_written_or_has_nothing_costs_only_itself(
         captured.out)
     assert f"endo-process: warning: --ply {ply} not written (the map was empty)" in captured.err
     assert not ply.exists()
+
+
+def test_real_time_of_a_re_recorded_loop_counts_the_recording_not_its_stamps(
+    calibrations: tuple[Path, Path], tmp_path: Path
+) -> None:
+    # Probe, session 16: a looping replay re-recorded (endo-replay --loop beside endo-record)
+    # has stamps that go back at each loop; the stamps' span gave "0.04x real time" for a
+    # run at ~0.8x. Two passes of the phantom's first 30 frames, logged one after the other.
+    one = _subset(tmp_path / "one.mcap", ALL, images=30)
+    bag = tmp_path / "looped.mcap"
+    with BagReader(one) as reader, BagWriter(bag) as writer:
+        first, last = reader.time_range_ns  # type: ignore[misc]
+        for name, info in reader.topics.items():
+            writer.add_topic(name, info.msgtype)
+        for loop in range(2):
+            for message in reader.messages():
+                writer.write(message.topic, message.data,
+                             message.log_time_ns + loop * (last - first + 33_333_333))
+    summary = tmp_path / "summary.json"
+    assert main(_argv(bag, tmp_path / "out.mcap", calibrations, "--summary-json",
+                      str(summary))) in (EXIT_OK, EXIT_DAMAGED)  # fmt: skip
+    document = json.loads(summary.read_text())
+    assert document["frames"]["read"] == 60
+    with BagReader(bag) as reader:
+        logged = [m.log_time_ns for m in reader.messages([topics.IMAGE_RAW])]
+    # the 60 images' log times span ~2 s of recording (plus one frame), whatever the stamps did
+    covered = (logged[-1] - logged[0]) * 60 / 59 / 1e9
+    assert covered > 1.9
+    assert document["speed"]["recording_seconds"] == pytest.approx(covered, rel=1e-9)
