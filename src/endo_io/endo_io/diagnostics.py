@@ -25,7 +25,13 @@ What the status says (one ``DiagnosticStatus`` per :class:`InputHealth`):
   transport, :class:`endo_io.sequence_gaps.SequenceGapCounter`);
   ``clock_jumps`` (state reset because time jumped); ``age_s.<input>``
   (seconds since the input's last message, or ``never``); ``skipped`` and
-  ``skipped.<input>`` (stale frames passed over for a newer one, below).
+  ``skipped.<input>`` (stale frames passed over for a newer one, below);
+  ``publishers.<input>`` (publishers its subscription matched now). An input
+  never seen or stale is said with its publishers: "no publisher" (nobody
+  publishes the topic here: a remap, another ``ROS_DOMAIN_ID`` or discovery
+  range), "N publishers on the graph, none matched" (their QoS is
+  incompatible with the subscription's), or "N publishers matched" (they
+  send nothing, or the transport delivers nothing).
 
 Subscriptions made by :meth:`subscribe` take the serialized message
 (``raw=True``) and deserialize it inside the guard, so that a message whose
@@ -86,6 +92,7 @@ from dataclasses import dataclass, field
 from typing import Any, Protocol, TypeVar, cast
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from rclpy.exceptions import InvalidHandle
 from rclpy.node import Node
 from rclpy.qos import QoSProfile
 from rclpy.serialization import deserialize_message
@@ -169,6 +176,7 @@ class _Input:
     received: int = 0
     last_arrival: float | None = None
     gaps: SequenceGapCounter | None = None
+    subscription: Subscription | None = None  # the node's, when it made one for the input
 
 
 def _age_ns(info: Any) -> float:
@@ -576,6 +584,7 @@ class InputHealth:
         # signature and passes (message, info) to a two-argument one
         subscription = self._node.create_subscription(
             msg_type, topic, cast(Callable[[Any], None], guarded), qos, raw=True)
+        self._inputs[name].subscription = subscription
         return subscription
 
     def subscribe_passive(
@@ -617,6 +626,7 @@ class InputHealth:
         passive = PassiveInput(self, msg_type, name, callback, processed, decode, on_arrival)
         passive.subscription = self._node.create_subscription(
             msg_type, topic, passive.arrived, qos, raw=True, callback_group=passive.group)
+        self._inputs[name].subscription = passive.subscription
         return passive
 
     def _take_newest(
@@ -680,9 +690,10 @@ class InputHealth:
         found = []
         for name, entry in list(self._inputs.items()):
             if entry.last_arrival is None:
-                found.append(f"no message yet on {name}")
+                found.append(f"no message yet on {name}{self._publishers_said(name, entry)}")
             elif now - entry.last_arrival > stale_s:
-                found.append(f"{name} stale: nothing for {now - entry.last_arrival:.1f} s")
+                found.append(f"{name} stale: nothing for {now - entry.last_arrival:.1f} s"
+                             f"{self._publishers_said(name, entry)}")
         for kind, events in self._events.items():
             count = events.recent(now, window_s)
             if count:
@@ -691,6 +702,37 @@ class InputHealth:
                 )
         found += list(self._problems.values())
         return found
+
+    def _publishers(self, name: str, entry: _Input) -> tuple[int, int] | None:
+        """The input's matched publishers and the topic's publishers on the graph, or None.
+
+        None when the node made no subscription for it (or it is being destroyed).
+        """
+        if entry.subscription is None:
+            return None
+        try:
+            return entry.subscription.get_publisher_count(), self._node.count_publishers(name)
+        except (RuntimeError, InvalidHandle):  # rclpy's: the context or handle is gone
+            return None
+
+    def _publishers_said(self, name: str, entry: _Input) -> str:
+        """Why a silent input may be silent, from its publishers ("" when unknown).
+
+        Tells apart a topic nobody publishes (a remap, another domain or
+        discovery range), one whose publishers' QoS this subscription cannot
+        match (the graph has them, none matched), and one matched yet silent
+        (the publisher sends nothing, or the transport delivers nothing).
+        """
+        counts = self._publishers(name, entry)
+        if counts is None:
+            return ""
+        matched, on_graph = counts
+        if matched:
+            return f" ({matched} publisher{'s' * (matched != 1)} matched)"
+        if on_graph:
+            return (f" ({on_graph} publisher{'s' * (on_graph != 1)} on the graph, none matched:"
+                    " incompatible QoS?)")
+        return " (no publisher)"
 
     def status(self) -> DiagnosticStatus:
         """The current level, message and counters as one ``DiagnosticStatus``."""
@@ -712,6 +754,9 @@ class InputHealth:
         for name, entry in inputs:
             age = "never" if entry.last_arrival is None else f"{now - entry.last_arrival:.2f}"
             pairs += [(f"received.{name}", entry.received), (f"age_s.{name}", age)]
+            counts = self._publishers(name, entry)
+            if counts is not None:
+                pairs.append((f"publishers.{name}", counts[0]))
             if name in self.skipped:
                 pairs.append((f"skipped.{name}", self.skipped[name]))
             if entry.gaps is not None:

@@ -15,6 +15,7 @@ import rclpy
 from diagnostic_msgs.msg import DiagnosticStatus
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
+from rclpy.qos import qos_profile_sensor_data
 from rclpy.serialization import serialize_message
 from sensor_msgs.msg import Image
 
@@ -70,6 +71,41 @@ def test_an_input_never_seen_or_stale_warns_and_recovers(node):
     assert _values(health)["age_s./camera"] == "0.21"
     health.received("/camera")
     assert health.status().level == DiagnosticStatus.OK
+
+
+def test_a_silent_input_says_whether_it_has_no_publisher_an_incompatible_one_or_a_matched_one(
+        node):
+    # what a user checks first when an input stays silent: is anyone publishing
+    # it here, can this subscription match them, or is it matched and still silent
+    health = InputHealth(node, "image input")
+    health.subscribe(Image, "/camera", lambda msg: None, reliable_qos(5))
+    assert health.status().message == "no message yet on /camera (no publisher)"
+    assert _values(health)["publishers./camera"] == "0"
+
+    executor = SingleThreadedExecutor(context=node.context)
+    executor.add_node(node)
+
+    def spin_until(condition, timeout: float = 10.0) -> bool:
+        deadline = time.monotonic() + timeout
+        while not condition() and time.monotonic() < deadline:
+            executor.spin_once(timeout_sec=0.05)
+        return condition()
+
+    # a best-effort publisher cannot serve a reliable subscription
+    best_effort = node.create_publisher(Image, "/camera", qos_profile_sensor_data)
+    assert spin_until(lambda: node.count_publishers("/camera") == 1)
+    assert health.status().message == (
+        "no message yet on /camera (1 publisher on the graph, none matched: incompatible QoS?)")
+    assert _values(health)["publishers./camera"] == "0"
+    node.destroy_publisher(best_effort)
+
+    reliable = node.create_publisher(Image, "/camera", reliable_qos(5))
+    assert spin_until(lambda: _values(health)["publishers./camera"] == "1")
+    assert health.status().message == "no message yet on /camera (1 publisher matched)"
+    reliable.publish(array_to_image(np.zeros((4, 4), np.uint8), "mono8"))
+    assert spin_until(lambda: _values(health)["received./camera"] == "1")
+    assert health.status().level == DiagnosticStatus.OK
+    executor.shutdown()
 
 
 def test_one_drop_warns_for_the_window_then_the_level_returns_to_ok(node):
