@@ -252,7 +252,7 @@ def main(args: list[str] | None = None) -> int:
 
     Also installed under its old name ``photometric_correction`` for one release.
     """
-    return run_node(PhotometricCorrectionNode, args)
+    return run_node(PhotometricCorrectionNode, args, restart_on_lost_port=True)
 
 
 if __name__ == "__main__":

@@ -682,4 +682,4 @@ class FlowNode(Node):
 
 def main(args: list[str] | None = None) -> int:
     """Console entry point ``endo-flow``."""
-    return run_node(FlowNode, args)
+    return run_node(FlowNode, args, restart_on_lost_port=True)

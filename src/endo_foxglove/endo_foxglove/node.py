@@ -518,7 +518,7 @@ class FoxgloveBridgeNode(Node):
 
 def main(args: list[str] | None = None) -> int:
     """Console entry point of ``endo-foxglove`` (a bad setting: one line, exit code 2)."""
-    return run_node(FoxgloveBridgeNode, args)
+    return run_node(FoxgloveBridgeNode, args, restart_on_lost_port=True)
 
 
 if __name__ == "__main__":

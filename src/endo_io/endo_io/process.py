@@ -48,6 +48,8 @@ from rclpy.utilities import get_rmw_implementation_identifier
 from endo_io.cli import report_error
 from endo_io.dds_transport import TransportChoice, configure_large_frames
 from endo_io.errors import Endo3dError, ParameterValidationError, RosArgumentsError
+from endo_io.shm_ports import CHECK_PERIOD_S as SHM_PORT_CHECK_PERIOD_S
+from endo_io.shm_ports import SharedMemoryPortLostError, SharedMemoryPortWatch, reserve_ports
 
 
 @dataclass(frozen=True)
@@ -276,7 +278,8 @@ def sigint_shuts_down_only() -> Iterator[_SigintShutdown | None]:
         handler.close()
 
 
-def run_node(factory: Callable[[], Node], args: Sequence[str] | None = None) -> int:
+def run_node(factory: Callable[[], Node], args: Sequence[str] | None = None, *,
+             restart_on_lost_port: bool = False) -> int:
     """Create a node with ``factory`` and spin it until SIGINT or SIGTERM.
 
     ``args`` are the ROS arguments (``--ros-args ...``); ``sys.argv`` by default.
@@ -289,17 +292,34 @@ def run_node(factory: Callable[[], Node], args: Sequence[str] | None = None) -> 
     does not parse, a malformed remap; rcl also logs its own ``[ERROR]``
     line before it). SIGINT raises no KeyboardInterrupt in the node (see the
     module docstring): the callback it lands in finishes and ``close()`` runs.
+    When Fast DDS loses the node's shared-memory receiving port
+    (:mod:`endo_io.shm_ports`: matched on every topic, it would hear only
+    the publishers that had the old port open), one line says so; with
+    ``restart_on_lost_port`` (the processing nodes, whose state a new start
+    rebuilds) the node is then created again, with a new participant, in
+    this process. Without it (a recorder, whose file must not start over; a
+    replay) the line is logged as an error and the node goes on.
     """
     argv = list(sys.argv if args is None else args)
     ours, _ = split_ros_args(argv)
     if "-h" in ours or "--help" in ours:
         return print_node_help(factory, argv)
     with sigint_shuts_down_only() as sigint:
-        return _run_node(factory, argv, sigint)
+        while True:
+            try:
+                return _run_node(factory, argv, sigint, restart_on_lost_port)
+            except SharedMemoryPortLostError as error:
+                # the node starts over (a new DDS participant, its state and
+                # counters anew), as a respawn would, without leaving the
+                # process, on other ports than the lost ones (see reserve_ports)
+                reserve_ports(error.ports)
+                program = Path(argv[0]).name if argv else "node"
+                print(f"{program}: {error}; restarting the node's DDS participant",
+                      file=sys.stderr, flush=True)
 
 
 def _run_node(factory: Callable[[], Node], argv: list[str],
-              sigint: _SigintShutdown | None) -> int:
+              sigint: _SigintShutdown | None, restart_on_lost_port: bool) -> int:
     program = Path(argv[0]).name if argv else "node"
     # rclpy's default signal handlers cover SIGINT and SIGTERM: both shut the
     # context down, spin() returns, and the node's close() still runs below.
@@ -329,6 +349,8 @@ def _run_node(factory: Callable[[], Node], argv: list[str],
                 sigint.starting = False
         executor = SingleThreadedExecutor()
         executor.add_node(node)
+        node.create_timer(SHM_PORT_CHECK_PERIOD_S,
+                          _lost_port_check(node, restart=restart_on_lost_port))
         # Logged once the executor exists: a process that sees this line is up.
         log_dds_environment(node)
         executor.spin()
@@ -353,6 +375,30 @@ def _run_node(factory: Callable[[], Node], argv: list[str],
         # down already, and a later rclpy.init() in this process must work.
         rclpy.try_shutdown()
     return int(getattr(node, "exit_code", 0) or 0)
+
+
+def _lost_port_check(node: Node, *, restart: bool) -> Callable[[], None]:
+    """A timer callback: check the node's shared-memory ports (:mod:`endo_io.shm_ports`).
+
+    With ``restart`` a lost port raises :class:`SharedMemoryPortLostError`
+    out of ``spin()`` (:func:`run_node` creates the node again); without, it
+    is logged as an error once.
+    """
+    watch = SharedMemoryPortWatch()
+    logged = False
+
+    def check() -> None:
+        nonlocal logged
+        try:
+            watch.check()
+        except SharedMemoryPortLostError as error:
+            if restart:
+                raise
+            if not logged:
+                node.get_logger().error(f"{error}; restart this node to be reachable again")
+                logged = True
+
+    return check
 
 
 def _refused_arguments(error: Exception) -> str:

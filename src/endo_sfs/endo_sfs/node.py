@@ -439,7 +439,7 @@ class SfsNode(Node):
 
 def main(args: list[str] | None = None) -> int:
     """Console entry point of ``endo-sfs``."""
-    return run_node(SfsNode, args)
+    return run_node(SfsNode, args, restart_on_lost_port=True)
 
 
 if __name__ == "__main__":

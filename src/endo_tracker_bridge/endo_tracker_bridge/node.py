@@ -528,7 +528,7 @@ def main(args: Sequence[str] | None = None) -> int:
     A configuration that cannot work gives one line on stderr and exit code 2
     (through :func:`endo_io.process.run_node`).
     """
-    return run_node(TrackerBridgeNode, args)
+    return run_node(TrackerBridgeNode, args, restart_on_lost_port=True)
 
 
 if __name__ == "__main__":
