@@ -114,9 +114,11 @@ LISTENER = textwrap.dedent(
 )
 
 
-def _listen_after_losing_its_ports(mode: str, seconds: float) -> tuple[list[str], str]:
+def _listen_after_losing_its_ports(mode: str, seconds: float,
+                                   enough: int | None = None) -> tuple[list[str], str]:
     """Start a listener node, remove its port files by name, publish from a new participant.
 
+    Publishes for ``seconds``, or until the listener heard ``enough`` messages.
     Returns the listener's stdout lines while publishing (Fast DDS's own log
     lines left out) and its stderr.
     """
@@ -141,7 +143,8 @@ def _listen_after_losing_its_ports(mode: str, seconds: float) -> tuple[list[str]
         publisher = node.create_publisher(String, "/lost_port_probe", 10)
         end = time.monotonic() + seconds
         count = 0
-        while time.monotonic() < end:
+        while time.monotonic() < end and (
+                enough is None or sum(line.startswith("got ") for line in lines) < enough):
             publisher.publish(String(data=str(count)))
             count += 1
             ready, _, _ = select.select([child.stdout], [], [], 0.05)
@@ -176,7 +179,7 @@ def test_a_node_whose_ports_were_taken_hears_nothing_and_says_so():
 
 @pytest.mark.ros
 def test_run_node_restarts_a_node_whose_ports_were_taken_and_it_hears_again():
-    lines, err = _listen_after_losing_its_ports("restart", 15.0)
+    lines, err = _listen_after_losing_its_ports("restart", 30.0, enough=20)
     restarts = [line for line in err.splitlines()
                 if "restarting the node's DDS participant" in line]
     assert len(restarts) == 1, err
