@@ -19,10 +19,14 @@ from __future__ import annotations
 
 import gc
 import os
+import queue
 import subprocess
 import sys
-from collections.abc import Iterator
+import threading
+import time
+from collections.abc import Callable, Iterator
 from pathlib import Path
+from typing import IO
 
 import pytest
 
@@ -68,6 +72,53 @@ def _free_the_test_nodes(request: pytest.FixtureRequest) -> Iterator[None]:
     yield
     if request.node.get_closest_marker("ros") is not None:
         gc.collect()
+
+
+class ChildLines:
+    """A child process's output lines, read by a thread, waited for with a timeout.
+
+    ``select`` and a buffered ``readline`` do not mix: two lines that come in
+    one read leave the second in Python's buffer, where ``select`` does not
+    see it (a test then waited its whole timeout). Fast DDS prints its own
+    log lines on stdout, so a child's lines are looked for among others.
+    """
+
+    def __init__(self, stream: IO[str]) -> None:
+        self._lines: queue.Queue[str | None] = queue.Queue()
+        self.seen: list[str] = []  # every line taken so far, in order
+        threading.Thread(target=self._read, args=(stream,), daemon=True).start()
+
+    def _read(self, stream: IO[str]) -> None:
+        for line in stream:
+            self._lines.put(line.rstrip("\n"))
+        self._lines.put(None)  # the stream ended
+
+    def until(self, wanted: Callable[[str], bool], timeout: float) -> str | None:
+        """The first line ``wanted`` accepts within ``timeout`` seconds, or None."""
+        deadline = time.monotonic() + timeout
+        while (left := deadline - time.monotonic()) > 0:
+            try:
+                line = self._lines.get(timeout=left)
+            except queue.Empty:
+                return None
+            if line is None:
+                self._lines.put(None)  # so that later calls see the end too
+                return None
+            self.seen.append(line)
+            if wanted(line):
+                return line
+        return None
+
+    def rest(self, timeout: float) -> list[str]:
+        """Every line until the stream ends (or ``timeout`` seconds pass), taken in ``seen``."""
+        self.until(lambda line: False, timeout)
+        return self.seen
+
+
+@pytest.fixture
+def child_lines() -> type[ChildLines]:
+    """:class:`ChildLines`, to read a child process's stdout: ``child_lines(child.stdout)``."""
+    return ChildLines
 
 
 def _clean_zombie_shared_memory() -> str:

@@ -79,6 +79,10 @@ _OUTBOX_FULL = "outbox for client "
 _IDENTITY_ROWS = [float(v) for v in np.eye(4).ravel()]
 
 
+#: How long a WebSocket port still held by a stopped server is retried, seconds.
+_BIND_RETRY_S = 3.0
+
+
 class ViewerError(Endo3dError):
     """The bridge cannot start: bad TLS files, a port in use, a bad static transform."""
 
@@ -342,23 +346,31 @@ class FoxgloveBridgeNode(Node):
                 raise ViewerError(f"cannot read TLS file: {error}") from error
         foxglove.set_log_level("INFO")  # SDK events reach Python logging (once per process)
         logging.getLogger(_SDK_LOGGER).addHandler(self._slow_clients)
-        try:
-            return foxglove.start_server(
-                name=str(self._p["server_name"]),
-                host=str(self._p["host"]),
-                port=int(self._p["port"]),
-                server_listener=self._listener,
-                context=self._fg_context,
-                message_backlog_size=int(self._p["message_backlog_size"]),
-                tls_cert=cert,
-                tls_key=key,
-            )
-        except Exception as error:  # the SDK raises RuntimeError / its own error types
-            logging.getLogger(_SDK_LOGGER).removeHandler(self._slow_clients)
-            raise ViewerError(
-                f"cannot start the WebSocket server on {self._p['host']}:{self._p['port']}: "
-                f"{error}"
-            ) from error
+        # A node created again in its process (endo_io.shm_ports) binds the port its
+        # predecessor's server held: stop() does not wait for the socket to close
+        # (about 10 ms here, longer on a starved machine), so "in use" is retried.
+        deadline = time.monotonic() + _BIND_RETRY_S
+        while True:
+            try:
+                return foxglove.start_server(
+                    name=str(self._p["server_name"]),
+                    host=str(self._p["host"]),
+                    port=int(self._p["port"]),
+                    server_listener=self._listener,
+                    context=self._fg_context,
+                    message_backlog_size=int(self._p["message_backlog_size"]),
+                    tls_cert=cert,
+                    tls_key=key,
+                )
+            except Exception as error:  # the SDK raises RuntimeError / its own error types
+                if "in use" in str(error) and time.monotonic() < deadline:
+                    time.sleep(0.05)
+                    continue
+                logging.getLogger(_SDK_LOGGER).removeHandler(self._slow_clients)
+                raise ViewerError(
+                    f"cannot start the WebSocket server on {self._p['host']}:{self._p['port']}: "
+                    f"{error}"
+                ) from error
 
     def _request_resend(self, topic: str) -> None:
         """A client subscribed to ``topic`` (SDK thread): send it the latched data again."""

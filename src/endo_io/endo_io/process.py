@@ -29,6 +29,7 @@ import re
 import signal
 import sys
 import threading
+import time
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -50,6 +51,12 @@ from endo_io.dds_transport import TransportChoice, configure_large_frames
 from endo_io.errors import Endo3dError, ParameterValidationError, RosArgumentsError
 from endo_io.shm_ports import CHECK_PERIOD_S as SHM_PORT_CHECK_PERIOD_S
 from endo_io.shm_ports import SharedMemoryPortLostError, SharedMemoryPortWatch, reserve_ports
+
+#: At most this many restarts for a lost shared-memory port within RESTART_WINDOW_S;
+#: past them the node stays up and logs the loss (a port lost again and again is not
+#: the race endo_io.shm_ports describes, and restarting would only lose state).
+MAX_RESTARTS = 3
+RESTART_WINDOW_S = 60.0
 
 
 @dataclass(frozen=True)
@@ -156,7 +163,7 @@ def describing_only() -> bool:
 
 def print_node_help(factory: Callable[[], Node], argv: Sequence[str]) -> int:
     """``--help`` of a node executable: create the node once, print its parameters."""
-    program = Path(argv[0]).name if argv else "node"
+    program = _program(argv)
     prepare_transport()
     rclpy.init(args=[program])
     try:
@@ -304,23 +311,34 @@ def run_node(factory: Callable[[], Node], args: Sequence[str] | None = None, *,
     ours, _ = split_ros_args(argv)
     if "-h" in ours or "--help" in ours:
         return print_node_help(factory, argv)
+    restarts: list[float] = []  # when the node was created again, monotonic seconds
     with sigint_shuts_down_only() as sigint:
         while True:
+            now = time.monotonic()
+            restarts = [t for t in restarts if now - t < RESTART_WINDOW_S]
+            restart = restart_on_lost_port and len(restarts) < MAX_RESTARTS
+            if restart_on_lost_port and not restart:
+                print(f"{_program(argv)}: {len(restarts)} restarts within {RESTART_WINDOW_S:g} s "
+                      "for a lost shared-memory port: no more restarts (a lost port is "
+                      "logged as an error)", file=sys.stderr, flush=True)
             try:
-                return _run_node(factory, argv, sigint, restart_on_lost_port)
+                return _run_node(factory, argv, sigint, restart)
             except SharedMemoryPortLostError as error:
                 # the node starts over (a new DDS participant, its state and
                 # counters anew), as a respawn would, without leaving the
                 # process, on other ports than the lost ones (see reserve_ports)
-                reserve_ports(error.ports)
-                program = Path(argv[0]).name if argv else "node"
-                print(f"{program}: {error}; restarting the node's DDS participant",
+                held = reserve_ports(error.ports)
+                unheld = sorted(set(error.ports) - set(held))
+                note = (f" (port {', '.join(map(str, unheld))} could not be held: the new "
+                        "participant may take it again)" if unheld else "")
+                print(f"{_program(argv)}: {error}; restarting the node's DDS participant{note}",
                       file=sys.stderr, flush=True)
+                restarts.append(time.monotonic())
 
 
 def _run_node(factory: Callable[[], Node], argv: list[str],
               sigint: _SigintShutdown | None, restart_on_lost_port: bool) -> int:
-    program = Path(argv[0]).name if argv else "node"
+    program = _program(argv)
     # rclpy's default signal handlers cover SIGINT and SIGTERM: both shut the
     # context down, spin() returns, and the node's close() still runs below.
     prepare_transport()
@@ -334,6 +352,8 @@ def _run_node(factory: Callable[[], Node], argv: list[str],
         _try_shutdown_quietly()
         return 0
     node: Node | None = None
+    lost: SharedMemoryPortLostError | None = None
+    signalled = False
     try:
         try:
             if sigint is not None:
@@ -354,6 +374,8 @@ def _run_node(factory: Callable[[], Node], argv: list[str],
         # Logged once the executor exists: a process that sees this line is up.
         log_dds_environment(node)
         executor.spin()
+    except SharedMemoryPortLostError as error:
+        lost = error  # raised again below, unless a signal stopped the node meanwhile
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except Exception:
@@ -371,9 +393,14 @@ def _run_node(factory: Callable[[], Node], argv: list[str],
             if callable(close):
                 close()
             node.destroy_node()
+        # SIGINT or SIGTERM (rclpy's handler) while closing shut the context down:
+        # the stop asked for wins over a restart
+        signalled = not rclpy.ok()
         # try_shutdown: SIGINT or the node itself may have shut the context
         # down already, and a later rclpy.init() in this process must work.
         rclpy.try_shutdown()
+    if lost is not None and not signalled:
+        raise lost
     return int(getattr(node, "exit_code", 0) or 0)
 
 
@@ -399,6 +426,11 @@ def _lost_port_check(node: Node, *, restart: bool) -> Callable[[], None]:
                 logged = True
 
     return check
+
+
+def _program(argv: Sequence[str]) -> str:
+    """The program's name in messages: its command's file name."""
+    return Path(argv[0]).name if argv else "node"
 
 
 def _refused_arguments(error: Exception) -> str:

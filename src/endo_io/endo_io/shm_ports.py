@@ -1,11 +1,14 @@
 """Whether this process still receives on its Fast DDS shared-memory ports.
 
-Why: Fast DDS (2.14, and 3.x alike) names each participant's receiving port
-``/dev/shm/fastrtps_port<N>``; senders open it by that name. Under CPU
-starvation (a listener that does not answer the port's health check within
-about a second: a loaded two-core CI host, a node warming up) a sender or
-the watchdog can remove the port's file by name and create it anew while
-the listener still waits on the old, now nameless segment
+Why: Fast DDS 2.x (the Jazzy wheels carry 2.14) names each participant's
+receiving port ``/dev/shm/fastrtps_port<N>``; senders open it by that name
+(3.x names them ``fastdds_port<N>``: there this watch finds nothing). Under
+CPU starvation (a listener that does not answer the port's health check
+within about a second: a loaded two-core CI host, a node warming up) the
+watchdog marks the port bad, and an opener (``open_port_internal``) or a
+sender's port going away (``~Port``) can remove the port's file by name and
+create it anew while the listener still waits on the old, now nameless
+segment
 (eProsima/Fast-DDS#5469, still open; reproduced here with the endo3d
 profile: one SIGSTOP of 4 s in 16). From then on the senders that had the
 old segment open still reach the node, and every other one, including any
@@ -17,8 +20,9 @@ The state shows in the process's own tables: it holds the port's lock file
 (``fastrtps_port<N>_el``: the exclusive reader) but has no mapping of the
 segment that now carries the port's name (``/proc/self/maps`` keeps the old
 one, by inode, marked ``(deleted)``). :class:`SharedMemoryPortWatch` checks
-this every :data:`CHECK_PERIOD_S`; a port lost at two checks in a row is
-lost (a port being regenerated is lost for an instant only). Then
+this every :data:`CHECK_PERIOD_S`; a port is lost when every check has found
+it so for :data:`CONFIRM_S` (a port that Fast DDS regenerates, or heals once
+its listener runs again, is lost for an instant or a few seconds). Then
 :func:`endo_io.process.run_node` logs one line and, for the processing
 nodes (``restart_on_lost_port``), creates the node again in the process
 with a new participant, after :func:`reserve_ports` has locked the lost
@@ -34,15 +38,19 @@ from __future__ import annotations
 import fcntl
 import os
 import re
+import time
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from pathlib import Path
 
-#: Where Fast DDS (through Boost.Interprocess) keeps its shared-memory files on Linux.
-SHM_DIR = Path("/dev/shm")
+#: Where Fast DDS (through Boost.Interprocess) keeps its shared-memory files on Linux
+#: (resolved: /proc shows the real path where /dev/shm is a link, e.g. to /run/shm).
+SHM_DIR = Path("/dev/shm").resolve()
 
-#: How often a node checks its ports, seconds; a port lost at two checks in a row is lost.
+#: How often a node checks its ports, seconds.
 CHECK_PERIOD_S = 2.0
+#: How long a port must have been lost at every check to be lost, seconds.
+CONFIRM_S = 5.0
 
 _PORT_LOCK = re.compile(r"^fastrtps_port(\d+)_el$")
 # /proc/<pid>/maps: address perms offset dev inode path [(deleted)]
@@ -113,6 +121,8 @@ def mapped_port_inodes(maps_text: str) -> dict[int, set[int]]:
     """
     found: dict[int, set[int]] = {}
     for line in maps_text.splitlines():
+        if "fastrtps_port" not in line:  # most lines: a check runs on the executor's thread
+            continue
         match = _MAPS_LINE.match(line.strip())
         if match is None:
             continue
@@ -155,7 +165,8 @@ def _current_inode(port: int) -> int | None:
         return None
 
 
-def _fd_targets(fd_dir: Path) -> list[str]:
+def fd_targets(fd_dir: Path) -> list[str]:
+    """Where the open file descriptors listed in ``fd_dir`` (``/proc/<pid>/fd``) point."""
     targets: list[str] = []
     try:
         entries = list(fd_dir.iterdir())
@@ -175,33 +186,49 @@ def this_process_lost_ports(proc: Path = Path("/proc/self")) -> list[LostPort]:
         maps = (proc / "maps").read_text()
     except OSError:
         return []
-    return lost_ports(held_ports(_fd_targets(proc / "fd")), mapped_port_inodes(maps),
+    return lost_ports(held_ports(fd_targets(proc / "fd")), mapped_port_inodes(maps),
                       _current_inode)
 
 
 class SharedMemoryPortWatch:
-    """Raises when a receiving port stays lost at two checks in a row.
+    """Raises when a receiving port has stayed lost for ``confirm_s`` at every check.
+
+    A port that Fast DDS regenerates, or heals once its starved listener runs
+    again, is lost for an instant or a few seconds (up to 2.7 s seen with a
+    listener stopped for 4 s): a port is confirmed lost only when every check
+    found it lost since one at least ``confirm_s`` earlier. Which segment its
+    name points to may change meanwhile: a sender still trying the old
+    participant's locator removes and recreates the file every second or so.
 
     Args:
         find: what to check (:func:`this_process_lost_ports`; a test passes its own).
+        confirm_s: how long a port must stay lost, seconds.
+        clock: monotonic seconds (a test passes its own).
     """
 
-    def __init__(self, find: Callable[[], list[LostPort]] = this_process_lost_ports) -> None:
+    def __init__(self, find: Callable[[], list[LostPort]] = this_process_lost_ports, *,
+                 confirm_s: float = CONFIRM_S,
+                 clock: Callable[[], float] = time.monotonic) -> None:
         self._find = find
-        self._suspects: set[int] = set()
+        self._confirm_s = confirm_s
+        self._clock = clock
+        self._lost_since: dict[int, float] = {}  # port -> first of the checks that found it lost
 
     def check(self) -> None:
         """Check once (a timer's callback).
 
         Raises:
-            SharedMemoryPortLostError: a port lost now was lost at the check before.
+            SharedMemoryPortLostError: a port has been lost at every check for
+                ``confirm_s`` or more; the error names it and carries every port
+                lost now (a new participant should take none of them).
         """
+        now = self._clock()
         lost = self._find()
-        confirmed = [port for port in lost if port.port in self._suspects]
-        self._suspects = {port.port for port in lost}
+        self._lost_since = {port.port: self._lost_since.get(port.port, now) for port in lost}
+        confirmed = [port for port in lost if now - self._lost_since[port.port] >= self._confirm_s]
         if confirmed:
             raise SharedMemoryPortLostError("; ".join(port.describe() for port in confirmed),
-                                            tuple(port.port for port in confirmed))
+                                            tuple(port.port for port in lost))
 
 
 #: Lock files this process holds so that no participant of its takes those ports again.
@@ -225,16 +252,28 @@ def reserve_ports(ports: Iterable[int]) -> list[int]:
     """
     held = []
     for port in ports:
-        path = SHM_DIR / f"fastrtps_port{port}_el"
+        if _reserve(SHM_DIR / f"fastrtps_port{port}_el"):
+            held.append(port)
+    return held
+
+
+def _reserve(path: Path, attempts: int = 5) -> bool:
+    """Lock ``path`` (created if missing) for this process's life; whether it is held."""
+    for _ in range(attempts):
         try:
             descriptor = os.open(path, os.O_RDWR | os.O_CREAT, 0o666)
         except OSError:
-            continue
+            return False
         try:
             fcntl.flock(descriptor, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            # Fast DDS removes lock files by name (a sender's zombie probe does):
+            # a lock on a file that lost its name reserves nothing, so try again
+            same = os.fstat(descriptor).st_ino == path.stat().st_ino
         except OSError:
-            os.close(descriptor)
-            continue
-        _reserved.append(descriptor)
-        held.append(port)
-    return held
+            same = False
+        if same:
+            _reserved.append(descriptor)
+            return True
+        os.close(descriptor)
+        time.sleep(0.01)
+    return False

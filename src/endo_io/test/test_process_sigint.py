@@ -9,7 +9,6 @@ the callback the signal lands in finishes, and ``close()`` runs whole.
 
 from __future__ import annotations
 
-import select
 import signal
 import subprocess
 import sys
@@ -141,7 +140,7 @@ CHILD = textwrap.dedent(
 
 
 @pytest.mark.ros
-def test_sigint_to_a_node_process_busy_in_a_callback_ends_it_cleanly():
+def test_sigint_to_a_node_process_busy_in_a_callback_ends_it_cleanly(child_lines):
     child = subprocess.Popen(
         [sys.executable, "-c", CHILD],
         stdout=subprocess.PIPE,
@@ -149,27 +148,22 @@ def test_sigint_to_a_node_process_busy_in_a_callback_ends_it_cleanly():
         text=True,
     )
     # Fast DDS's own log lines go to stdout too (a shared-memory port warning
-    # under a full suite's load came first once, and this test then waited on
+    # came first once under a full suite's load, and the test then waited on
     # stderr for 300 s): the child's lines are looked for among them.
-    before: list[str] = []
+    assert child.stdout is not None and child.stderr is not None
+    lines = child_lines(child.stdout)
     try:
-        assert child.stdout is not None
-        deadline = time.monotonic() + 60.0
-        while "busy" not in before and time.monotonic() < deadline:
-            ready, _, _ = select.select([child.stdout], [], [], deadline - time.monotonic())
-            line = child.stdout.readline() if ready else ""
-            if not line:  # the child ended, or the wait did
-                break
-            before.append(line.rstrip("\n"))
-        assert "busy" in before, f"no 'busy' line within 60 s; stdout so far: {before}"
+        busy = lines.until(lambda line: line == "busy", 60.0)
+        assert busy, f"no 'busy' line within 60 s; stdout so far: {lines.seen}"
         child.send_signal(signal.SIGINT)  # lands in the callback's loop
-        out, err = child.communicate(timeout=DEADLINE_S + 20)
+        child.wait(DEADLINE_S + 20)
+        err = child.stderr.read()
     finally:
         if child.poll() is None:
             child.kill()
-            child.communicate()
+            child.wait()
     assert child.returncode == 0, err
     ours = {"busy", "callback finished", "gave up", "closed"}
-    lines = [line for line in before + out.splitlines() if line in ours]
-    assert lines == ["busy", "callback finished", "closed"], before + out.splitlines()
+    out = lines.rest(10.0)
+    assert [line for line in out if line in ours] == ["busy", "callback finished", "closed"], out
     assert "Traceback" not in err and "KeyboardInterrupt" not in err

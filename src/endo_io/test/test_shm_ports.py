@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import fcntl
 import os
-import select
 import signal
 import subprocess
 import sys
@@ -24,12 +23,14 @@ import pytest
 import rclpy
 from std_msgs.msg import String
 
+from conftest import ChildLines
 from endo_io import shm_ports
 from endo_io.process import prepare_transport
 from endo_io.shm_ports import (
     LostPort,
     SharedMemoryPortLostError,
     SharedMemoryPortWatch,
+    fd_targets,
     held_ports,
     lost_ports,
     mapped_port_inodes,
@@ -67,30 +68,47 @@ def test_a_held_port_is_lost_when_its_name_points_elsewhere_or_nowhere():
     assert lost_ports({23171}, mapped, lambda port: None) == []
 
 
-def test_the_watch_raises_only_for_a_port_lost_at_two_checks_in_a_row():
-    # a port being regenerated is lost for an instant: one check alone is not enough
-    answers = [[LostPort(1, frozenset({5}), None)], [], [LostPort(1, frozenset({5}), 6)],
-               [LostPort(1, frozenset({5}), 6), LostPort(3, frozenset({7}), None)]]
-    watch = SharedMemoryPortWatch(lambda: answers.pop(0))
-    watch.check()
-    watch.check()
-    watch.check()
-    with pytest.raises(SharedMemoryPortLostError) as raised:
+def test_the_watch_raises_only_for_a_port_lost_at_every_check_for_the_confirmation_time():
+    # a port being regenerated, or healing once its listener runs again, is lost
+    # for an instant or a few seconds: not enough
+    now = [0.0]
+    answers: list[list[LostPort]] = []
+    watch = SharedMemoryPortWatch(lambda: answers.pop(0), confirm_s=5.0, clock=lambda: now[0])
+
+    def check_at(seconds: float, *lost: LostPort) -> None:
+        now[0] = seconds
+        answers.append(list(lost))
         watch.check()
-    assert raised.value.ports == (1,)
+
+    check_at(0.0, LostPort(1, frozenset({5}), None))
+    check_at(2.0, LostPort(1, frozenset({5}), 6))
+    check_at(4.0)  # healed: the next loss starts over
+    check_at(6.0, LostPort(1, frozenset({5}), 7))
+    check_at(8.0, LostPort(1, frozenset({5}), 8))  # its name moves on: still lost
+    check_at(10.0, LostPort(1, frozenset({5}), None), LostPort(3, frozenset({9}), None))
+    with pytest.raises(SharedMemoryPortLostError) as raised:
+        check_at(11.0, LostPort(1, frozenset({5}), 8), LostPort(3, frozenset({9}), None))
+    assert "port 1 " in str(raised.value) and "port 3 " not in str(raised.value)
+    assert raised.value.ports == (1, 3)  # every port lost now is to be avoided
 
 
 def test_a_reserved_port_is_busy_to_anyone_who_tries_its_lock(tmp_path, monkeypatch):
     monkeypatch.setattr(shm_ports, "SHM_DIR", tmp_path)
-    assert shm_ports.reserve_ports([31001]) == [31001]
-    descriptor = os.open(tmp_path / "fastrtps_port31001_el", os.O_RDWR)
+    reserved: list[int] = []
+    monkeypatch.setattr(shm_ports, "_reserved", reserved)  # this process's own stay untouched
     try:
-        with pytest.raises(BlockingIOError):  # what Fast DDS meets: the port is taken
-            fcntl.flock(descriptor, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        assert shm_ports.reserve_ports([31001]) == [31001]
+        descriptor = os.open(tmp_path / "fastrtps_port31001_el", os.O_RDWR)
+        try:
+            with pytest.raises(BlockingIOError):  # what Fast DDS meets: the port is taken
+                fcntl.flock(descriptor, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        finally:
+            os.close(descriptor)
+        # a lock someone else holds (here: the same file opened again) is left to them
+        assert shm_ports.reserve_ports([31001]) == []
     finally:
-        os.close(descriptor)
-    # a lock someone else holds is left to them
-    assert shm_ports.reserve_ports([31001]) == []
+        for descriptor in reserved:
+            os.close(descriptor)
 
 
 LISTENER = textwrap.dedent(
@@ -114,26 +132,30 @@ LISTENER = textwrap.dedent(
 )
 
 
-def _listen_after_losing_its_ports(mode: str, seconds: float,
+def _listen_after_losing_its_ports(child_lines: type[ChildLines], mode: str, seconds: float,
                                    enough: int | None = None) -> tuple[list[str], str]:
     """Start a listener node, remove its port files by name, publish from a new participant.
 
     Publishes for ``seconds``, or until the listener heard ``enough`` messages.
-    Returns the listener's stdout lines while publishing (Fast DDS's own log
-    lines left out) and its stderr.
+    Returns the listener's lines ("ready", "got N"; Fast DDS's own log lines
+    left out) and its stderr; the listener must end cleanly on SIGINT.
     """
     child = subprocess.Popen([sys.executable, "-c", LISTENER, mode], stdout=subprocess.PIPE,
                              stderr=subprocess.PIPE, text=True,
                              env=dict(os.environ, PYTHONUNBUFFERED="1"))
-    lines: list[str] = []
+    assert child.stdout is not None and child.stderr is not None
+    output = child_lines(child.stdout)
+
+    def ours() -> list[str]:
+        return [line for line in output.seen if line == "ready" or line.startswith("got ")]
+
     context = rclpy.Context()
     try:
-        assert child.stdout is not None
         deadline = time.monotonic() + 60.0
         held: set[int] = set()
         while not held and time.monotonic() < deadline:  # its participant is up
             time.sleep(0.2)
-            held = held_ports(shm_ports._fd_targets(Path(f"/proc/{child.pid}/fd")))
+            held = held_ports(fd_targets(Path(f"/proc/{child.pid}/fd")))
         assert held, "the listener holds no shared-memory port"
         for port in held:  # what the race leaves: the names no longer its segments
             (shm_ports.SHM_DIR / f"fastrtps_port{port}").unlink(missing_ok=True)
@@ -144,33 +166,30 @@ def _listen_after_losing_its_ports(mode: str, seconds: float,
         end = time.monotonic() + seconds
         count = 0
         while time.monotonic() < end and (
-                enough is None or sum(line.startswith("got ") for line in lines) < enough):
+                enough is None or sum(line.startswith("got ") for line in ours()) < enough):
             publisher.publish(String(data=str(count)))
             count += 1
-            ready, _, _ = select.select([child.stdout], [], [], 0.05)
-            while ready:
-                line = child.stdout.readline().strip()
-                if not line:
-                    break
-                if line == "ready" or line.startswith("got "):
-                    lines.append(line)
-                ready, _, _ = select.select([child.stdout], [], [], 0)
+            output.until(lambda line: False, 0.05)  # take what came meanwhile
         node.destroy_node()
     finally:
         rclpy.try_shutdown(context=context)
         if child.poll() is None:
             child.send_signal(signal.SIGINT)
         try:
-            _, err = child.communicate(timeout=20)
+            child.wait(20)
         except subprocess.TimeoutExpired:
             child.kill()
-            _, err = child.communicate()
-    return lines, err
+            child.wait()
+        err = child.stderr.read()
+    output.rest(5.0)
+    assert child.returncode == 0, err
+    assert "Traceback" not in err, err
+    return ours(), err
 
 
 @pytest.mark.ros
-def test_a_node_whose_ports_were_taken_hears_nothing_and_says_so():
-    lines, err = _listen_after_losing_its_ports("log", 8.0)
+def test_a_node_whose_ports_were_taken_hears_nothing_and_says_so(child_lines):
+    lines, err = _listen_after_losing_its_ports(child_lines, "log", 12.0)
     assert not any(line.startswith("got ") for line in lines), lines
     lost = [line for line in err.splitlines() if "was taken from this node" in line]
     assert len(lost) == 1 and "[ERROR]" in lost[0], err
@@ -178,8 +197,8 @@ def test_a_node_whose_ports_were_taken_hears_nothing_and_says_so():
 
 
 @pytest.mark.ros
-def test_run_node_restarts_a_node_whose_ports_were_taken_and_it_hears_again():
-    lines, err = _listen_after_losing_its_ports("restart", 30.0, enough=20)
+def test_run_node_restarts_a_node_whose_ports_were_taken_and_it_hears_again(child_lines):
+    lines, err = _listen_after_losing_its_ports(child_lines, "restart", 30.0, enough=20)
     restarts = [line for line in err.splitlines()
                 if "restarting the node's DDS participant" in line]
     assert len(restarts) == 1, err
