@@ -24,7 +24,7 @@ import rclpy
 from std_msgs.msg import String
 
 from conftest import ChildLines
-from endo_io import shm_ports
+from endo_io import process, shm_ports
 from endo_io.process import prepare_transport
 from endo_io.shm_ports import (
     LostPort,
@@ -206,3 +206,21 @@ def test_run_node_restarts_a_node_whose_ports_were_taken_and_it_hears_again(chil
     got = [line for line in lines if line.startswith("got ")]
     assert len(got) >= 20, (lines, err)
     assert lines.index("ready", 1) < lines.index(got[0])  # heard by the new node
+
+
+def test_run_node_restarts_at_most_three_times_a_minute_then_only_logs(monkeypatch, capsys):
+    calls: list[bool] = []
+
+    def run_once(factory, argv, sigint, restart: bool) -> int:
+        calls.append(restart)
+        if restart:
+            raise SharedMemoryPortLostError("shared-memory port 7 was taken", (7,))
+        return 0  # without restarts the loss is only logged, and the node runs to its end
+
+    monkeypatch.setattr(process, "_run_node", run_once)
+    monkeypatch.setattr(process, "reserve_ports", lambda ports: [])
+    assert process.run_node(lambda: None, ["node-under-test"], restart_on_lost_port=True) == 0
+    assert calls == [True, True, True, False]
+    err = capsys.readouterr().err
+    assert err.count("restarting the node's DDS participant (port 7 could not be held") == 3
+    assert "3 restarts within 60 s for a lost shared-memory port: no more restarts" in err
