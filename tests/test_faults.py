@@ -47,6 +47,7 @@ from endo_io.bag import BagReader, BagWriter, deserialize, serialize
 from endo_io.camera import CameraModel
 from endo_io.errors import BagCorruptError
 from endo_io.image import array_to_image, image_to_array
+from endo_io.shm_ports import SHM_DIR, fd_targets, held_ports
 from endo_io.stamp import NS_PER_S, ns_to_stamp, stamp_to_ns
 from endo_sim.bagout import write_bag
 from endo_sim.sequences import SimulationConfig, build_sequence
@@ -291,6 +292,33 @@ def test_kill_9_each_node_in_turn_and_restart_it_the_graph_resumes_on_a_looping_
         )
     for name in STATUS:
         assert "Traceback" not in graph.output(name), graph.output(name)
+
+
+def test_a_node_whose_shared_memory_port_is_taken_comes_back_in_its_process(graph):
+    # CI once: a restarted flow node matched on every topic heard only its poses for
+    # minutes; Fast DDS had taken its port (endo_io.shm_ports). Made here directly:
+    # its port files removed by name, as the race leaves them.
+    graph, spin_until = graph
+    flow = graph.processes["flow"]
+    others = {n: graph.processed(n) for n in STATUS if n != "flow"}
+    held = held_ports(fd_targets(Path(f"/proc/{flow.pid}/fd")))
+    assert held, graph.describe()
+    for port in held:
+        (SHM_DIR / f"fastrtps_port{port}").unlink(missing_ok=True)
+    restarted = spin_until(
+        lambda: "restarting the node's DDS participant" in graph.output("flow"), 30.0)
+    assert restarted, graph.describe()
+    spin_until(lambda: False, 1.5)  # the old node's last status, drained
+    graph.status.pop(STATUS["flow"], None)
+    resumed = spin_until(
+        lambda: graph.processed("flow") > 0
+        and all(graph.processed(n) > before for n, before in others.items()),
+        45.0,
+    )
+    assert resumed, graph.describe()
+    assert graph.processes["flow"] is flow and flow.poll() is None  # the same process
+    assert graph.output("flow").count("restarting the node's DDS participant") == 1
+    assert "Traceback" not in graph.output("flow"), graph.output("flow")
 
 
 def test_a_camera_info_size_change_mid_stream_is_replanned_by_every_node(graph, bags):
