@@ -18,12 +18,12 @@ import sys
 import textwrap
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import pytest
 import rclpy
 from std_msgs.msg import String
 
-from conftest import ChildLines
 from endo_io import process, shm_ports
 from endo_io.process import prepare_transport
 from endo_io.shm_ports import (
@@ -35,6 +35,9 @@ from endo_io.shm_ports import (
     lost_ports,
     mapped_port_inodes,
 )
+
+if TYPE_CHECKING:  # the fixture's class (the repository's conftest.py), for its annotation
+    from conftest import ChildLines
 
 MAPS = textwrap.dedent(
     """\
