@@ -8,9 +8,8 @@ within about a second: a loaded two-core CI host, a node warming up) the
 watchdog marks the port bad, and an opener (``open_port_internal``) or a
 sender's port going away (``~Port``) can remove the port's file by name and
 create it anew while the listener still waits on the old, now nameless
-segment
-(eProsima/Fast-DDS#5469, still open; reproduced here with the endo3d
-profile: one SIGSTOP of 4 s in 16). From then on the senders that had the
+segment (eProsima/Fast-DDS#5469, still open; reproduced here with the
+endo3d profile: one SIGSTOP of 4 s in 16). From then on the senders that had the
 old segment open still reach the node, and every other one, including any
 publisher started later, writes into the new file, which nobody reads: the
 node is matched on every topic and hears nothing, for good. CI saw a
