@@ -55,7 +55,11 @@ def kernel_fingerprint() -> str:
 
 
 def _stamp() -> Path:
-    return kernel_cache_dir() / _STAMP_NAME
+    # One stamp per source tree: numba keys its cache files by the source's path, so
+    # checkouts sharing the cache folder each have kernels of their own; one shared
+    # stamp flipped between them, and every start announced a compile it did not do.
+    tree = hashlib.sha256(str(Path(__file__).resolve().parent).encode()).hexdigest()[:16]
+    return kernel_cache_dir() / f"{_STAMP_NAME}.{tree}"
 
 
 def kernels_cached() -> bool:

@@ -53,5 +53,9 @@ def test_a_warm_up_that_must_compile_says_so_first(monkeypatch, tmp_path):
     warm_up_kernels(announce=said.append)
     assert said == [COMPILE_NOTICE.format(folder=tmp_path)]
     assert kernels_cached()
-    (tmp_path / "endo_sfs.kernels").write_text("kernels of other sources\n")
+    # another checkout's stamp in the shared folder is its own, not this tree's
+    (ours,) = tmp_path.glob("endo_sfs.kernels.*")
+    (tmp_path / "endo_sfs.kernels.0123456789abcdef").write_text("kernels of other sources\n")
+    assert kernels_cached()
+    ours.write_text("kernels of other sources\n")  # this tree's sources changed
     assert not kernels_cached()
